@@ -1,0 +1,43 @@
+# quasisim: `make demo` runs the pipeline on the bundled example, `make test` runs the tests.
+# Both create .venv (Python 3.11) on first use.
+PYTHON ?= python3.11
+VENV := .venv
+PY := $(VENV)/bin/python
+SHARED ?= $(abspath ../shared)
+export QUASISIM_ROBOT_PATH ?= $(SHARED)/robots
+export QUASISIM_DATA ?= $(SHARED)/data
+export MUJOCO_GL ?= egl
+
+.PHONY: setup demo test test-fast lint bench-baseline clean
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	@sh scripts/system_deps.sh
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (quasisim needs Python 3.11)"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev,cluster]'
+	@touch $@
+
+demo: setup
+	$(VENV)/bin/quasisim example --out out/example --name cube_lift
+	$(VENV)/bin/quasisim retarget out/example/cube_lift.npz --hand shadow --out out/example/cube_lift
+	$(VENV)/bin/quasisim evaluate out/example/cube_lift.npz out/example/cube_lift/kinematic.npz \
+		--target mujoco --out out/example/cube_lift/kinematic_mujoco
+	@echo "report: out/example/cube_lift/kinematic_mujoco/report.html"
+
+test: setup
+	$(VENV)/bin/pytest -q
+
+test-fast: setup
+	$(VENV)/bin/pytest -q -m "not slow"
+
+lint: setup
+	$(VENV)/bin/ruff check src tests examples
+
+bench-baseline: setup
+	$(VENV)/bin/quasisim bench baseline $(QUASISIM_DATA) --hand shadow --out bench_out/baseline
+
+clean:
+	rm -rf out bench_out .pytest_cache .ruff_cache

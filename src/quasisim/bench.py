@@ -1,0 +1,144 @@
+"""Benchmarks that print markdown for BENCHMARKS.md (date, machine, command, table)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.io import save_json_atomic, save_text_atomic
+from quasisim.metrics import SUCCESS_KEYS
+
+
+def machine_line() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.system()} {platform.machine()}, {cpu}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}"
+
+
+def header(title: str) -> str:
+    now = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    cmd = (
+        "quasisim " + " ".join(sys.argv[1:])
+        if sys.argv and "quasisim" in Path(sys.argv[0]).name
+        else " ".join(sys.argv)
+    )
+    return f"### {title}\n\n- date: {now}\n- machine: {machine_line()}\n- command: `{cmd}`\n"
+
+
+def clips(data_dir: Path, pattern: str) -> list[Path]:
+    paths = sorted(data_dir.glob(pattern))
+    if "_long" not in pattern:
+        paths = [p for p in paths if not p.stem.endswith("_long")]
+    return paths
+
+
+def summary_rows(rows: list[dict[str, Any]], group: str) -> list[str]:
+    out = []
+    for g in sorted({r[group] for r in rows}):
+        rs = [r for r in rows if r[group] == g]
+        m = {k: np.mean([r[k] for r in rs]) for k in ("R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm")}
+        s = {k: 100.0 * np.mean([r["success"][k] for r in rs]) for k in SUCCESS_KEYS}
+        out.append(
+            f"| {g} | {len(rs)} | {m['R_err_deg']:.1f} | {m['T_err_cm']:.2f} | {m['MPJPE_mm']:.1f} | {m['CD_mm']:.1f} | "
+            + " | ".join(f"{s[k]:.0f}" for k in SUCCESS_KEYS)
+            + f" | {np.mean([r['wall_s'] for r in rs]):.2f} |"
+        )
+    return out
+
+
+SUMMARY_HEAD = (
+    "| {g} | clips | R_err (deg) | T_err (cm) | MPJPE (mm) | CD (mm) | succ 10 (%) | succ 15 (%) | succ 20 (%) | strict (%) | wall s/clip |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|"
+)
+CLIP_HEAD = (
+    "| clip | {g} | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | lifted | wall s |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def clip_row(r: dict[str, Any], group: str) -> str:
+    s = r["success"]
+    yn = lambda b: "y" if b else "-"  # noqa: E731
+    return (
+        f"| {r['clip']} | {r[group]} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | {r['CD_mm']:.1f} | "
+        + " | ".join(yn(s[k]) for k in SUCCESS_KEYS)
+        + f" | {yn(r['lifted'])} | {r['wall_s']:.2f} |"
+    )
+
+
+def lifted(demo: Any, rollout: Any, min_lift: float = 0.03) -> bool:
+    """Did the simulated object rise >= 3 cm (or half the demo's lift, if smaller) above its start?"""
+    demo_lift = float(demo.object_pos[:, 2].max() - demo.object_pos[0, 2])
+    need = min(min_lift, 0.5 * demo_lift)
+    return bool(rollout.object_pos[:, 2].max() - rollout.object_pos[0, 2] >= need) and demo_lift > 0.01
+
+
+def run_baseline(
+    data_dir: Path, hand_name: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool
+) -> str:
+    """Kinematic retargeting replayed with PD control in each target, on every clip."""
+    from tqdm import tqdm
+
+    from quasisim.assets.hand import load_hand
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import evaluate_controls, load_object_for, scene_for
+    from quasisim.retarget import kinematic_controls
+
+    hand = load_hand(hand_name)
+    rows: list[dict[str, Any]] = []
+    paths = clips(data_dir, pattern)
+    for p in tqdm(paths, desc="clips", unit="clip"):
+        demo = load_demo(p)
+        t0 = time.perf_counter()
+        controls = kinematic_controls(hand, demo, hand_name)
+        t_ret = time.perf_counter() - t0
+        obj = load_object_for(demo)
+        scene = scene_for(demo, hand, controls.base_rot, obj)
+        for tgt in targets:
+            t1 = time.perf_counter()
+            ev = evaluate_controls(demo, controls, tgt, out / demo.name / tgt if render else None, render, scene=scene)
+            rows.append(
+                {
+                    "clip": demo.name,
+                    "target": tgt,
+                    **ev.metrics,
+                    "lifted": lifted(demo, ev.rollout),
+                    "retarget_s": t_ret,
+                    "rollout_s": ev.rollout.wall_s,
+                    "wall_s": t_ret + time.perf_counter() - t1,
+                }
+            )
+    lines = [
+        header(f"Kinematic-replay baseline ({hand_name})"),
+        SUMMARY_HEAD.format(g="target"),
+        *summary_rows(rows, "target"),
+    ]
+    for tgt in targets:
+        n_lift = sum(r["lifted"] for r in rows if r["target"] == tgt)
+        n = sum(1 for r in rows if r["target"] == tgt)
+        lines.append(f"\n{tgt}: object lifted (>= 3 cm or half the demo's lift) in {n_lift} of {n} clips.")
+    lines += ["", CLIP_HEAD.format(g="target"), *[clip_row(r, "target") for r in rows]]
+    text = "\n".join(lines) + "\n"
+    out.mkdir(parents=True, exist_ok=True)
+    save_json_atomic(out / "baseline.json", rows)
+    save_text_atomic(out / "baseline.md", text)
+    print(text)
+    return text
+
+
+def dump(obj: Any) -> str:
+    return json.dumps(obj, indent=2)

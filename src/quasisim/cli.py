@@ -1,0 +1,132 @@
+"""Command line interface: ``quasisim --help``."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from quasisim.errors import QuasisimError
+
+TARGET_CHOICE = click.Choice(["mujoco", "pybullet"])
+
+
+def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn quasisim's own errors into a one-line message and exit code 2 (no traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except QuasisimError as e:
+            click.echo(f"error: {e}", err=True)
+            sys.exit(2)
+
+    return wrapper
+
+
+def _setup_runtime() -> None:
+    from quasisim.runtime import configure_jax
+
+    configure_jax()
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="quasisim")
+def main() -> None:
+    """quasisim: turn human hand-object demonstrations into robot-hand controls that work in MuJoCo/PyBullet."""
+
+
+@main.command()
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--name", "names", multiple=True, help="Example to write (repeatable); default: all.")
+@click.option("--frames", default=60, show_default=True, help="Frames per example (20 fps).")
+@_friendly
+def example(out: Path, names: tuple[str, ...], frames: int) -> None:
+    """Write the built-in synthetic example demo(s) (demo npz v1 + meshes/) to OUT."""
+    from quasisim.synthetic import EXAMPLES, write_example
+
+    for n in names or EXAMPLES:
+        p = write_example(n, out, n_frames=frames)
+        click.echo(str(p))
+
+
+@main.command()
+@click.argument("demo", type=click.Path(path_type=Path))
+@click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@_friendly
+def retarget(demo: Path, hand: str, out: Path) -> None:
+    """Kinematic retargeting of DEMO to a robot hand: writes OUT/kinematic.npz (PD targets per frame)."""
+    _setup_runtime()
+    from quasisim.assets.hand import load_hand
+    from quasisim.demo import load_demo
+    from quasisim.retarget import kinematic_controls
+
+    d = load_demo(demo)
+    h = load_hand(hand)
+    t0 = time.perf_counter()
+    c = kinematic_controls(h, d, hand, progress=True)
+    path = c.save(out / "kinematic.npz")
+    err = c.extras["retarget_keypoint_error"][:, h.kp_metric].mean() * 1e3
+    click.echo(
+        f"{path}  ({d.n_frames} frames, mean metric keypoint error {err:.1f} mm, {time.perf_counter() - t0:.1f} s)"
+    )
+
+
+@main.command()
+@click.argument("demo", type=click.Path(path_type=Path))
+@click.argument("controls", type=click.Path(path_type=Path))
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
+@_friendly
+def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -> None:
+    """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
+    _setup_runtime()
+    from quasisim.assets.hand import load_hand
+    from quasisim.controls import load_controls
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import check_controls, evaluate_controls
+
+    d = load_demo(demo)
+    c = load_controls(controls)
+    check_controls(d, c, load_hand(c.hand), controls)
+    ev = evaluate_controls(d, c, target, out, render=render, progress=True)
+    click.echo(json.dumps(ev.metrics))
+    click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}, {out / 'report.html'}")
+
+
+@main.group()
+def bench() -> None:
+    """Benchmarks whose output goes into BENCHMARKS.md."""
+
+
+@bench.command("baseline")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--hand", default="shadow", show_default=True)
+@click.option(
+    "--target", "targets", type=TARGET_CHOICE, multiple=True, default=("mujoco", "pybullet"), show_default=True
+)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/baseline"), show_default=True)
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz are skipped unless named."
+)
+@click.option("--render/--no-render", default=False, show_default=True)
+@_friendly
+def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool) -> None:
+    """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
+    _setup_runtime()
+    from quasisim.bench import run_baseline
+
+    run_baseline(data_dir, hand, targets, out, pattern, render)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,118 @@
+"""Build the simulator's Model and default Params from a hand, an object asset and the table."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from quasisim.assets.hand import HandModel
+from quasisim.pointset import HandPoints, sample_hand_points
+from quasisim.sim.types import Model, Params
+
+F32 = jnp.float32
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Discretisation of the quasi-physical simulator.
+
+    Attributes:
+        dt: substep (s).  substeps: substeps per frame (``dt * substeps`` should equal 1 / fps).
+        sdf_spacing: SDF grid spacing (m).  n_surface: object surface samples for table contact.
+        n_candidates: hand points examined for contact per frame (broad phase).
+        point_spacing, point_offset: hand point-set sampling (m); None = the hand config's values.
+    """
+
+    dt: float = 0.0005
+    substeps: int = 100
+    sdf_spacing: float = 0.003
+    n_surface: int = 256
+    n_candidates: int = 256
+    point_spacing: float | None = None
+    point_offset: float | None = None
+
+    @classmethod
+    def for_fps(cls, fps: float, substeps: int, **kw: Any) -> SimOptions:
+        return cls(dt=1.0 / (fps * substeps), substeps=substeps, **kw)
+
+
+def build_model(
+    hand: HandModel, obj: Any, table: Any, opts: SimOptions, offset: np.ndarray, points: HandPoints | None = None
+) -> Model:
+    """``obj`` is an :class:`~quasisim.assets.object.ObjectAsset`; ``table`` a :class:`~quasisim.targets.scene.Table`;
+    ``offset`` (3,) the world position of the simulator origin (e.g. the object's initial position)."""
+    if points is None:
+        cfg = hand.config.points
+        points = sample_hand_points(
+            hand,
+            opts.point_spacing if opts.point_spacing is not None else cfg.spacing,
+            opts.point_offset if opts.point_offset is not None else cfg.offset,
+            cfg.seed,
+        )
+    grid = obj.sdf(spacing=opts.sdf_spacing)
+    surf, normals = obj.surface_points(opts.n_surface, seed=0)
+    return Model(
+        hand=hand,
+        point_body=np.asarray(points.body, dtype=np.int32),
+        point_local=jnp.asarray(points.local, F32),
+        sdf_values=jnp.asarray(grid.values, F32),
+        sdf_origin=jnp.asarray(grid.origin, F32),
+        sdf_spacing=jnp.asarray(grid.spacing, F32),
+        obj_com=jnp.asarray(obj.com, F32),
+        obj_surface=jnp.asarray(surf, F32),
+        obj_normals=jnp.asarray(normals, F32),
+        table=jnp.asarray(
+            [
+                table.xmin - offset[0],
+                table.xmax - offset[0],
+                table.ymin - offset[1],
+                table.ymax - offset[1],
+                table.top - offset[2],
+            ],
+            F32,
+        ),
+        offset=jnp.asarray(offset, F32),
+        dt=float(opts.dt),
+        substeps=int(opts.substeps),
+        n_candidates=int(min(opts.n_candidates, points.n)),
+    )
+
+
+def default_params(model: Model, obj_mass: float, obj_inertia: np.ndarray, **overrides: Any) -> Params:
+    """Parameters of the stiffest analytical simulator (curriculum sim 9) with the object's own S."""
+    hand = model.hand
+    J = hand.n_joints
+    pd = hand.config.pd
+    values: dict[str, Any] = dict(
+        alpha=0.0,
+        d_c=0.0,
+        k_n=4.0e6,
+        k_f=1.0e7,
+        k_d=1.0e3,
+        mu=10.0,
+        table_k_n=1.0e5,
+        table_k_d=1.0e3,
+        table_k_f=1.0e5,
+        table_mu=1.0,
+        obj_mass=obj_mass,
+        obj_inertia=np.asarray(obj_inertia),
+        obj_lin_damp=0.0,
+        obj_ang_damp=0.0,
+        gravity=np.array([0.0, 0.0, -9.81]),
+        point_mass=hand.total_mass / max(model.n_points, 1),
+        joint_damping=np.full(J, pd.joint_damping),
+        joint_stiffness=np.zeros(J),
+        armature=np.full(J, pd.joint_armature),
+        limit_k=100.0,
+        residual=None,
+        residual_local_on=0.0,
+        residual_global_on=0.0,
+    )
+    unknown = set(overrides) - set(values)
+    if unknown:
+        raise KeyError(f"unknown simulator parameters {sorted(unknown)}; valid: {sorted(values)}")
+    values.update(overrides)
+    return Params(**{k: (v if k == "residual" else jnp.asarray(v, F32)) for k, v in values.items()})

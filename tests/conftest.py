@@ -1,0 +1,51 @@
+"""Shared fixtures. Real clips and the Allegro model are read from ../shared (skipped when absent)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("QUASISIM_DATA") or REPO.parent / "shared" / "data")
+ROBOTS = Path(os.environ.get("QUASISIM_ROBOT_PATH") or REPO.parent / "shared" / "robots")
+os.environ.setdefault("QUASISIM_ROBOT_PATH", str(ROBOTS))
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from quasisim.runtime import configure_jax  # noqa: E402
+
+configure_jax()
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    if not (DATA / "manifest.json").is_file():
+        pytest.skip(f"real demonstration clips not found at {DATA} (set QUASISIM_DATA)")
+    return DATA
+
+
+@pytest.fixture(scope="session")
+def shadow():
+    from quasisim.assets.hand import load_hand
+
+    return load_hand("shadow")
+
+
+@pytest.fixture(scope="session")
+def allegro():
+    if not (ROBOTS / "allegro_hand" / "allegro_hand_right.urdf").is_file():
+        pytest.skip(f"Allegro model not found under {ROBOTS} (set QUASISIM_ROBOT_PATH)")
+    from quasisim.assets.hand import load_hand
+
+    return load_hand("allegro")
+
+
+@pytest.fixture(scope="session")
+def example_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The synthetic examples written once per session."""
+    from quasisim.synthetic import write_examples
+
+    d = tmp_path_factory.mktemp("examples")
+    write_examples(d)
+    return d

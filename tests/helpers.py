@@ -1,0 +1,38 @@
+"""Test helpers: a small duck-typed object asset so target tests need no SDF/CoACD work."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+
+def box_object(extents: tuple[float, float, float] = (0.05, 0.05, 0.05), density: float = 500.0) -> SimpleNamespace:
+    import trimesh
+
+    m = trimesh.creation.box(extents=extents)
+    m.density = density
+    parts = [(np.asarray(m.vertices), np.asarray(m.faces))]
+    return SimpleNamespace(
+        name="box",
+        vertices=np.asarray(m.vertices),
+        faces=np.asarray(m.faces),
+        mass=float(m.mass),
+        com=np.asarray(m.center_mass),
+        inertia=np.asarray(m.moment_inertia),
+        convex_parts=lambda *a, **k: parts,
+    )
+
+
+def scene_with(hand, obj=None, base_rot=None, object_pos=(0.0, 0.0, 0.825), table_top=0.8, half=0.3, fps=20.0):
+    from quasisim.targets.scene import Scene, Table
+
+    return Scene(
+        hand=hand,
+        base_rot=np.eye(3) if base_rot is None else base_rot,
+        obj=obj or box_object(),
+        table=Table(-half, half, -half, half, table_top),
+        object_pos0=np.asarray(object_pos, dtype=float),
+        object_quat0=np.array([1.0, 0.0, 0.0, 0.0]),
+        fps=fps,
+    )

@@ -1,0 +1,266 @@
+"""The quasi-physical simulator against closed-form physics, finite differences and its own invariants."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quasisim.contact import spring_damper
+from quasisim.sim.build import SimOptions, build_model, default_params
+from quasisim.sim.step import frame, initial_state, rollout, substep
+from quasisim.sim.types import Control
+from quasisim.targets.scene import Table
+
+G = 9.81
+HALF = 0.02  # 4 cm cube
+
+
+@pytest.fixture(scope="module")
+def cube(tmp_path_factory: pytest.TempPathFactory):
+    import trimesh
+
+    from quasisim.assets.object import load_object
+
+    d = tmp_path_factory.mktemp("cube")
+    trimesh.creation.box(extents=(2 * HALF,) * 3).export(d / "cube.obj")
+    return load_object(d / "cube.obj", density=500.0)
+
+
+def _scene(shadow, cube, dt: float, substeps: int, top: float = 0.0, n_candidates: int = 64):
+    table = Table(-0.3, 0.3, -0.3, 0.3, top)
+    opts = SimOptions(dt=dt, substeps=substeps, n_candidates=n_candidates, point_spacing=0.01)
+    return build_model(shadow, cube, table, opts, offset=np.zeros(3))
+
+
+def _state(model, obj_z: float, root=(0.0, 0.0, 1.0), q=None):
+    hand = model.hand
+    return initial_state(
+        model,
+        jnp.asarray(root),
+        jnp.array([1.0, 0, 0, 0]),
+        hand.rest_q() if q is None else q,
+        jnp.array([0.0, 0.0, obj_z]),
+        jnp.array([1.0, 0, 0, 0]),
+    )
+
+
+def _zero_ctrl(model, n_pts: int | None = None, frames: int | None = None) -> Control:
+    J = model.hand.n_joints
+    n = model.n_points if n_pts is None else n_pts
+    lead = () if frames is None else (frames,)
+    return Control(jnp.zeros((*lead, 3)), jnp.zeros((*lead, 3)), jnp.zeros((*lead, J)), jnp.zeros((*lead, n, 3)))
+
+
+def test_free_fall(shadow, cube) -> None:
+    dt, n = 1e-3, 50
+    model = _scene(shadow, cube, dt, n, top=-10.0)
+    params = default_params(model, cube.mass, cube.inertia)
+    s = _state(model, 0.5)
+    states = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=10)))(s)
+    z = np.asarray(states.obj_pos[:, 2])
+    steps = n * np.arange(1, 11)
+    discrete = 0.5 - G * dt * dt * steps * (steps + 1) / 2  # symplectic Euler: v first, then x
+    np.testing.assert_allclose(z, discrete, atol=2e-5)
+    t = steps * dt
+    assert np.all(np.abs(z - (0.5 - 0.5 * G * t * t)) <= G * dt * t)  # O(dt) away from the exact parabola
+
+
+def test_resting_penetration_mg_over_k(shadow, cube) -> None:
+    k = 2000.0
+    model = _scene(shadow, cube, 1e-3, 100)
+    params = default_params(model, cube.mass, cube.inertia, table_k_n=k, table_k_d=10.0)
+    s = _state(model, HALF + 1e-4)
+    states = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=20)))(s)
+    surf = np.asarray(model.obj_surface)
+    bottom = np.abs(surf[:, 2] + HALF) < 1e-6
+    n_c = int(bottom.sum())
+    assert n_c >= 10
+    z_bottom = np.asarray(states.obj_pos[-1, 2]) - HALF  # cube stays level: all bottom samples at this height
+    penetration = -z_bottom
+    expected = cube.mass * G / (n_c * k)
+    assert abs(penetration - expected) < 0.05 * expected, (penetration, expected)
+    assert abs(float(states.obj_vel[-1, 2])) < 1e-4
+
+
+def test_joint_damped_oscillation(shadow, cube) -> None:
+    """A finger joint with stiffness k and damping c oscillates with decay rate c / (2 I) (I from M(q))."""
+    from quasisim.rotations import quat_to_mat
+    from quasisim.sim.articulation import body_jacobians, mass_matrix
+
+    dt, n, frames = 2.5e-4, 40, 100  # 1 s
+    model = _scene(shadow, cube, dt, n, top=-10.0)
+    j = shadow.joint_names.index("robot0:FFJ3")
+    stiff = np.full(shadow.n_joints, 1e3)
+    k, c = 0.5, 1e-2
+    stiff[j] = k
+    damp = np.zeros(shadow.n_joints)
+    damp[j] = c
+    params = default_params(
+        model, cube.mass, cube.inertia, gravity=np.zeros(3), joint_stiffness=stiff, joint_damping=damp, limit_k=0.0
+    )
+    q0 = np.zeros(shadow.n_joints)
+    q0[j] = 0.2
+    s = _state(model, -5.0, root=(0.0, 0.0, 1.0), q=q0)
+    bj = body_jacobians(shadow, s.root_pos, quat_to_mat(s.root_quat), s.q)
+    I = float(mass_matrix(shadow, bj, params.armature)[j, j])
+    states = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=frames)))(s)
+    qj = np.concatenate([[0.2], np.asarray(states.q[:, j])])
+    # find successive maxima (sampled every n*dt = 10 ms; refine by a parabola through 3 samples)
+    peaks = []
+    for i in range(1, len(qj) - 1):
+        if qj[i] > qj[i - 1] and qj[i] >= qj[i + 1] and qj[i] > 0:
+            a, b, cc = qj[i - 1], qj[i], qj[i + 1]
+            off = 0.5 * (a - cc) / (a - 2 * b + cc)
+            peaks.append(((i + off) * n * dt, b - 0.25 * (a - cc) * off))
+    peaks = np.array(peaks)
+    assert len(peaks) >= 2
+    period = np.diff(peaks[:, 0]).mean()
+    sigma = np.log(peaks[:-1, 1] / peaks[1:, 1]).mean() / period
+    sigma_ref = c / (2 * I)
+    omega_ref = np.sqrt(k / I - sigma_ref**2)
+    assert abs(sigma - sigma_ref) < 0.05 * sigma_ref, (sigma, sigma_ref)
+    assert abs(2 * np.pi / period - omega_ref) < 0.02 * omega_ref
+
+
+@pytest.mark.parametrize(("ratio", "sticks"), [(0.5, True), (2.0, False)])
+def test_friction_stick_and_slide(shadow, cube, ratio: float, sticks: bool) -> None:
+    mu = 0.3
+    dt, n, frames = 1e-3, 50, 10  # 0.5 s
+    model = _scene(shadow, cube, dt, n)
+    params = default_params(model, cube.mass, cube.inertia, table_k_n=1e4, table_k_f=1e4, table_k_d=10.0, table_mu=mu)
+    s = _state(model, HALF)
+    settle = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=4)))
+    s = jax.tree_util.tree_map(lambda x: x[-1], settle(s))
+    push = ratio * mu * cube.mass * G
+    wrench = jnp.array([push, 0, 0, 0, 0, 0])
+
+    def run(s):
+        def body(s, _):
+            s = frame(model, params, s, _zero_ctrl(model), res_wrench=wrench)
+            return s, s.obj_pos
+
+        return jax.lax.scan(body, s, None, length=frames)[1]
+
+    x = np.asarray(jax.jit(run)(s))[:, 0] - float(s.obj_pos[0])
+    T = frames * n * dt
+    if sticks:
+        assert abs(x[-1]) < 5e-4  # only the friction springs stretch
+    else:
+        a = (push - mu * cube.mass * G) / cube.mass
+        assert abs(x[-1] - 0.5 * a * T * T) < 0.15 * 0.5 * a * T * T, (x[-1], 0.5 * a * T * T)
+
+
+def test_no_force_beyond_contact_distance() -> None:
+    p = jnp.zeros((3, 3))
+    n = jnp.tile(jnp.array([0.0, 0, 1]), (3, 1))
+    sd = jnp.array([0.0101, 0.0099, -0.001])
+    C = spring_damper(p, sd, n, jnp.zeros((3, 3)), p, jnp.zeros(3), 0.01, 1e4, 0.0, 1e4, 1.0)
+    f = np.asarray(C.force)
+    assert np.all(f[0] == 0) and f[1, 2] < 0 and f[2, 2] < f[1, 2]
+    np.testing.assert_allclose(f[1, 2], -1e4 * 1e-4, rtol=1e-3)
+    assert np.asarray(C.active).tolist() == [0.0, 1.0, 1.0]
+
+
+def test_hand_contact_pushes_object_only_within_dc(shadow, cube) -> None:
+    """A hand resting just outside d_c does not move the object; inside d_c it pushes it."""
+    from quasisim.kinematics import forward_kinematics
+    from quasisim.rotations import quat_to_mat
+    from quasisim.sim.step import Points, hand_points, object_origin, sdf_lookup
+
+    model = _scene(shadow, cube, 1e-3, 20, top=-10.0, n_candidates=128)
+    params0 = default_params(model, cube.mass, cube.inertia, gravity=np.zeros(3))
+    s = _state(model, 0.0, root=(0.0, 0.0, 0.0))
+    pts = Points(jnp.asarray(model.point_body), model.point_local)
+    # place the object 1 cm beyond the index fingertip along the finger direction... measure the gap
+    poses = forward_kinematics(shadow, s.root_pos, quat_to_mat(s.root_quat), s.q)
+    tip = np.asarray(poses.pos[shadow.body_names.index("robot0:ffdistal")]) + np.array([0, 0, 0.06])
+    s = dataclasses.replace(s, obj_pos=jnp.asarray(tip + np.asarray(model.obj_com)))
+    p, _, _ = hand_points(model, params0, s, pts)
+    origin, R = object_origin(model, s)
+    gap = float(jnp.min(sdf_lookup(model, (p - origin) @ R)[0]))
+    assert gap > 0.003
+    for d_c, moves in ((gap - 0.002, False), (gap + 0.01, True)):
+        params = params0.replace(d_c=d_c, k_n=1e3, k_f=0.0)
+        out = jax.jit(lambda s, params=params: frame(model, params, s, _zero_ctrl(model)))(s)
+        moved = float(jnp.linalg.norm(out.obj_pos - s.obj_pos))
+        assert (moved > 1e-6) == moves, (d_c, moved)
+
+
+def _contact_setup(shadow, cube):
+    """Object touching the index finger (soft contact) for gradient checks."""
+    from quasisim.kinematics import forward_kinematics
+    from quasisim.rotations import quat_to_mat
+
+    model = _scene(shadow, cube, 1e-3, 5, top=-10.0, n_candidates=128)
+    s = _state(model, 0.0, root=(0.0, 0.0, 0.0))
+    poses = forward_kinematics(shadow, s.root_pos, quat_to_mat(s.root_quat), s.q)
+    tip = np.asarray(poses.pos[shadow.body_names.index("robot0:ffdistal")]) + np.array([0.0, -0.01, 0.045])
+    s = dataclasses.replace(s, obj_pos=jnp.asarray(tip + np.asarray(model.obj_com)))
+    return model, s
+
+
+def _to64(tree):
+    return jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else x, tree
+    )
+
+
+def _fd_check(f, x0: np.ndarray, eps: float, rtol: float = 2e-3, atol: float = 1e-9) -> None:
+    g = np.asarray(jax.grad(f)(jnp.asarray(x0)))
+    fd = np.zeros_like(x0)
+    for i in np.ndindex(x0.shape):
+        e = np.zeros_like(x0)
+        e[i] = eps
+        fd[i] = (float(f(jnp.asarray(x0 + e))) - float(f(jnp.asarray(x0 - e)))) / (2 * eps)
+    np.testing.assert_allclose(g, fd, rtol=rtol, atol=atol + rtol * np.abs(fd).max())
+
+
+def test_gradients_match_finite_differences(shadow, cube) -> None:
+    """One substep w.r.t. joint forces; one frame w.r.t. root velocity, k_n and object mass (float64)."""
+    from quasisim.sim.step import Points
+
+    with jax.enable_x64(True):
+        model, s = _contact_setup(shadow, cube)
+        model, s = _to64(model), _to64(s)
+        params = _to64(default_params(model, cube.mass, cube.inertia, d_c=0.02, k_n=2e3, k_f=5e2, k_d=10.0, mu=10.0))
+        pts = _to64(Points(jnp.asarray(model.point_body), model.point_local))
+        c = _to64(_zero_ctrl(model))
+        probe = jnp.asarray(np.random.default_rng(0).normal(size=3))
+
+        def loss_sub(tau):
+            out = substep(model, params, s, dataclasses.replace(c, tau=tau), pts)
+            return jnp.dot(out.obj_vel, probe) + jnp.sum(out.qd[:4])
+
+        _fd_check(jax.jit(loss_sub), np.full(shadow.n_joints, 0.01), 1e-6)
+
+        def loss_frame(x):
+            ctrl = dataclasses.replace(c, root_vel=x[:3])
+            p = params.replace(k_n=x[3] * 1e3, obj_mass=x[4])
+            out = frame(model, p, s, ctrl)
+            return jnp.dot(out.obj_pos, probe) * 1e3
+
+        _fd_check(jax.jit(loss_frame), np.array([0.02, 0.01, 0.05, 2.0, cube.mass]), 1e-7, rtol=5e-3)
+
+
+def test_curriculum_runs_through_one_compiled_rollout(shadow, cube) -> None:
+    from quasisim.curriculum import load_curriculum
+
+    model = _scene(shadow, cube, 2.5e-3, 4, top=0.0)
+    s = _state(model, HALF, root=(0.0, -0.08, 0.05))
+    f = jax.jit(lambda p, s: rollout(model, p, s, _zero_ctrl(model, frames=3)))
+    cur = load_curriculum("default")
+    base = default_params(model, cube.mass, cube.inertia)
+    for i in range(len(cur.stages)):
+        out = f(base.replace(**cur.params_overrides(i)), s)
+        assert np.isfinite(np.asarray(out.obj_pos)).all()
+    assert f._cache_size() == 1
+
+
+def test_unknown_param_lists_options(shadow, cube) -> None:
+    model = _scene(shadow, cube, 1e-3, 1)
+    with pytest.raises(KeyError, match="valid"):
+        default_params(model, cube.mass, cube.inertia, stiffness=1.0)
