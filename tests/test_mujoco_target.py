@@ -46,8 +46,11 @@ def test_object_falls_onto_table(shadow) -> None:
 
 def test_hand_pushes_object(shadow) -> None:
     # the palm sweeps through the box's position at table height
-    sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825))
+    from scipy.spatial.transform import Rotation
+
+    # fingers horizontal: the base frame is turned 90 deg about y (base angles stay 0, away from gimbal lock)
+    base_rot = Rotation.from_euler("y", 90, degrees=True).as_matrix()
+    sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825), base_rot=base_rot)
     q = _targets(shadow, 40, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
-    q[:, 3:6] = [0.0, np.pi / 2, 0.0]  # palm facing +x-ish, fingers horizontal
     r = make_target("mujoco", sc).rollout(q)
     assert np.linalg.norm(r.object_pos[-1, :2] - r.object_pos[0, :2]) > 0.01

@@ -52,7 +52,8 @@ def _zero_ctrl(model, n_pts: int | None = None, frames: int | None = None) -> Co
     J = model.hand.n_joints
     n = model.n_points if n_pts is None else n_pts
     lead = () if frames is None else (frames,)
-    return Control(jnp.zeros((*lead, 3)), jnp.zeros((*lead, 3)), jnp.zeros((*lead, J)), jnp.zeros((*lead, n, 3)))
+    z = jnp.zeros((*lead, J))
+    return Control(jnp.zeros((*lead, 3)), jnp.zeros((*lead, 3)), z, z, z, jnp.zeros((*lead, n, 3)))
 
 
 def test_free_fall(shadow, cube) -> None:
@@ -100,8 +101,9 @@ def test_joint_damped_oscillation(shadow, cube) -> None:
     damp = np.zeros(shadow.n_joints)
     damp[j] = c
     params = default_params(
-        model, cube.mass, cube.inertia, gravity=np.zeros(3), joint_stiffness=stiff, joint_damping=damp, limit_k=0.0
-    )
+        model, cube.mass, cube.inertia, gravity=np.zeros(3), joint_stiffness=stiff, joint_damping=damp, limit_k=0.0,
+        joint_kp=np.zeros(shadow.n_joints), joint_kv=np.zeros(shadow.n_joints),
+    )  # fmt: skip
     q0 = np.zeros(shadow.n_joints)
     q0[j] = 0.2
     s = _state(model, -5.0, root=(0.0, 0.0, 1.0), q=q0)
@@ -184,7 +186,7 @@ def test_hand_contact_pushes_object_only_within_dc(shadow, cube) -> None:
     gap = float(jnp.min(sdf_lookup(model, (p - origin) @ R)[0]))
     assert gap > 0.003
     for d_c, moves in ((gap - 0.002, False), (gap + 0.01, True)):
-        params = params0.replace(d_c=d_c, k_n=1e3, k_f=0.0)
+        params = params0.replace(d_c=d_c, k_n=1e3, k_f=0.0, contact_scale=1.0)
         out = jax.jit(lambda s, params=params: frame(model, params, s, _zero_ctrl(model)))(s)
         moved = float(jnp.linalg.norm(out.obj_pos - s.obj_pos))
         assert (moved > 1e-6) == moves, (d_c, moved)
@@ -226,7 +228,11 @@ def test_gradients_match_finite_differences(shadow, cube) -> None:
     with jax.enable_x64(True):
         model, s = _contact_setup(shadow, cube)
         model, s = _to64(model), _to64(s)
-        params = _to64(default_params(model, cube.mass, cube.inertia, d_c=0.02, k_n=2e3, k_f=5e2, k_d=10.0, mu=10.0))
+        params = _to64(
+            default_params(
+                model, cube.mass, cube.inertia, d_c=0.02, k_n=2e3, k_f=5e2, k_d=10.0, mu=10.0, contact_scale=1.0
+            )
+        )
         pts = _to64(Points(jnp.asarray(model.point_body), model.point_local))
         c = _to64(_zero_ctrl(model))
         probe = jnp.asarray(np.random.default_rng(0).normal(size=3))

@@ -142,3 +142,112 @@ def run_baseline(
 
 def dump(obj: Any) -> str:
     return json.dumps(obj, indent=2)
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def sim_setup(demo_path: Path, hand_name: str, substeps: int, n_candidates: int = 256) -> dict[str, Any]:
+    """Model, stiffest params, initial state and kinematic-replay controls for one clip."""
+    import jax.numpy as jnp
+
+    from quasisim.assets.hand import load_hand
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import load_object_for
+    from quasisim.kinematics import base_to_root
+    from quasisim.retarget import retarget
+    from quasisim.rotations import np_mat_to_quat
+    from quasisim.sim.build import SimOptions, build_model, controls_from_trajectory, default_params
+    from quasisim.sim.step import initial_state
+    from quasisim.targets.scene import size_table
+
+    demo = load_demo(demo_path)
+    hand = load_hand(hand_name)
+    obj = load_object_for(demo)
+    table, _ = size_table(demo, obj)
+    rt = retarget(hand, demo)
+    roots = [base_to_root(jnp.asarray(q[:6]), jnp.asarray(rt.base_rot)) for q in rt.q]
+    root_pos = np.array([np.asarray(p) for p, _ in roots])
+    root_rot = np.array([np.asarray(R) for _, R in roots])
+    model = build_model(
+        hand, obj, table, SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates), demo.object_pos[0]
+    )
+    params = default_params(model, obj.mass, obj.inertia)
+    s0 = initial_state(
+        model, root_pos[0], np_mat_to_quat(root_rot[0]), rt.q[0, 6:], demo.object_pos[0], demo.object_quat[0]
+    )
+    ctrl = controls_from_trajectory(model, root_pos, root_rot, rt.q[:, 6:], demo.fps)
+    return {"demo": demo, "hand": hand, "obj": obj, "model": model, "params": params, "s0": s0, "ctrl": ctrl, "rt": rt}
+
+
+def run_sim_bench(demo_path: Path, hand_name: str, substeps: int, dt_study: tuple[int, ...], as_json: bool) -> dict:
+    """Speed of the quasi-physical simulator on one hand-object scene, MuJoCo on the same scene, and
+    the object-trajectory error of larger steps against the dt = 5e-4 s reference."""
+    import jax
+    import jax.numpy as jnp
+
+    from quasisim.sim.step import object_pose, rollout
+    from quasisim.targets.mujoco_target import MujocoTarget
+    from quasisim.targets.scene import make_scene
+
+    def timed(fn: Any, *args: Any, reps: int = 2) -> tuple[Any, float]:
+        out = jax.block_until_ready(fn(*args))  # compile
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            out = jax.block_until_ready(fn(*args))
+        return out, (time.perf_counter() - t0) / reps
+
+    res: dict[str, Any] = {}
+    traj: dict[int, np.ndarray] = {}
+    for n in sorted({substeps, *dt_study}, reverse=True):
+        st = sim_setup(demo_path, hand_name, n)
+        model, params, s0, ctrl, demo = st["model"], st["params"], st["s0"], st["ctrl"], st["demo"]
+        fwd = jax.jit(lambda p, s, c, model=model: object_pose(model, rollout(model, p, s, c))[0])
+        pos, t_fwd = timed(fwd, params, s0, ctrl)
+        traj[n] = np.asarray(pos)
+        if n == substeps:
+            target = jnp.asarray(demo.object_pos[1:], jnp.float32)
+
+            def loss(c: Any, p: Any, s: Any, model: Any = model, target: Any = target) -> Any:
+                return jnp.mean(jnp.sum((object_pose(model, rollout(model, p, s, c))[0] - target) ** 2, -1))
+
+            grad = jax.jit(jax.value_and_grad(loss))
+            _, t_fb = timed(grad, ctrl, params, s0)
+            frames = ctrl.root_vel.shape[0]
+            res.update(
+                clip=demo.name,
+                n_points=int(model.n_points),
+                n_candidates=int(model.n_candidates),
+                dt=float(model.dt),
+                substeps_per_frame=n,
+                frames=frames,
+                forward_substeps_per_s=frames * n / t_fwd,
+                fwd_bwd_substeps_per_s=frames * n / t_fb,
+                rollout60_fwd_bwd_s=t_fb * 59.0 / frames,
+                rollout_forward_s=t_fwd,
+                peak_memory_mb=_peak_rss_mb(),
+            )
+            scene = make_scene(demo, st["hand"], st["rt"].base_rot, st["obj"])
+            mj = MujocoTarget(scene)
+            r = mj.rollout(st["rt"].q)
+            res["mujoco_steps_per_s"] = (len(st["rt"].q) - 1) * r.substeps / r.wall_s
+            res["mujoco_dt"] = r.dt
+            res["ratio_mujoco_over_sim_forward_sim_seconds_per_wall_second"] = (res["mujoco_steps_per_s"] * r.dt) / (
+                res["forward_substeps_per_s"] * model.dt
+            )
+    ref_n = max(traj)
+    study = []
+    for n in sorted(traj):
+        err = np.linalg.norm(traj[n] - traj[ref_n], axis=-1)
+        study.append({"substeps": n, "dt": 1.0 / (20.0 * n), "max_object_dev_mm": float(err.max() * 1e3)})
+    res["dt_study_vs_dt_%g" % (1.0 / (20.0 * ref_n))] = study
+    res["object_travel_mm"] = float(np.linalg.norm(traj[ref_n] - traj[ref_n][0], axis=-1).max() * 1e3)
+    if as_json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(header("Quasi-physical simulator speed"))
+        print("```json\n" + json.dumps(res, indent=2) + "\n```")
+    return res

@@ -128,5 +128,36 @@ def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Pat
     run_baseline(data_dir, hand, targets, out, pattern, render)
 
 
+@bench.command("sim")
+@click.option(
+    "--demo",
+    "demo",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Clip (default: cubesmall_lift from $QUASISIM_DATA).",
+)
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--substeps", default=10, show_default=True, help="Substeps per frame of the measured configuration.")
+@click.option(
+    "--dt-study",
+    default="100,50,20,10,5",
+    show_default=True,
+    help="Substeps per frame to compare (100 = dt 5e-4 s at 20 fps).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON only.")
+@_friendly
+def bench_sim(demo: Path | None, hand: str, substeps: int, dt_study: str, as_json: bool) -> None:
+    """Simulator speed (forward, forward+backward, memory), MuJoCo on the same scene, step-size study."""
+    import os
+
+    _setup_runtime()
+    from quasisim.bench import run_sim_bench
+
+    if demo is None:
+        demo = Path(os.environ.get("QUASISIM_DATA", "../shared/data")) / "grab_s1_cubesmall_lift.npz"
+    study = tuple(int(x) for x in dt_study.split(",") if x.strip())
+    run_sim_bench(demo, hand, substeps, study, as_json)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

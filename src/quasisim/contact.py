@@ -5,8 +5,8 @@ A point ``p`` touches a surface when its signed distance ``sd < d_c``. With pene
 
     normal force on the surface owner     F_n = -max(k_n d + k_d d d', 0) n
     static friction (spring to anchor a)  F_s = k_f T_n (p - a),   T_n = I - n n^T
-    sliding (|F_s| > mu |F_n|)           F_t = mu |F_n| F_s / |F_s|, and the anchor slides along so that
-                                          the spring sits on the friction cone: a <- p - (mu |F_n| / |F_s|) T_n (p - a)
+    sliding (|F_s| > mu |F_n|)           F_t = mu |F_n| along the tangential slip velocity (implicit, see
+                                          :func:`friction`); the anchor moves onto the cone
 
 The damping term multiplies ``d * d'`` (Hunt-Crossley form: continuous at first touch) and acts against
 the rate of penetration. A new contact stores its anchor at the nearest surface point; leaving the contact
@@ -23,6 +23,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 
 Array = jnp.ndarray
+ANCHOR_KEEP = 1.0e-3  # m beyond d_c within which a separated contact keeps its friction anchor
+SLIP_VELOCITY = 1.0e-4  # m/s below which sliding friction is linear in the slip velocity
 
 
 class ContactForces(NamedTuple):
@@ -43,6 +45,89 @@ class ContactForces(NamedTuple):
     normal_mag: Array
 
 
+class NormalContact(NamedTuple):
+    """The normal part of the contacts and what friction needs (see :func:`normal_contact`)."""
+
+    act: Array  # (N,) 1 in contact
+    fn: Array  # (N,) normal force magnitude
+    f_normal: Array  # (N, 3)
+    K_normal: Array  # (N, 3, 3)
+    D: Array  # (N, 3, 3)
+    T: Array  # (N, 3, 3) tangent projector
+    disp: Array  # (N, 3) tangential stretch of the friction spring
+    anchor: Array  # (N, 3) current anchors (world)
+    p: Array  # (N, 3)
+    keep: Array  # (N,) bool: within d_c + ANCHOR_KEEP, the anchor is kept
+
+
+def normal_contact(
+    p: Array,
+    sd: Array,
+    n: Array,
+    v_rel: Array,
+    anchor: Array,
+    was_active: Array,
+    d_c: Array,
+    k_n: Array,
+    k_d: Array,
+    linear_damping: bool = False,
+) -> NormalContact:
+    """Normal spring-damper forces for points ``p`` (N, 3) with signed distances ``sd`` (N,) and outward unit
+    normals ``n`` (N, 3); ``v_rel`` (N, 3) = point velocity - surface material velocity; ``anchor`` (N, 3)
+    world anchors of the previous step, valid where ``was_active`` (N,) is 1.
+
+    The damping force is ``k_d d d'`` (the paper's form) or, with ``linear_damping``, ``k_d d'`` (used for
+    the table, whose resting penetration is too small for ``d d'`` to damp anything)."""
+    inside = sd < d_c
+    keep = sd < d_c + ANCHOR_KEEP  # anchors survive brief separations (contacts flicker at rest)
+    act = inside.astype(p.dtype)
+    d = jnp.where(inside, d_c - sd, 0.0)
+    d_rate = -jnp.sum(n * v_rel, axis=-1)
+    c = k_d * jnp.ones_like(d) if linear_damping else k_d * d
+    fn = jnp.maximum(k_n * d + c * d_rate, 0.0) * act
+    pushing = (fn > 0).astype(p.dtype)
+    nn = n[:, :, None] * n[:, None, :]
+    dk = jnp.zeros_like(d) if linear_damping else k_d * d_rate
+    K = jnp.maximum(k_n + dk, 0.0)[:, None, None] * nn * pushing[:, None, None]
+    D = (c * pushing)[:, None, None] * nn
+    nearest = p - sd[:, None] * n  # nearest surface point: the anchor of a new contact
+    a = jnp.where((was_active > 0)[:, None], anchor, nearest)
+    T = jnp.eye(3, dtype=p.dtype) - nn
+    disp = jnp.einsum("nij,nj->ni", T, p - a)
+    return NormalContact(act, fn, -fn[:, None] * n, K, D, T, disp, a, p, keep)
+
+
+def friction(
+    nc: NormalContact, k_f: Array, mu: Array, v_rel: Array, v_slip: float = SLIP_VELOCITY, eps: float = 1e-12
+) -> ContactForces:
+    """Add friction to the normal contacts ``nc``; ``v_rel`` (N, 3) = point velocity - surface velocity.
+
+    A contact sticks while its spring stays inside the cone (``k_f |T (p - a)| <= mu |F_n|``): it pulls with
+    ``k_f T (p - a)`` and adds ``k_f T`` to ``K``. Beyond the cone it slides: the anchor moves onto the cone
+    and, while it slips faster than ``v_slip``, the friction is Coulomb's, ``mu |F_n|`` along the tangential
+    slip velocity ``v_t``, written as the viscous force ``c v_t`` with ``c = mu |F_n| / |v_t|`` and put in
+    ``D``: an implicit step then never reverses a slip (explicit Coulomb friction chatters: the force flips
+    the slip every step). A slower contact beyond the cone sticks with its spring clamped onto the cone.
+    """
+    s_norm = jnp.sqrt(jnp.sum(nc.disp * nc.disp, axis=-1) + eps)
+    limit = mu * nc.fn
+    reach = limit / jnp.maximum(k_f, eps)  # longest stretch inside the cone (m)
+    over = (s_norm > reach) & (nc.act > 0)  # separated (but kept) contacts hold their anchor
+    disp = jnp.where(over[:, None], nc.disp * (reach / s_norm)[:, None], nc.disp)  # spring clamped to the cone
+    anchor = nc.p - disp - (nc.p - nc.anchor - nc.disp)  # keep the anchor's normal offset
+    v_t = jnp.einsum("nij,nj->ni", nc.T, v_rel)
+    v_norm = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + eps)
+    slide = over & (v_norm > v_slip)  # beyond the cone and slipping; slow contacts stick on the cone
+    c = limit / v_norm
+    f_fric = jnp.where(slide[:, None], c[:, None] * v_t, k_f * disp) * nc.act[:, None]
+    a_new = jnp.where(slide[:, None], nc.p - reach[:, None] * v_t / v_norm[:, None], anchor)
+    a_new = jnp.where(nc.keep[:, None], a_new, nc.p)  # far from the surface: re-taken at the next touch
+    stick = (~slide).astype(nc.p.dtype) * nc.act
+    K = nc.K_normal + (k_f * stick)[:, None, None] * nc.T
+    D = nc.D + (c * slide)[:, None, None] * nc.T
+    return ContactForces(nc.f_normal + f_fric, K, D, a_new, nc.act, nc.fn)
+
+
 def spring_damper(
     p: Array,
     sd: Array,
@@ -55,47 +140,10 @@ def spring_damper(
     k_d: Array,
     k_f: Array,
     mu: Array,
-    dt: float = 0.0,
-    eps: float = 1e-9,
 ) -> ContactForces:
-    """Contact forces for points ``p`` (N, 3) with signed distances ``sd`` (N,) and outward unit normals
-    ``n`` (N, 3) of the surface; ``v_rel`` (N, 3) = point velocity - surface material velocity;
-    ``anchor`` (N, 3) world anchors of the previous step, valid where ``was_active`` (N,) is 1.
-
-    ``dt`` caps the friction stiffness reported in ``K`` so that the spring's predicted stretch after a step
-    of ``dt`` cannot exceed the friction cone (an implicit step must not make a contact stickier than the
-    cone allows)."""
-    inside = sd < d_c
-    act = inside.astype(p.dtype)
-    d = jnp.where(inside, d_c - sd, 0.0)
-    d_rate = -jnp.sum(n * v_rel, axis=-1)
-    fn = jnp.maximum(k_n * d + k_d * d * d_rate, 0.0) * act
-    pushing = (fn > 0).astype(p.dtype)
-    f_normal = -fn[:, None] * n
-
-    nearest = p - sd[:, None] * n  # nearest surface point: the anchor of a new contact
-    a = jnp.where((was_active > 0)[:, None], anchor, nearest)
-    T = jnp.eye(3, dtype=p.dtype) - n[:, :, None] * n[:, None, :]
-    disp = jnp.einsum("nij,nj->ni", T, p - a)
-    fs = k_f * disp
-    fs_norm = jnp.sqrt(jnp.sum(fs * fs, axis=-1) + eps)
-    limit = mu * fn
-    slide = fs_norm > limit
-    scale = jnp.where(slide, limit / fs_norm, 1.0)
-    f_fric = fs * scale[:, None] * act[:, None]
-    a_new = jnp.where(slide[:, None], p - disp * scale[:, None], a)
-    a_new = jnp.where(inside[:, None], a_new, p)  # no contact: the anchor is re-taken at the next touch
-
-    nn = n[:, :, None] * n[:, None, :]
-    stick = (~slide).astype(p.dtype) * act
-    pred = disp + dt * jnp.einsum("nij,nj->ni", T, v_rel)
-    k_t = jnp.minimum(k_f, limit / jnp.sqrt(jnp.sum(pred * pred, axis=-1) + eps))
-    K = (
-        jnp.maximum(k_n + k_d * d_rate, 0.0)[:, None, None] * nn * pushing[:, None, None]
-        + (k_t * stick)[:, None, None] * T
-    )
-    D = (k_d * d)[:, None, None] * nn * pushing[:, None, None]
-    return ContactForces(f_normal + f_fric, K, D, a_new, act, fn)
+    """Normal and friction forces with the stick/slide decision on the current stretch (see the module
+    docstring); :func:`normal_contact` + :func:`friction`."""
+    return friction(normal_contact(p, sd, n, v_rel, anchor, was_active, d_c, k_n, k_d), k_f, mu, v_rel)
 
 
 def table_sdf(w: Array, table: Array) -> tuple[Array, Array]:

@@ -99,7 +99,10 @@ def mass_matrix(model: HandModel, bj: BodyJacobians, armature: Array) -> Array:
     jv_com = bj.jv + jnp.cross(jnp.swapaxes(bj.jw, 1, 2), r[:, None, :]).swapaxes(1, 2)
     I_w = R @ jnp.asarray(_inertia_body_frame(model), R.dtype) @ jnp.swapaxes(R, 1, 2)
     m = jnp.asarray(model.body_mass, R.dtype)
-    M = jnp.einsum("b,bik,bil->kl", m, jv_com, jv_com) + jnp.einsum("bik,bij,bjl->kl", bj.jw, I_w, bj.jw)
+    n = jv_com.shape[-1]
+    jv_flat = jv_com.reshape(-1, n)
+    jw_I = jnp.einsum("bij,bjk->bik", I_w, bj.jw).reshape(-1, n)
+    M = jv_flat.T @ (jnp.repeat(m, 3)[:, None] * jv_flat) + bj.jw.reshape(-1, n).T @ jw_I
     return M + jnp.diag(armature)
 
 

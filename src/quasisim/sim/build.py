@@ -10,9 +10,10 @@ import numpy as np
 
 from quasisim.assets.hand import HandModel
 from quasisim.pointset import HandPoints, sample_hand_points
-from quasisim.sim.types import Model, Params
+from quasisim.sim.types import Control, Model, Params
 
 F32 = jnp.float32
+CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
 
 
 @dataclass(frozen=True)
@@ -93,9 +94,10 @@ def default_params(model: Model, obj_mass: float, obj_inertia: np.ndarray, **ove
         k_f=1.0e7,
         k_d=1.0e3,
         mu=10.0,
-        table_k_n=1.0e5,
-        table_k_d=1.0e3,
-        table_k_f=1.0e5,
+        contact_scale=CONTACT_SCALE,
+        table_k_n=2.0e3,
+        table_k_d=3.0,
+        table_k_f=2.0e3,
         table_mu=1.0,
         obj_mass=obj_mass,
         obj_inertia=np.asarray(obj_inertia),
@@ -107,6 +109,8 @@ def default_params(model: Model, obj_mass: float, obj_inertia: np.ndarray, **ove
         joint_stiffness=np.zeros(J),
         armature=np.full(J, pd.joint_armature),
         limit_k=100.0,
+        joint_kp=np.full(J, pd.joint.kp),
+        joint_kv=np.full(J, pd.joint.kv),
         residual=None,
         residual_local_on=0.0,
         residual_global_on=0.0,
@@ -116,3 +120,32 @@ def default_params(model: Model, obj_mass: float, obj_inertia: np.ndarray, **ove
         raise KeyError(f"unknown simulator parameters {sorted(unknown)}; valid: {sorted(values)}")
     values.update(overrides)
     return Params(**{k: (v if k == "residual" else jnp.asarray(v, F32)) for k, v in values.items()})
+
+
+def root_velocities(root_pos: np.ndarray, root_rot: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame root linear (T-1, 3) and world angular (T-1, 3) velocities that move the root from
+    frame t to frame t+1 in one frame time."""
+    from scipy.spatial.transform import Rotation
+
+    lin = np.diff(root_pos, axis=0) * fps
+    rel = np.einsum("tij,tkj->tik", root_rot[1:], root_rot[:-1])  # R_{t+1} R_t^T
+    ang = Rotation.from_matrix(rel).as_rotvec() * fps
+    return lin, ang
+
+
+def controls_from_trajectory(
+    model: Model, root_pos: np.ndarray, root_rot: np.ndarray, q: np.ndarray, fps: float
+) -> Control:
+    """Controls (T-1 frames) that replay a kinematic hand trajectory: root velocities from finite
+    differences, joint PD targets at the next frame with the frame-to-frame target velocity, no
+    feed-forward force and no point actuation. ``root_pos`` (T, 3), ``root_rot`` (T, 3, 3), ``q`` (T, J)."""
+    lin, ang = root_velocities(root_pos, root_rot, fps)
+    T1 = len(lin)
+    return Control(
+        root_vel=jnp.asarray(lin, F32),
+        root_angvel=jnp.asarray(ang, F32),
+        tau=jnp.zeros((T1, q.shape[1]), F32),
+        q_target=jnp.asarray(q[1:], F32),
+        qd_target=jnp.asarray(np.diff(q, axis=0) * fps, F32),
+        point_force=jnp.zeros((T1, model.n_points, 3), F32),
+    )

@@ -28,7 +28,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from quasisim.contact import spring_damper, table_sdf
+from quasisim.contact import friction, normal_contact, table_sdf
 from quasisim.rotations import quat_mul, quat_to_mat, skew
 from quasisim.sim.articulation import BodyJacobians, body_jacobians, gravity_bias, mass_matrix
 from quasisim.sim.types import Control, Model, Params, State
@@ -65,13 +65,32 @@ def _mm(a: Array, b: Array) -> Array:
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def _sandwich(r: Array, K: Array) -> Array:
-    """Per point ``B^T K B`` (N, 6, 6) with ``B = [I, -[r]x]``."""
+def _sandwich_blocks(r: Array, K: Array) -> tuple[Array, Array, Array, Array]:
+    """Per point blocks of ``B^T K B`` with ``B = [I, -[r]x]``: (K, -K S, S K, -S K S), S = [r]x."""
     S = skew(r)
     KS = _mm(K, S)
-    top = jnp.concatenate([K, -KS], axis=-1)
-    bot = jnp.concatenate([_mm(S, K), -_mm(S, KS)], axis=-1)
-    return jnp.concatenate([top, bot], axis=-2)
+    return K, -KS, _mm(S, K), -_mm(S, KS)
+
+
+def _assemble(blocks: tuple[Array, Array, Array, Array]) -> Array:
+    a, b, c, d = blocks
+    return jnp.concatenate([jnp.concatenate([a, b], -1), jnp.concatenate([c, d], -1)], -2)
+
+
+def _sandwich_sum(r: Array, K: Array) -> Array:
+    """``sum_i B_i^T K_i B_i`` (6, 6)."""
+    return _assemble(tuple(jnp.sum(x, 0) for x in _sandwich_blocks(r, K)))  # type: ignore[arg-type]
+
+
+def _sandwich_segments(r: Array, K: Array, seg: Array, n: int) -> Array:
+    """``sum_{i in b} B_i^T K_i B_i`` per segment ``b`` (n, 6, 6)."""
+    return _assemble(tuple(jax.ops.segment_sum(x, seg, num_segments=n) for x in _sandwich_blocks(r, K)))  # type: ignore[arg-type]
+
+
+def _project(J: Array, K: Array) -> Array:
+    """``sum_b J_b^T K_b J_b`` for (B, 6, n) Jacobians and (B, 6, 6) matrices, as one matrix product."""
+    n = J.shape[-1]
+    return J.reshape(-1, n).T @ jnp.einsum("bij,bjk->bik", K, J).reshape(-1, n)
 
 
 def _wrench(r: Array, f: Array) -> Array:
@@ -106,9 +125,18 @@ def hand_points(model: Model, params: Params, state: State, pts: Points) -> tupl
 
 
 def substep(
-    model: Model, params: Params, state: State, ctrl: Control, pts: Points, res_wrench: Array | None = None
+    model: Model,
+    params: Params,
+    state: State,
+    ctrl: Control,
+    pts: Points,
+    res_wrench: Array | None = None,
+    frac: Array | float = 1.0,
 ) -> State:
-    """Advance ``state`` by ``model.dt``; the point arrays of ``state``/``ctrl`` are those of ``pts``."""
+    """Advance ``state`` by ``model.dt``; the point arrays of ``state``/``ctrl`` are those of ``pts``.
+
+    ``frac`` in (0, 1] is the position of this substep's end within the frame (for the PD targets).
+    """
     dt = model.dt
     hand = model.hand
     B = hand.n_bodies
@@ -131,19 +159,21 @@ def substep(
     n = n_loc @ R_o.T
     anchor_w = origin + state.anchor @ R_o.T
     rh = p - com
-    C = spring_damper(
-        p, sd, n, v - _twist_at(rh, nu), anchor_w, state.in_contact,
-        params.d_c, params.k_n, params.k_d, params.k_f, params.mu, dt,
-    )  # fmt: skip
+    s = params.contact_scale
+    Nh = normal_contact(
+        p, sd, n, v - _twist_at(rh, nu), anchor_w, state.in_contact, params.d_c, params.k_n * s, params.k_d * s
+    )
     w = origin + model.obj_surface @ R_o.T
     rt = w - com
     sd_t, n_t = table_sdf(w, model.table)
-    Ct = spring_damper(
+    Nt = normal_contact(
         w, sd_t, n_t, _twist_at(rt, nu), state.table_anchor, state.table_contact, jnp.zeros((), w.dtype),
-        params.table_k_n, params.table_k_d, params.table_k_f, params.table_mu, dt,
+        params.table_k_n, params.table_k_d, linear_damping=True,
     )  # fmt: skip
 
     # ---- object: linearly implicit step ----
+    C = friction(Nh, params.k_f * s, params.mu, v - _twist_at(rh, nu))
+    Ct = friction(Nt, params.table_k_f, params.table_mu, _twist_at(rt, nu))
     m = params.obj_mass
     I_w = R_o @ params.obj_inertia @ R_o.T
     om, vel = state.obj_angvel, state.obj_vel
@@ -157,8 +187,8 @@ def substep(
     )
     if res_wrench is not None:
         W = W + res_wrench
-    K_o = jnp.sum(_sandwich(rh, C.K), 0) + jnp.sum(_sandwich(rt, Ct.K), 0)
-    D_o = jnp.sum(_sandwich(rh, C.D), 0) + jnp.sum(_sandwich(rt, Ct.D), 0)
+    K_o = _sandwich_sum(rh, C.K) + _sandwich_sum(rt, Ct.K)
+    D_o = _sandwich_sum(rh, C.D) + _sandwich_sum(rt, Ct.D)
     M_o = jax.scipy.linalg.block_diag(m * eye3, I_w)
     D_o = D_o + jax.scipy.linalg.block_diag(params.obj_lin_damp * m * eye3, params.obj_ang_damp * I_w)
     hand_motion = jnp.sum(_wrench(rh, jnp.einsum("nij,nj->ni", C.K, v)), 0)
@@ -171,11 +201,9 @@ def substep(
     one_m_a = 1.0 - params.alpha
     Wb = jax.ops.segment_sum(_wrench(r, f_hand), pts.body, num_segments=B)  # (B, 6) about body origins
     J6 = jnp.concatenate([bj.jv, bj.jw], axis=1)  # (B, 6, J)
-    tau_c = one_m_a * jnp.einsum("bij,bi->j", J6, Wb)
-    Kb = jax.ops.segment_sum(_sandwich(r, C.K), pts.body, num_segments=B)
-    Db = jax.ops.segment_sum(_sandwich(r, C.D), pts.body, num_segments=B)
-    K_h = one_m_a * jnp.einsum("bik,bij,bjl->kl", J6, Kb, J6)
-    D_h = one_m_a * jnp.einsum("bik,bij,bjl->kl", J6, Db, J6)
+    tau_c = one_m_a * (J6.reshape(-1, J6.shape[-1]).T @ Wb.reshape(-1))
+    K_h = one_m_a * _project(J6, _sandwich_segments(r, C.K, pts.body, B))
+    D_h = one_m_a * _project(J6, _sandwich_segments(r, C.D, pts.body, B))
 
     q, qd = state.q, state.qd
     lo, hi = jnp.asarray(hand.joint_range[:, 0]), jnp.asarray(hand.joint_range[:, 1])
@@ -183,16 +211,19 @@ def substep(
     below, above = limited & (q < lo), limited & (q > hi)
     f_lim = params.limit_k * (jnp.where(below, lo - q, 0.0) + jnp.where(above, hi - q, 0.0))
     k_j = params.joint_stiffness + params.limit_k * (below | above)
+    q_star = ctrl.q_target - (1.0 - frac) * (dt * model.substeps) * ctrl.qd_target
+    tau_pd = params.joint_kp * (q_star - q) + params.joint_kv * (ctrl.qd_target - qd)
     tau_j = (
         ctrl.tau
+        + tau_pd
         - gravity_bias(hand, bj, params.gravity)
         - params.joint_damping * qd
         - params.joint_stiffness * q
         + f_lim
     )
     M = mass_matrix(hand, bj, params.armature)
-    D = D_h + jnp.diag(params.joint_damping)
-    A_h = M + dt * D + dt * dt * (K_h + jnp.diag(k_j))
+    D = D_h + jnp.diag(params.joint_damping + params.joint_kv)
+    A_h = M + dt * D + dt * dt * (K_h + jnp.diag(k_j + params.joint_kp))
     qd_new = jnp.linalg.solve(A_h, (M + dt * D) @ qd + dt * (tau_c + tau_j))
 
     # ---- relaxed points (alpha > 0) ----
@@ -213,9 +244,9 @@ def substep(
         obj_vel=nu_new[:3],
         obj_angvel=nu_new[3:],
         anchor=(C.anchor - origin) @ R_o,
-        in_contact=C.active,
+        in_contact=Nh.keep.astype(p.dtype),
         table_anchor=Ct.anchor,
-        table_contact=Ct.active,
+        table_contact=Nt.keep.astype(p.dtype),
     )
 
 
@@ -242,10 +273,11 @@ def frame(model: Model, params: Params, state: State, ctrl: Control, res_wrench:
     )
     sub_ctrl = dataclasses.replace(ctrl, point_force=ctrl.point_force[idx])
 
-    def body(s: State, _: None) -> tuple[State, None]:
-        return substep(model, params, s, sub_ctrl, pts, res_wrench), None
+    def body(s: State, k: Array) -> tuple[State, None]:
+        frac = (k + 1.0) / model.substeps
+        return substep(model, params, s, sub_ctrl, pts, res_wrench, frac), None
 
-    s, _ = jax.lax.scan(body, sub, None, length=model.substeps)
+    s, _ = jax.lax.scan(body, sub, jnp.arange(model.substeps, dtype=state.q.dtype))
     # points outside the broad phase: free relaxed motion under their own actuation, no contact
     T = model.dt * model.substeps
     dv = state.delta_vel + T * params.alpha * ctrl.point_force / params.point_mass

@@ -98,12 +98,17 @@ class Params:
         d_c: contact distance threshold (m).  k_n: contact stiffness (N/m per point).
         k_f: friction spring stiffness (N/m per point).  k_d: contact damping (N s/m^2, multiplies d * d').
         mu: friction coefficient.
-        table_k_n, table_k_d, table_k_f, table_mu: the same for object-table contact (per surface sample).
+        contact_scale: multiplies k_n, k_f and k_d: the curriculum keeps the paper's values, this maps them
+            to this simulator's units (calibrated against MuJoCo, see docs/simulator.md).
+        table_k_n, table_k_d, table_k_f, table_mu: the same for object-table contact (per surface sample;
+            the table's damping is linear, ``table_k_d d'`` in N s/m).
         obj_mass: (kg).  obj_inertia: (3, 3) about the centre of mass, object axes (kg m^2).
         obj_lin_damp, obj_ang_damp: velocity damping rates (1/s).
         gravity: (3,) m/s^2.
         point_mass: mass of one hand point for the relaxed point dynamics (kg).
         joint_damping: (J,) N m s/rad.  joint_stiffness: (J,) N m/rad (towards 0).  armature: (J,) kg m^2.
+        joint_kp, joint_kv: (J,) gains of the joint actuators' PD law (N m/rad, N m s/rad); 0 gives the
+            paper's pure force control, the target's gains make the controls PD targets as in the targets.
         limit_k: joint-limit penalty stiffness (N m/rad).
         residual: residual networks (an equinox module pytree) or None.
         residual_local_on, residual_global_on: 0/1 switches multiplying the residual forces.
@@ -115,6 +120,7 @@ class Params:
     k_f: Array
     k_d: Array
     mu: Array
+    contact_scale: Array
     table_k_n: Array
     table_k_d: Array
     table_k_f: Array
@@ -129,6 +135,8 @@ class Params:
     joint_stiffness: Array
     armature: Array
     limit_k: Array
+    joint_kp: Array
+    joint_kv: Array
     residual: Any = None
     residual_local_on: Array = None  # type: ignore[assignment]
     residual_global_on: Array = None  # type: ignore[assignment]
@@ -175,11 +183,23 @@ class State:
 
 @pytree
 class Control:
-    """One frame's control: root linear (3,) and angular (3,) velocity, joint forces (J,), point forces (N, 3)."""
+    """One frame's control, held over its substeps.
+
+    The joint force is ``tau + kp (q* - q) + kv (qd* - qd)`` with ``q*`` moving linearly over the frame to
+    ``q_target`` at velocity ``qd_target`` (the same PD law and interpolation as the target simulators).
+
+    Attributes:
+        root_vel, root_angvel: (3,) root linear (m/s) and angular (rad/s, world) velocity.
+        tau: (J,) joint forces (N m).  q_target: (J,) joint targets at the frame's end (rad).
+        qd_target: (J,) joint target velocity over the frame (rad/s).
+        point_force: (N, 3) free actuation of the relaxed points (N), used while alpha > 0.
+    """
 
     root_vel: Array
     root_angvel: Array
     tau: Array
+    q_target: Array
+    qd_target: Array
     point_force: Array
 
 

@@ -53,6 +53,16 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
     spec.visual.quality.shadowsize = 2048
     fr = [scene.physics.friction, 0.005, 0.0001]
 
+    if visual:
+        spec.add_texture(
+            name="sky",
+            type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+            builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+            rgb1=[0.75, 0.82, 0.9],
+            rgb2=[0.95, 0.96, 0.98],
+            width=64,
+            height=64,
+        )
     wb = spec.worldbody
     wb.add_light(
         pos=[0, 0, scene.table.top + 2.0],

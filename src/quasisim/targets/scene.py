@@ -86,6 +86,7 @@ def size_table(
     margin: float = 0.05,
     clearance: float = 0.04,
     max_half: float = 0.4,
+    below_tol: float = 0.01,
 ) -> tuple[Table, tuple[str, ...]]:
     """Size the table footprint from the demo (see module docstring).
 
@@ -93,6 +94,8 @@ def size_table(
         margin: the footprint covers the object's initial footprint grown by this much (m).
         clearance: keypoints below the top stay at least this far outside the footprint (m).
         max_half: largest half-extent of the footprint around the object (m).
+        below_tol: a keypoint counts as below the top when it is more than this below it (m); fingertips
+            touching the table while grasping sit a few mm under it in motion-capture data.
     """
     top = float(demo.support_height)
     R0 = np_quat_to_mat(demo.object_quat[0])
@@ -103,7 +106,7 @@ def size_table(
     rect = np.array([min(rect[0], need[0]), max(rect[1], need[1]), min(rect[2], need[2]), max(rect[3], need[3])])
     notes: list[str] = []
     pts = demo.right_joints.reshape(-1, 3)
-    below = pts[pts[:, 2] < top][:, :2]
+    below = pts[pts[:, 2] < top - below_tol][:, :2]
     order = np.argsort(np.linalg.norm(below - c, axis=1))
     for x, y in below[order]:
         inside = rect[0] - clearance < x < rect[1] + clearance and rect[2] - clearance < y < rect[3] + clearance

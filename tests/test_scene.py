@@ -1,0 +1,57 @@
+"""Table sizing from the demo: covers the object's footprint, excludes hand keypoints below the top."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from helpers import box_object
+
+from quasisim.targets.scene import size_table
+
+
+def _demo(joints: np.ndarray, top: float = 0.8) -> SimpleNamespace:
+    T = joints.shape[0]
+    return SimpleNamespace(
+        support_height=top,
+        object_pos=np.tile([0.0, 0.0, top + 0.025], (T, 1)),
+        object_quat=np.tile([1.0, 0, 0, 0], (T, 1)),
+        right_joints=joints,
+    )
+
+
+def test_table_excludes_low_keypoints_and_covers_object() -> None:
+    obj = box_object()
+    J = np.zeros((3, 21, 3))
+    J[:, :, 2] = 0.9  # above the table...
+    J[0, :5] = [0.25, 0.05, 0.6]  # ...except the start of the reach: beside the table, below its top
+    table, notes = size_table(_demo(J), obj, margin=0.05, clearance=0.04)
+    assert not notes
+    assert table.xmax <= 0.25 - 0.04 + 1e-9  # cut on the side of the low keypoints
+    assert table.xmin <= -0.025 - 0.05 and table.xmax >= 0.025 + 0.05  # footprint + margin kept
+    assert table.ymin <= -0.075 and table.ymax >= 0.075
+    low = J.reshape(-1, 3)
+    low = low[low[:, 2] < 0.79]
+    assert not table.contains_xy(low[:, :2], pad=0.039).any()
+    assert abs(table.top - 0.8) < 1e-12 and table.half_size[2] == 0.4
+
+
+def test_keypoint_inside_footprint_is_reported() -> None:
+    J = np.zeros((2, 21, 3))
+    J[:, :, 2] = 0.9
+    J[0, 0] = [0.01, 0.0, 0.7]  # impossible: below the top right under the object
+    table, notes = size_table(_demo(J), box_object())
+    assert notes and "below the table top" in notes[0]
+
+
+def test_real_clips_tables(data_dir) -> None:
+    from quasisim.assets.object import load_object
+    from quasisim.demo import load_demo
+
+    for name in ("grab_s1_banana_eat_1.npz", "grab_s1_cup_pour_1.npz", "grab_s1_flashlight_on_1.npz"):
+        d = load_demo(data_dir / name)
+        table, notes = size_table(d, load_object(d.object_mesh_path))
+        assert not notes
+        pts = d.right_joints.reshape(-1, 3)
+        low = pts[pts[:, 2] < d.support_height - 0.01]
+        assert len(low) > 0 and not table.contains_xy(low[:, :2]).any()
