@@ -5,8 +5,8 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
-from helpers import box_object
 
+from helpers import box_object
 from quasisim.targets.scene import size_table
 
 
@@ -40,7 +40,7 @@ def test_keypoint_inside_footprint_is_reported() -> None:
     J = np.zeros((2, 21, 3))
     J[:, :, 2] = 0.9
     J[0, 0] = [0.01, 0.0, 0.7]  # impossible: below the top right under the object
-    table, notes = size_table(_demo(J), box_object())
+    _, notes = size_table(_demo(J), box_object())
     assert notes and "below the table top" in notes[0]
 
 

@@ -270,3 +270,33 @@ def test_unknown_param_lists_options(shadow, cube) -> None:
     model = _scene(shadow, cube, 1e-3, 1)
     with pytest.raises(KeyError, match="valid"):
         default_params(model, cube.mass, cube.inertia, stiffness=1.0)
+
+
+def test_residual_networks(shadow, cube) -> None:
+    """Deterministic init, zero output at init, switches, and a trained-looking residual moves the object."""
+    import equinox as eqx
+
+    from quasisim.residual import ResidualConfig, ResidualNets
+    from quasisim.sim.build import attach_residual
+
+    cfg = ResidualConfig(point_hidden=(16, 16), head_hidden=(16,), n_contacts=4, n_local=4, n_global=8)
+    a, b, c = (eqx.filter(ResidualNets(cfg, seed=s), eqx.is_array) for s in (0, 0, 1))
+    la, lb, lc = (jax.tree_util.tree_leaves(x) for x in (a, b, c))
+    assert all(np.array_equal(x, y) for x, y in zip(la, lb, strict=True))
+    assert any(not np.array_equal(x, y) for x, y in zip(la, lc, strict=True))
+
+    model, s = _contact_setup(shadow, cube)
+    base = default_params(model, cube.mass, cube.inertia, d_c=0.02, k_n=2e3, k_f=5e2, contact_scale=1.0)
+    m2, p2 = attach_residual(model, base, ResidualNets(cfg, seed=0))
+    ctrl = _zero_ctrl(model)
+    out0 = jax.jit(lambda p: frame(model, p, s, ctrl))(base)
+    run = jax.jit(lambda p: frame(m2, p, s, ctrl))
+    np.testing.assert_allclose(np.asarray(run(p2).obj_pos), np.asarray(out0.obj_pos), atol=1e-7)  # zero at init
+    # give the global head a bias: a constant residual force along +x
+    nets = eqx.combine(p2.residual, m2.residual_static)
+    nets = eqx.tree_at(lambda n: n.glob.head.layers[-1].bias, nets, jnp.array([1.0, 0, 0, 0, 0, 0]))
+    _, p3 = attach_residual(model, base, nets)
+    moved = float(run(p3).obj_pos[0] - out0.obj_pos[0])
+    assert moved > 1e-5
+    off = float(run(p3.replace(residual_global_on=0.0)).obj_pos[0] - out0.obj_pos[0])
+    assert abs(off) < 1e-7

@@ -130,33 +130,39 @@ def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Pat
 
 @bench.command("sim")
 @click.option(
-    "--demo",
-    "demo",
-    type=click.Path(path_type=Path),
+    "--data",
+    "data_dir",
+    type=click.Path(path_type=Path, file_okay=False),
     default=None,
-    help="Clip (default: cubesmall_lift from $QUASISIM_DATA).",
+    help="Folder of clips (default: $QUASISIM_DATA).",
 )
+@click.option("--clip", default="grab_s1_apple_lift", show_default=True, help="Clip of the speed measurement.")
+@click.option("--study-clips", default="grab_s1_apple_lift,grab_s1_cubesmall_lift,grab_s1_mug_lift", show_default=True)
 @click.option("--hand", default="shadow", show_default=True)
-@click.option("--substeps", default=10, show_default=True, help="Substeps per frame of the measured configuration.")
+@click.option("--substeps", type=int, default=None, help="Substeps per frame (default: dt of about 1 ms).")
 @click.option(
     "--dt-study",
-    default="100,50,20,10,5",
+    default="50,20,10",
     show_default=True,
-    help="Substeps per frame to compare (100 = dt 5e-4 s at 20 fps).",
+    help="Substeps per frame compared with 100 (dt 0.5 ms at 20 fps).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print JSON only.")
 @_friendly
-def bench_sim(demo: Path | None, hand: str, substeps: int, dt_study: str, as_json: bool) -> None:
+def bench_sim(
+    data_dir: Path | None, clip: str, study_clips: str, hand: str, substeps: int | None, dt_study: str, as_json: bool
+) -> None:
     """Simulator speed (forward, forward+backward, memory), MuJoCo on the same scene, step-size study."""
     import os
 
     _setup_runtime()
     from quasisim.bench import run_sim_bench
 
-    if demo is None:
-        demo = Path(os.environ.get("QUASISIM_DATA", "../shared/data")) / "grab_s1_cubesmall_lift.npz"
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    if not (data / f"{clip}.npz").is_file():
+        raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
     study = tuple(int(x) for x in dt_study.split(",") if x.strip())
-    run_sim_bench(demo, hand, substeps, study, as_json)
+    clips_ = tuple(c for c in study_clips.split(",") if c.strip())
+    run_sim_bench(data, clip, clips_, hand, substeps, study, as_json)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -100,21 +100,24 @@ def forward_kinematics_with_joints(
     jaxis = jnp.zeros((J + 1, 3), dtype)  # row J collects writes of padded (absent) joints
     janchor = jnp.zeros((J + 1, 3), dtype)
     qpad = jnp.concatenate([q, jnp.zeros(1, q.dtype)])  # index -1 -> 0 displacement
-    for idx in tr.levels:
-        par = tr.parent[idx]
+    for idx_np in tr.levels:
+        # index arrays converted at trace time: JAX caches numpy constants per dtype mode (x64 on/off)
+        idx = jnp.asarray(idx_np)
+        par = jnp.asarray(tr.parent[idx_np])
         Rp, xp = rot[par], pos[par]
-        R = Rp @ tr.local_rot[idx]
-        x = xp + jnp.einsum("nij,nj->ni", Rp, tr.local_pos[idx])
+        R = Rp @ tr.local_rot[idx_np]
+        x = xp + jnp.einsum("nij,nj->ni", Rp, tr.local_pos[idx_np])
         for m in range(tr.jidx.shape[1]):
-            j = tr.jidx[idx, m]
+            j = tr.jidx[idx_np, m]
             if (j < 0).all():
                 continue
-            angle = qpad[j]
-            axis, jp, hinge = tr.jaxis[idx, m], tr.jpos[idx, m], tr.jhinge[idx, m]
+            angle = qpad[jnp.asarray(j)]
+            axis, jp, hinge = tr.jaxis[idx_np, m], tr.jpos[idx_np, m], tr.jhinge[idx_np, m]
             anchor = x + jnp.einsum("nij,nj->ni", R, jp)
             axis_w = jnp.einsum("nij,nj->ni", R, axis)
-            jaxis = jaxis.at[np.where(j < 0, J, j)].set(axis_w)
-            janchor = janchor.at[np.where(j < 0, J, j)].set(anchor)
+            jrow = jnp.asarray(np.where(j < 0, J, j))
+            jaxis = jaxis.at[jrow].set(axis_w)
+            janchor = janchor.at[jrow].set(anchor)
             Rh = R @ axis_angle_to_mat(jnp.asarray(axis, dtype), jnp.where(hinge, angle, 0.0))
             xh = anchor - jnp.einsum("nij,nj->ni", Rh, jp)
             xs = x + axis_w * jnp.where(hinge, 0.0, angle)[:, None]

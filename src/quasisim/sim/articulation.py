@@ -101,7 +101,7 @@ def mass_matrix(model: HandModel, bj: BodyJacobians, armature: Array) -> Array:
     m = jnp.asarray(model.body_mass, R.dtype)
     n = jv_com.shape[-1]
     jv_flat = jv_com.reshape(-1, n)
-    jw_I = jnp.einsum("bij,bjk->bik", I_w, bj.jw).reshape(-1, n)
+    jw_I = jnp.sum(I_w[:, :, :, None] * bj.jw[:, None, :, :], axis=2).reshape(-1, n)
     M = jv_flat.T @ (jnp.repeat(m, 3)[:, None] * jv_flat) + bj.jw.reshape(-1, n).T @ jw_I
     return M + jnp.diag(armature)
 

@@ -13,6 +13,7 @@ from quasisim.pointset import HandPoints, sample_hand_points
 from quasisim.sim.types import Control, Model, Params
 
 F32 = jnp.float32
+DEFAULT_DT = 0.001  # s
 CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
 
 
@@ -27,17 +28,20 @@ class SimOptions:
         point_spacing, point_offset: hand point-set sampling (m); None = the hand config's values.
     """
 
-    dt: float = 0.0005
-    substeps: int = 100
+    dt: float = 0.001
+    substeps: int = 50
     sdf_spacing: float = 0.003
-    n_surface: int = 256
-    n_candidates: int = 256
+    n_surface: int = 128
+    n_candidates: int = 128
     point_spacing: float | None = None
     point_offset: float | None = None
 
     @classmethod
-    def for_fps(cls, fps: float, substeps: int, **kw: Any) -> SimOptions:
-        return cls(dt=1.0 / (fps * substeps), substeps=substeps, **kw)
+    def for_fps(cls, fps: float, substeps: int | None = None, **kw: Any) -> SimOptions:
+        """Options whose substeps fill one frame exactly; by default ``dt`` is about 1 ms (see BENCHMARKS.md:
+        the largest step whose object trajectories stay within ~1 mm of the dt = 0.5 ms reference)."""
+        n = substeps if substeps is not None else max(1, round(1.0 / (fps * DEFAULT_DT)))
+        return cls(dt=1.0 / (fps * n), substeps=n, **kw)
 
 
 def build_model(
@@ -149,3 +153,18 @@ def controls_from_trajectory(
         qd_target=jnp.asarray(np.diff(q, axis=0) * fps, F32),
         point_force=jnp.zeros((T1, model.n_points, 3), F32),
     )
+
+
+def attach_residual(
+    model: Model, params: Params, nets: Any, local_on: bool = True, global_on: bool = True
+) -> tuple[Model, Params]:
+    """Put residual networks (an equinox module, e.g. :class:`quasisim.residual.ResidualNets`) into the
+    simulator: their arrays become Params leaves (trainable), the rest static Model metadata."""
+    import dataclasses
+
+    import equinox as eqx
+
+    arrays, static = eqx.partition(nets, eqx.is_array)
+    model = dataclasses.replace(model, residual_static=static)
+    params = params.replace(residual=arrays, residual_local_on=float(local_on), residual_global_on=float(global_on))
+    return model, params

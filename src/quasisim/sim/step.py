@@ -90,7 +90,8 @@ def _sandwich_segments(r: Array, K: Array, seg: Array, n: int) -> Array:
 def _project(J: Array, K: Array) -> Array:
     """``sum_b J_b^T K_b J_b`` for (B, 6, n) Jacobians and (B, 6, 6) matrices, as one matrix product."""
     n = J.shape[-1]
-    return J.reshape(-1, n).T @ jnp.einsum("bij,bjk->bik", K, J).reshape(-1, n)
+    KJ = jnp.sum(K[:, :, :, None] * J[:, None, :, :], axis=2)  # batched small products: fused, not dot_general
+    return J.reshape(-1, n).T @ KJ.reshape(-1, n)
 
 
 def _wrench(r: Array, f: Array) -> Array:
@@ -132,17 +133,20 @@ def substep(
     pts: Points,
     res_wrench: Array | None = None,
     frac: Array | float = 1.0,
+    res_point: Array | None = None,
 ) -> State:
     """Advance ``state`` by ``model.dt``; the point arrays of ``state``/``ctrl`` are those of ``pts``.
 
     ``frac`` in (0, 1] is the position of this substep's end within the frame (for the PD targets).
+    ``res_wrench`` (6,) is an extra force and torque on the object's centre of mass (world); ``res_point``
+    (K, 3) extra forces on the object at the hand points, with their reactions on the hand (residual physics).
     """
     dt = model.dt
     hand = model.hand
     B = hand.n_bodies
     p, r, bj = hand_points(model, params, state, pts)
-    vb = jnp.einsum("bij,j->bi", bj.jv, state.qd)
-    wb = jnp.einsum("bij,j->bi", bj.jw, state.qd)
+    vb = jnp.sum(bj.jv * state.qd, axis=-1)
+    wb = jnp.sum(bj.jw * state.qd, axis=-1)
     v = (
         vb[pts.body]
         + jnp.cross(wb[pts.body], r)
@@ -173,6 +177,8 @@ def substep(
 
     # ---- object: linearly implicit step ----
     C = friction(Nh, params.k_f * s, params.mu, v - _twist_at(rh, nu))
+    if res_point is not None:
+        C = C._replace(force=C.force + res_point)
     Ct = friction(Nt, params.table_k_f, params.table_mu, _twist_at(rt, nu))
     m = params.obj_mass
     I_w = R_o @ params.obj_inertia @ R_o.T
@@ -260,8 +266,44 @@ def select_candidates(model: Model, params: Params, state: State) -> Array:
     return idx
 
 
+def residual_terms(model: Model, params: Params, state: State, pts: Points, sub: State) -> tuple[Array, Array]:
+    """The residual networks' wrench (6,) on the object and per-point forces (K, 3), world frame."""
+    from quasisim.residual import ResidualInput, residual_forces
+
+    p, r, bj = hand_points(model, params, sub, pts)
+    vb = jnp.einsum("bij,j->bi", bj.jv, sub.qd)
+    wb = jnp.einsum("bij,j->bi", bj.jw, sub.qd)
+    v = vb[pts.body] + jnp.cross(wb[pts.body], r)
+    origin, R = object_origin(model, state)
+    com = state.obj_pos
+    v_obj_at_p = state.obj_vel + jnp.cross(state.obj_angvel, p - com)
+    p_loc = (p - origin) @ R
+    sd, n_loc = sdf_lookup(model, p_loc)
+    surf_w = origin + model.obj_surface @ R.T
+    x = ResidualInput(
+        obj_pts=model.obj_surface - model.obj_com,
+        obj_vel=(state.obj_vel + jnp.cross(state.obj_angvel, surf_w - com)) @ R,
+        obj_nrm=model.obj_normals,
+        hand_pts=p_loc - model.obj_com,
+        hand_vel=(v - v_obj_at_p) @ R,
+        depth=params.d_c - sd,
+        contact_pt=p_loc - sd[:, None] * n_loc - model.obj_com,
+        contact_nrm=n_loc,
+    )
+    import equinox as eqx
+
+    nets = eqx.combine(params.residual, model.residual_static)
+    wrench, local, idx = residual_forces(nets, x)
+    wrench_w = jnp.concatenate([R @ wrench[:3], R @ wrench[3:]]) * params.residual_global_on
+    point = jnp.zeros_like(p).at[idx].add(local @ R.T) * params.residual_local_on
+    return wrench_w, point
+
+
 def frame(model: Model, params: Params, state: State, ctrl: Control, res_wrench: Array | None = None) -> State:
-    """``model.substeps`` substeps under one frame's control (with a broad phase at the frame's start)."""
+    """``model.substeps`` substeps under one frame's control (with a broad phase at the frame's start).
+
+    With ``params.residual`` set, the residual networks are evaluated once on the frame's starting state and
+    their forces held over the frame; ``res_wrench`` adds an external wrench (6,) on the object."""
     idx = select_candidates(model, params, state)
     pts = Points(jnp.asarray(model.point_body)[idx], model.point_local[idx])
     sub = dataclasses.replace(
@@ -272,10 +314,14 @@ def frame(model: Model, params: Params, state: State, ctrl: Control, res_wrench:
         in_contact=state.in_contact[idx],
     )
     sub_ctrl = dataclasses.replace(ctrl, point_force=ctrl.point_force[idx])
+    res_point = None
+    if params.residual is not None:
+        w_res, res_point = residual_terms(model, params, state, pts, sub)
+        res_wrench = w_res if res_wrench is None else res_wrench + w_res
 
     def body(s: State, k: Array) -> tuple[State, None]:
         frac = (k + 1.0) / model.substeps
-        return substep(model, params, s, sub_ctrl, pts, res_wrench, frac), None
+        return substep(model, params, s, sub_ctrl, pts, res_wrench, frac, res_point), None
 
     s, _ = jax.lax.scan(body, sub, jnp.arange(model.substeps, dtype=state.q.dtype))
     # points outside the broad phase: free relaxed motion under their own actuation, no contact

@@ -57,6 +57,7 @@ class Model:
         dt: substep (s).  substeps: substeps per frame.
         n_candidates: hand points examined for contact in each frame (the closest to the object at the
             frame's start; a broad phase that bounds the per-substep cost).
+        residual_static: the non-array part of the residual networks (their arrays live in Params).
     """
 
     hand: Any = static()
@@ -70,9 +71,10 @@ class Model:
     obj_normals: Array = None  # type: ignore[assignment]
     table: Array = None  # type: ignore[assignment]
     offset: Array = None  # type: ignore[assignment]
-    dt: float = static(default=0.0005)
-    substeps: int = static(default=100)
-    n_candidates: int = static(default=256)
+    dt: float = static(default=0.001)
+    substeps: int = static(default=50)
+    n_candidates: int = static(default=128)
+    residual_static: Any = static(default=None)
 
     def to_world(self, x: Array) -> Array:
         return x + self.offset
@@ -110,7 +112,8 @@ class Params:
         joint_kp, joint_kv: (J,) gains of the joint actuators' PD law (N m/rad, N m s/rad); 0 gives the
             paper's pure force control, the target's gains make the controls PD targets as in the targets.
         limit_k: joint-limit penalty stiffness (N m/rad).
-        residual: residual networks (an equinox module pytree) or None.
+        residual: the array leaves of the residual networks (``eqx.filter(nets, eqx.is_array)``) or None;
+            see :func:`quasisim.sim.build.attach_residual`.
         residual_local_on, residual_global_on: 0/1 switches multiplying the residual forces.
     """
 
