@@ -13,7 +13,7 @@ from quasisim.pointset import HandPoints, sample_hand_points
 from quasisim.sim.types import Control, Model, Params
 
 F32 = jnp.float32
-DEFAULT_DT = 0.001  # s
+DEFAULT_DT = 0.0025  # s: see docs/simulator.md and BENCHMARKS.md (step-size study)
 CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
 
 
@@ -38,8 +38,9 @@ class SimOptions:
 
     @classmethod
     def for_fps(cls, fps: float, substeps: int | None = None, **kw: Any) -> SimOptions:
-        """Options whose substeps fill one frame exactly; by default ``dt`` is about 1 ms (see BENCHMARKS.md:
-        the largest step whose object trajectories stay within ~1 mm of the dt = 0.5 ms reference)."""
+        """Options whose substeps fill one frame exactly; by default ``dt`` is about 2.5 ms (see BENCHMARKS.md:
+        the largest step whose object trajectories stay within 1 mm (median) of the dt = 0.5 ms reference,
+        and within the reference's own sensitivity to its step)."""
         n = substeps if substeps is not None else max(1, round(1.0 / (fps * DEFAULT_DT)))
         return cls(dt=1.0 / (fps * n), substeps=n, **kw)
 
