@@ -103,6 +103,60 @@ def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}, {out / 'report.html'}")
 
 
+def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
+    """``--set a.b=1.5`` options -> {"a.b": 1.5} (values parsed as YAML scalars)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for s in sets:
+        if "=" not in s:
+            raise QuasisimError(f"--set expects KEY=VALUE (e.g. budgets.fast.sim.control_steps=20), got {s!r}")
+        k, v = s.split("=", 1)
+        out[k.strip()] = yaml.safe_load(v)
+    return out
+
+
+@main.command()
+@click.argument("demo", type=click.Path(path_type=Path))
+@click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option(
+    "--target", type=TARGET_CHOICE, default="mujoco", show_default=True, help="Simulator that judges the result."
+)
+@click.option("--curriculum", default="default", show_default=True, help="default, curriculum2, none or a YAML path.")
+@click.option(
+    "--stages", default="1,2", show_default=True, help="Stages to run (1: point dynamics, 2: contact curriculum)."
+)
+@click.option("--budget", default="fast", show_default=True, help="Step budget from the config: fast or paper.")
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--resume", is_flag=True, help="Continue the run in OUT from its last checkpoint.")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
+@click.option(
+    "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
+)
+@click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
+@_friendly
+def transfer(
+    demo: Path, hand: str, target: str, curriculum: str, stages: str, budget: str, out: Path, resume: bool,
+    config_path: Path | None, sets: tuple[str, ...], render: bool,
+) -> None:  # fmt: skip
+    """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
+    OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
+    _setup_runtime()
+    from quasisim.transfer import CONFIG_PATH, TransferConfig, parse_stages, run_transfer
+
+    st = parse_stages(stages)
+    cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
+    cfg.budget(budget)
+    res = run_transfer(
+        demo, out, hand_ref=hand, target=target, curriculum=curriculum, stages=st, budget=budget, resume=resume,
+        config=cfg, render=render, progress=True,
+    )  # fmt: skip
+    click.echo(json.dumps(res.metrics))
+    k = res.kinematic_metrics
+    click.echo(f"kinematic replay in {target}: R_err {k['R_err_deg']:.1f} deg, T_err {k['T_err_cm']:.2f} cm")
+    click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'report.html'}, {out / 'summary.json'}")
+
+
 @main.group()
 def bench() -> None:
     """Benchmarks whose output goes into BENCHMARKS.md."""
@@ -163,6 +217,38 @@ def bench_sim(
     study = tuple(int(x) for x in dt_study.split(",") if x.strip())
     clips_ = tuple(c for c in study_clips.split(",") if c.strip())
     run_sim_bench(data, clip, clips_, hand, substeps, study, as_json)
+
+
+@bench.command("transfer")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped unless named."
+)
+@click.option("--curricula", default="default,none,curriculum2", show_default=True)
+@click.option("--stages", default="1,2", show_default=True)
+@click.option("--budget", default="fast", show_default=True)
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
+@_friendly
+def bench_transfer(
+    data_dir: Path, clip_names: str, pattern: str, curricula: str, stages: str, budget: str, target: str, hand: str,
+    out: Path,
+) -> None:  # fmt: skip
+    """Stage-1/2 transfer on clips of DATA_DIR for several curricula, beside the kinematic replay (resumable)."""
+    _setup_runtime()
+    from quasisim.bench import run_transfer_bench
+    from quasisim.curriculum import load_curriculum
+    from quasisim.transfer import parse_stages
+
+    curs = tuple(c.strip() for c in curricula.split(",") if c.strip())
+    for c in curs:
+        load_curriculum(c)
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_transfer_bench(data_dir, names, pattern, curs, parse_stages(stages), budget, target, hand, out)
 
 
 if __name__ == "__main__":  # pragma: no cover

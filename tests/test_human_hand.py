@@ -1,0 +1,118 @@
+"""Dynamic human hand built from a demo's keypoints: shape, MuJoCo model, IK fit, content-keyed cache."""
+
+from __future__ import annotations
+
+import os
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quasisim.demo import BONES, load_demo
+from quasisim.human_hand import build_human_hand, human_hand_trajectory
+from quasisim.kinematics import forward_kinematics, keypoints
+
+CLIP = "grab_s1_apple_lift.npz"
+
+
+@pytest.fixture(scope="module")
+def real(data_dir):
+    demo = load_demo(data_dir / CLIP)
+    return demo, build_human_hand(demo.right_joints)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    from quasisim.synthetic import make_example
+
+    demo, _ = make_example("cube_lift")
+    return demo, build_human_hand(demo.right_joints)
+
+
+def _rest_keypoints(hand) -> np.ndarray:
+    """(21, 3) rest-pose keypoints in human order (root at the origin)."""
+    P = forward_kinematics(hand, jnp.zeros(3), jnp.eye(3), jnp.asarray(hand.rest_q()))
+    kp = np.asarray(keypoints(hand, P), dtype=np.float64)
+    out = np.full((21, 3), np.nan)
+    out[hand.kp_human] = kp
+    return out
+
+
+def _check_fit(hand, demo, mean_mm: float, max_mm: float) -> tuple[float, float]:
+    res = human_hand_trajectory(hand, demo)
+    T = len(demo.right_joints)
+    assert res.q.shape == (T, 6 + hand.n_joints) and res.keypoint_error.shape == (T, 21)
+    assert np.isfinite(res.q).all()
+    lo, hi = hand.joint_range[:, 0], hand.joint_range[:, 1]
+    assert ((res.q[:, 6:] >= lo - 1e-6) & (res.q[:, 6:] <= hi + 1e-6)).all()
+    err = res.keypoint_error * 1e3
+    msg = f"{demo.name}: keypoint error mean {err.mean():.3f} mm, max {err.max():.3f} mm"
+    print(msg)
+    assert err.mean() < mean_mm, msg
+    assert err.max() < max_mm, msg
+    return float(err.mean()), float(err.max())
+
+
+def test_rest_bone_lengths_are_data_medians(real) -> None:
+    demo, hand = real
+    J = demo.right_joints
+    rest = _rest_keypoints(hand)
+    assert np.isfinite(rest).all()
+    for a, b in BONES:
+        want = np.median(np.linalg.norm(J[:, b] - J[:, a], axis=-1))
+        got = np.linalg.norm(rest[b] - rest[a])
+        assert abs(got - want) < 1e-6, f"bone {a}-{b}: model {got * 1e3:.4f} mm, data median {want * 1e3:.4f} mm"
+    # the palm's MCPs span a right hand: fingers flex towards +n = (J5 - J0) x (J17 - J0) = palm frame +z
+    n = np.cross(rest[5] - rest[0], rest[17] - rest[0])
+    assert n[2] > 0 and abs(rest[9, 1]) < 1e-9 and abs(rest[9, 2]) < 1e-9 and rest[9, 0] > 0.05
+
+
+def test_ik_fits_real_clip(real) -> None:
+    demo, hand = real
+    _check_fit(hand, demo, mean_mm=3.0, max_mm=10.0)
+
+
+def test_ik_fits_synthetic_demo(synthetic) -> None:
+    demo, hand = synthetic
+    # synthetic bones are exactly rigid, so the fit can be tighter than on MANO data
+    _check_fit(hand, demo, mean_mm=1.0, max_mm=5.0)
+
+
+def test_model_structure_points_and_mass(synthetic) -> None:
+    from quasisim.assets.hand import HINGE
+    from quasisim.pointset import sample_hand_points
+
+    _, hand = synthetic
+    fingers = ("thumb", "index", "middle", "ring", "little")
+    assert hand.body_names[0] == "palm"
+    assert set(hand.body_names) == {"palm"} | {f"{f}{k}" for f in fingers for k in (1, 2, 3)}
+    assert hand.n_joints == 30 and (hand.joint_type == HINGE).all() and hand.joint_limited.all()
+    assert set(hand.joint_names) == {f"{f}{k}_{j}" for f in fingers for k in (1, 2, 3) for j in ("flex", "abd")}
+    assert (hand.joint_range[:, 0] < 0).all() and (hand.joint_range[:, 1] > 0).all()
+    assert np.allclose(hand.joint_pos, 0.0)  # hinges at the bone origins
+    assert list(hand.kp_human) == list(range(21)) and np.allclose(hand.kp_weight, 1.0)
+    assert set(np.flatnonzero(hand.kp_metric)) == {0, 4, 5, 8, 12, 16, 17, 20}
+    assert all(g.collision and g.type == "capsule" for g in hand.geoms)
+    pts = sample_hand_points(hand, 0.006, 0.002)
+    assert 300 <= pts.n <= 3000, pts.n
+    assert set(np.unique(pts.body)) == set(range(hand.n_bodies))  # every bone carries points
+    assert 0.2 < hand.total_mass < 0.8, hand.total_mass
+    assert (hand.body_mass > 0).all()
+
+
+def test_mjcf_cache_is_content_keyed(synthetic, tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path))
+    demo, _ = synthetic
+    J = demo.right_joints
+    a = build_human_hand(J)
+    path = a.source
+    assert path.is_file() and path.is_relative_to(tmp_path)
+    os.utime(path, ns=(10**18, 10**18))  # a fixed old mtime: any rewrite would change it
+    b = build_human_hand(J.copy())
+    assert b.source == path and path.stat().st_mtime_ns == 10**18
+    assert a.body_names == b.body_names and a.joint_names == b.joint_names
+    for f in ("body_pos", "body_mass", "joint_axis", "joint_range", "kp_pos", "kp_body"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    c = build_human_hand(J * 1.1)  # another hand size: another file
+    assert c.source != path and c.source.parent == path.parent
+    assert c.total_mass > a.total_mass

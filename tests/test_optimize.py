@@ -1,0 +1,152 @@
+"""Control parameterisation, objective pieces, Adam loop and identification of S (quasisim.optimize)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from quasisim.curriculum import load_curriculum
+from quasisim.errors import InputError, QuasisimError
+from quasisim.optimize import SysID, Trajectory, adam_steps, quat_log, root_quats, sim_controls
+
+
+def test_quat_log_matches_scipy() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        rv = axis / np.linalg.norm(axis) * rng.uniform(0.0, 3.0)  # shortest arc: angle < pi
+        xyzw = Rotation.from_rotvec(rv).as_quat()
+        q = np.array([xyzw[3], *xyzw[:3]])
+        np.testing.assert_allclose(np.asarray(quat_log(jnp.asarray(q))), rv, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(quat_log(jnp.asarray(-q))), rv, atol=1e-5)  # sign-invariant
+    np.testing.assert_allclose(np.asarray(quat_log(jnp.array([1.0, 0, 0, 0]))), 0.0, atol=1e-7)
+    g = jax.grad(lambda q: jnp.sum(quat_log(q)))(jnp.array([1.0, 0, 0, 0]))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_root_quats_match_euler_convention() -> None:
+    from quasisim.rotations import euler_xyz_to_mat, np_mat_to_quat, quat_to_mat
+
+    rng = np.random.default_rng(1)
+    base_rot = Rotation.random(random_state=2).as_matrix()
+    base = np.concatenate([rng.normal(size=(5, 3)), rng.uniform(-1, 1, size=(5, 3))], axis=1)
+    q = root_quats(jnp.asarray(base, jnp.float32), jnp.asarray(np_mat_to_quat(base_rot), jnp.float32))
+    R = np.asarray(quat_to_mat(q))
+    R_ref = base_rot @ np.asarray(euler_xyz_to_mat(jnp.asarray(base[:, 3:])))
+    np.testing.assert_allclose(R, R_ref, atol=1e-5)
+
+
+def test_sim_controls_integrate_back_to_the_targets() -> None:
+    """Integrating the root velocities over a frame lands on the next frame's base targets."""
+    from quasisim.rotations import np_mat_to_quat, quat_mul, quat_to_mat
+
+    rng = np.random.default_rng(3)
+    T, J, fps = 6, 4, 20.0
+    base = np.cumsum(rng.normal(scale=[0.01, 0.01, 0.01, 0.05, 0.05, 0.05], size=(T, 6)), axis=0)
+    joints = rng.normal(size=(T, J))
+    traj = Trajectory(jnp.asarray(base, jnp.float32), jnp.asarray(joints, jnp.float32), jnp.zeros((T - 1, 2, 3)))
+    bq = jnp.asarray(np_mat_to_quat(Rotation.random(random_state=4).as_matrix()), jnp.float32)
+    c = sim_controls(traj, bq, fps)
+    rq = root_quats(traj.base, bq)
+    for t in range(T - 1):
+        np.testing.assert_allclose(base[t, :3] + np.asarray(c.root_vel[t]) / fps, base[t + 1, :3], atol=1e-5)
+        w = np.asarray(c.root_angvel[t]) / fps
+        ang = np.linalg.norm(w)
+        dq = jnp.asarray([np.cos(ang / 2), *(np.sin(ang / 2) * w / max(ang, 1e-12))], jnp.float32)
+        np.testing.assert_allclose(
+            np.asarray(quat_to_mat(quat_mul(dq, rq[t]))), np.asarray(quat_to_mat(rq[t + 1])), atol=1e-5
+        )
+    np.testing.assert_allclose(np.asarray(c.q_target), joints[1:], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(c.qd_target), np.diff(joints, axis=0) * fps, atol=1e-4)
+
+
+def test_adam_steps_keeps_the_best_iterate_and_stops_early() -> None:
+    target = jnp.array([1.0, -2.0])
+
+    def vg(x):
+        f = lambda y: (jnp.sum((y - target) ** 2), {"sq": jnp.sum((y - target) ** 2)})  # noqa: E731
+        return jax.value_and_grad(f, has_aux=True)(x)
+
+    x, log = adam_steps(vg, jnp.zeros(2), steps=400, lr=0.05, patience=10, min_rel_improvement=1e-3)
+    assert log.best < 1e-3 and float(jnp.sum((x - target) ** 2)) == pytest.approx(log.best)
+    assert log.best == min(log.losses)
+    # a loss that never improves stops after `patience` steps and returns the start
+    x2, log2 = adam_steps(lambda x: ((jnp.sum(x) * 0 + 1.0, {}), jnp.ones_like(x)), jnp.zeros(2), 100, 0.1, 5, 1e-3)
+    assert log2.stopped_early and len(log2.losses) == 6 and np.allclose(np.asarray(x2), 0.0)
+
+
+def test_sysid_describe_round_trips() -> None:
+    s = SysID.init(lin_damp=0.5, ang_damp=0.2)
+    d = s.describe(0.1)
+    assert d["mass_kg"] == pytest.approx(0.1) and d["inertia_scale"] == pytest.approx(1.0)
+    assert d["lin_damp"] == pytest.approx(0.5, rel=1e-4) and d["ang_damp"] == pytest.approx(0.2, rel=1e-4)
+
+
+def test_identification_recovers_damping(shadow, tmp_path) -> None:
+    """S from a rollout: an object falls with linear damping 3/s while the hand holds still far away;
+    identification starting from 0.1/s recovers it through the simulator's gradient."""
+    import trimesh
+
+    from quasisim.assets.object import load_object
+    from quasisim.optimize import SysID
+    from quasisim.sim.build import SimOptions, build_model, default_params
+    from quasisim.sim.step import initial_state, object_pose, rollout
+    from quasisim.sim.types import Control
+    from quasisim.targets.scene import Table
+
+    trimesh.creation.box(extents=(0.04, 0.04, 0.04)).export(tmp_path / "cube.obj")
+    cube = load_object(tmp_path / "cube.obj", density=500.0)
+    opts = SimOptions(dt=0.0025, substeps=20, n_candidates=16, point_spacing=0.02)
+    model = build_model(shadow, cube, Table(-0.1, 0.1, -0.1, 0.1, -5.0), opts, offset=np.zeros(3))
+    params = default_params(model, cube.mass, cube.inertia)
+    s0 = initial_state(model, jnp.array([0.0, 0.5, 0.5]), jnp.array([1.0, 0, 0, 0]), shadow.rest_q(),
+                       jnp.zeros(3), jnp.array([1.0, 0, 0, 0]))  # fmt: skip
+    F, J = 8, shadow.n_joints
+    z = jnp.zeros((F, J))
+    q = jnp.broadcast_to(jnp.asarray(shadow.rest_q(), jnp.float32), (F, J))
+    ctrl = Control(jnp.zeros((F, 3)), jnp.zeros((F, 3)), z, q, z, jnp.zeros((F, model.n_points, 3)))
+
+    def traj(sid: SysID) -> jax.Array:
+        return object_pose(model, rollout(model, sid.apply(params, cube.mass, cube.inertia), s0, ctrl))[0]
+
+    ref = traj(SysID.init(lin_damp=3.0))
+    loss = jax.jit(jax.value_and_grad(lambda sid: (jnp.mean(jnp.sum((traj(sid) - ref) ** 2, -1)) * 1e4, {})[0]))
+    sid, log = adam_steps(lambda s: ((loss(s)[0], {}), loss(s)[1]), SysID.init(lin_damp=0.1), 150, 0.1, 30, 1e-4)
+    assert sid.describe(cube.mass)["lin_damp"] == pytest.approx(3.0, rel=0.05), sid.describe(cube.mass)
+    assert log.best < 1e-3 * log.losses[0]
+
+
+def test_curricula_are_the_papers_tables() -> None:
+    d = load_curriculum("default")
+    assert [s.d_c for s in d.stages] == [0.1, 0.1, 0.05, 0.03, 0.025, 0.02, 0.015, 0.01, 0.0, 0.0]
+    assert [s.k_n for s in d.stages] == [4e4, 4e4, 8e4, 1e5, 2e5, 3e5, 3.5e5, 4e5, 4e6, 4e6]
+    assert [s.alpha for s in d.stages] == [0.1] + [0.0] * 9
+    assert [s.residual for s in d.stages] == [False] * 9 + [True]
+    c2 = load_curriculum("curriculum2")
+    assert [s.d_c for s in c2.stages] == [0.1, 0.1, 0.05, 0.02, 0.01, 0.0, 0.0]
+    assert [s.d_c for s in load_curriculum("none").stages] == [0.0, 0.0]
+    with pytest.raises(QuasisimError, match="curriculum2, default, none"):
+        load_curriculum("soft")
+
+
+def test_transfer_config_validation(tmp_path) -> None:
+    from quasisim.transfer import TransferConfig, parse_stages
+
+    cfg = TransferConfig.from_yaml(overrides={"budgets.fast.sim.control_steps": 3})
+    assert cfg.budget("fast").sim.control_steps == 3 and cfg.budget("paper").sim.sysid_steps == 1000
+    with pytest.raises(QuasisimError, match="valid options: fast, paper"):
+        cfg.budget("slow")
+    with pytest.raises(InputError, match=r"budgets\.fast\.sim"):
+        TransferConfig.from_yaml(overrides={"budgets.fast.sim.control_lr": -1.0})
+    with pytest.raises(InputError, match=r"weights\.obj_pos"):
+        TransferConfig.from_yaml(overrides={"weights.obj_pos": "heavy"})
+    bad = tmp_path / "t.yaml"
+    bad.write_text("weights: {obj_pos: 1.0}\nbudgets: {}\nfoo: 1\n")
+    with pytest.raises(InputError, match="foo"):
+        TransferConfig.from_yaml(bad)
+    assert parse_stages("2,1") == ("1", "2")
+    with pytest.raises(QuasisimError, match="valid stages: 1, 2"):
+        parse_stages("1,3")
