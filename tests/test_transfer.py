@@ -1,0 +1,125 @@
+"""The transfer pipeline (stages 1 and 2): outputs, checkpoints, resume after a crash, CLI errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from quasisim.errors import InputError, QuasisimError
+
+TINY = {
+    "budgets.fast.substeps": 5,
+    "budgets.fast.n_candidates": 32,
+    "budgets.fast.human.control_steps": 1,
+    "budgets.fast.robot_points.control_steps": 1,
+    "budgets.fast.sim.control_steps": 1,
+    "budgets.fast.sim.sysid_steps": 1,
+}
+CURRICULUM = """name: tiny
+mu: 10.0
+stages:
+  - {alpha: 0.1, d_c: 0.02, k_n: 4.0e4, k_f: 1.0e5, k_d: 1.0e3}
+  - {alpha: 0.0, d_c: 0.01, k_n: 4.0e5, k_f: 1.0e6, k_d: 1.0e3}
+  - {alpha: 0.0, d_c: 0.0, k_n: 4.0e6, k_f: 1.0e7, k_d: 1.0e3}
+  - {alpha: 0.0, d_c: 0.0, k_n: 4.0e6, k_f: 1.0e7, k_d: 1.0e3, residual: true}
+"""
+
+
+@pytest.fixture(scope="module")
+def short_demo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from quasisim.synthetic import write_example
+
+    return write_example("cube_lift", tmp_path_factory.mktemp("demo"), n_frames=16)
+
+
+@pytest.mark.slow
+def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path, tmp_path: Path, monkeypatch) -> None:
+    import quasisim.transfer as tr
+    from quasisim.controls import load_controls
+    from quasisim.curriculum import Curriculum
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import evaluate_controls
+
+    (tmp_path / "tiny.yaml").write_text(CURRICULUM)
+    cur = Curriculum.from_yaml(tmp_path / "tiny.yaml")
+    cfg = tr.TransferConfig.from_yaml(overrides=TINY)
+    out = tmp_path / "run"
+    kw = dict(hand_ref="shadow", target="mujoco", curriculum=cur, stages=("1", "2"), budget="fast", config=cfg,
+              render=False, progress=False)  # fmt: skip
+
+    # a crash in the last simulator's optimisation: what finished is checkpointed, nothing half-written
+    real = tr.adam_steps
+    calls = {"n": 0}
+
+    def crashing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 6:  # human, robot points, sim 2 (S, controls), sim 3 (S) -> crash in sim 3 controls
+            raise KeyboardInterrupt("killed")
+        return real(*a, **k)
+
+    monkeypatch.setattr(tr, "adam_steps", crashing)
+    with pytest.raises(KeyboardInterrupt):
+        tr.run_transfer(short_demo, out, **kw)
+    ck = out / "checkpoints"
+    names = sorted(p.name for p in ck.iterdir())
+    assert names == ["kinematic.npz", "run.json", "stage1_human.npz", "stage1_robot.npz", "stage2_sim02.npz"], names
+    assert not list(out.rglob("*.tmp*")) and not (out / "controls.npz").exists()
+    mtimes = {p.name: p.stat().st_mtime_ns for p in ck.glob("*.npz")}
+
+    # without --resume the folder is refused; with another curriculum the resume is refused
+    monkeypatch.setattr(tr, "adam_steps", real)
+    with pytest.raises(QuasisimError, match="--resume"):
+        tr.run_transfer(short_demo, out, **kw)
+    with pytest.raises(InputError, match="curriculum"):
+        tr.run_transfer(short_demo, out, **{**kw, "curriculum": "none"}, resume=True)
+
+    # resume: only sim 3 is optimised (2 more optimisations), earlier checkpoints are reused untouched
+    counted = {"n": 0}
+
+    def counting(*a, **k):
+        counted["n"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(tr, "adam_steps", counting)
+    res = tr.run_transfer(short_demo, out, **kw, resume=True)
+    assert counted["n"] == 2
+    assert {p.name: p.stat().st_mtime_ns for p in ck.glob("*.npz") if p.name in mtimes} == mtimes
+    assert (ck / "stage2_sim03.npz").is_file() and not (ck / "stage2_sim04.npz").exists()  # residual sim: stage 3
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == {"R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "success"}
+    assert set(metrics["success"]) == {"10deg_10cm", "15deg_15cm", "20deg_20cm", "strict"}
+    assert metrics == res.metrics
+    summary = json.loads((out / "summary.json").read_text())
+    assert [s["sim"] for s in summary["simulators"]] == [2, 3]
+    assert set(summary["seconds"]) >= {"retarget", "stage1", "stage2"}
+    html = (out / "report.html").read_text()
+    assert "optimisation loss per simulator" in html and "kinematic replay in the same target" in html
+
+    # the controls are PD targets any tool can replay: evaluating them again gives the same metrics
+    demo = load_demo(short_demo)
+    c = load_controls(out / "controls.npz")
+    assert c.q_targets.shape == (demo.n_frames, 6 + 22) and c.extras["sim_qpos"].shape == c.q_targets.shape
+    again = evaluate_controls(demo, c, "mujoco", None, render=False)
+    assert again.metrics["T_err_cm"] == pytest.approx(metrics["T_err_cm"], abs=1e-6)
+    # the optimisation moved the trajectory away from the kinematic retarget
+    assert np.abs(c.q_targets - c.extras["kinematic_q"]).max() > 1e-5
+
+
+def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> None:
+    from quasisim.cli import main
+
+    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "1,3"])
+    assert r.exit_code == 2 and "valid stages: 1, 2" in r.output
+    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--budget", "huge"])
+    assert r.exit_code == 2 and "valid options: fast, paper" in r.output
+    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--curriculum", "soft"])
+    assert r.exit_code == 2 and "curriculum2, default, none" in r.output
+    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--set", "budgets.fast.x=1"])
+    assert r.exit_code == 2 and "budgets.fast.x" in r.output
+    r = CliRunner().invoke(main, ["transfer", str(tmp_path / "nope.npz"), "--out", str(tmp_path)])
+    assert r.exit_code == 2 and "nope.npz" in r.output
