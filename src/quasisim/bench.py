@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import os
@@ -272,25 +273,48 @@ def run_sim_bench(
     return res
 
 
+RUN_KINDS = "CURRICULUM (stages 1,2), CURRICULUM+mpc (stages 1,2,mpc), mpc-base, mpc-soften"
+
+
+def _run_spec(run: str, stages: tuple[str, ...]) -> tuple[str, str, tuple[str, ...]]:
+    """A benchmark run name -> (method, curriculum, stages): ``default``, ``none+mpc``, ``mpc-base``..."""
+    from quasisim.curriculum import load_curriculum
+
+    if run in ("mpc-base", "mpc-soften"):
+        return run, "none", ("mpc",)
+    cur, _, extra = run.partition("+")
+    if extra not in ("", "mpc"):
+        from quasisim.errors import QuasisimError
+
+        raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
+    load_curriculum(cur)
+    return "ours", cur, (*stages, "mpc") if extra else stages
+
+
 def run_transfer_bench(
     data_dir: Path,
     clip_names: tuple[str, ...],
     pattern: str,
-    curricula: tuple[str, ...],
+    runs: tuple[str, ...],
     stages: tuple[str, ...],
     budget: str,
     target: str,
     hand_name: str,
     out: Path,
 ) -> str:
-    """Stage-1/2 transfer on clips for several curricula, beside the kinematic replay (same target).
+    """Transfer runs on clips beside the kinematic replay (same target): ``runs`` name curricula (stages 1-2),
+    ``CURRICULUM+mpc`` (then closed-loop MPC) and the MPC baselines ``mpc-base``, ``mpc-soften``.
 
-    Each run writes into ``out/<clip>/<curriculum>`` and is resumed from its checkpoints, so an interrupted
-    benchmark continues where it stopped; finished runs (``summary.json`` present) are read back."""
+    Each run writes into ``out/<clip>/<run>`` and is resumed from its checkpoints, so an interrupted
+    benchmark continues where it stopped; finished runs (``summary.json`` present) are read back. A
+    ``CURRICULUM+mpc`` run starts from the stage-1/2 checkpoints of the ``CURRICULUM`` run when present."""
+    import shutil
+
     from tqdm import tqdm
 
     from quasisim.transfer import run_transfer
 
+    specs = {r: _run_spec(r, stages) for r in runs}
     paths = [data_dir / f"{c}.npz" for c in clip_names] if clip_names else clips(data_dir, pattern)
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
@@ -299,54 +323,61 @@ def run_transfer_bench(
         raise QuasisimError(f"clips not found: {', '.join(missing)}")
     rows: list[dict[str, Any]] = []
     for p in tqdm(paths, desc="clips", unit="clip"):
-        for cur in curricula:
-            d = out / p.stem / cur
+        for run, (method, cur, st) in specs.items():
+            d = out / p.stem / run
             summ = d / "summary.json"
             if not summ.is_file():
+                base_ck = out / p.stem / cur / "checkpoints"
+                if "+" in run and base_ck.is_dir() and not (d / "checkpoints").is_dir():
+                    (d / "checkpoints").mkdir(parents=True)
+                    for f in base_ck.glob("*.npz"):
+                        shutil.copy2(f, d / "checkpoints" / f.name)
+                    json_info = json.loads((base_ck / "run.json").read_text())
+                    from quasisim.transfer import TransferConfig
+
+                    mpc_opts = dataclasses.asdict(TransferConfig.from_yaml().mpc)
+                    json_info.update(stages=list(st), method=method, mpc=mpc_opts)
+                    save_json_atomic(d / "checkpoints" / "run.json", json_info)
                 t0 = time.perf_counter()
                 run_transfer(
-                    p, d, hand_ref=hand_name, target=target, curriculum=cur, stages=stages, budget=budget,
-                    resume=(d / "checkpoints").is_dir(), render=False, progress=True,
+                    p, d, hand_ref=hand_name, target=target, curriculum=cur, stages=st, budget=budget,
+                    resume=(d / "checkpoints").is_dir(), render=False, progress=True, method=method,
                 )  # fmt: skip
                 s = json.loads(summ.read_text())
                 s["bench_wall_s"] = time.perf_counter() - t0
                 save_json_atomic(summ, s)
             s = json.loads(summ.read_text())
             k = s["kinematic_metrics"]
+            if not any(r["clip"] == p.stem and r["method"] == "kinematic" for r in rows):
+                rows.append(
+                    {
+                        "clip": p.stem,
+                        "method": "kinematic",
+                        **k,
+                        "wall_s": float(s["seconds"].get("retarget", 0.0)),
+                        "seconds": {},
+                    }
+                )
             rows.append(
-                {"clip": p.stem, "method": "kinematic", **k, "wall_s": float(s["seconds"].get("retarget", 0.0))}
-            )
-            rows.append(
-                {"clip": p.stem, "method": f"stage {','.join(stages)} {cur}", **s["metrics"],
-                 "wall_s": float(s.get("bench_wall_s", sum(s["seconds"].values()))), "seconds": s["seconds"],
+                {"clip": p.stem, "method": run, **s["metrics"], "seconds": s["seconds"],
+                 "wall_s": float(s.get("bench_wall_s", sum(s["seconds"].values()))),
                  "better": bool(s["metrics"]["T_err_cm"] < k["T_err_cm"] and s["metrics"]["R_err_deg"] < k["R_err_deg"])}
             )  # fmt: skip
-    # one kinematic row per clip
-    seen: set[str] = set()
-    uniq = []
-    for r in rows:
-        key = r["clip"] + r["method"]
-        if r["method"] == "kinematic" and key in seen:
-            continue
-        seen.add(key)
-        uniq.append(r)
-    rows = uniq
     for r in rows:
         r["lifted"] = False  # not recomputed here (see the baseline benchmark)
     lines = [
-        header(f"Transfer through the physics curriculum ({hand_name}, judged in {target}, budget {budget})"),
+        header(f"Transfer ({hand_name}, judged in {target}, budget {budget}, stages {','.join(stages)})"),
         SUMMARY_HEAD.format(g="method"),
         *summary_rows(rows, "method"),
         "",
     ]
-    for cur in curricula:
-        m = f"stage {','.join(stages)} {cur}"
-        rs = [r for r in rows if r["method"] == m]
+    for run in runs:
+        rs = [r for r in rows if r["method"] == run]
         n_better = sum(r["better"] for r in rs)
-        st = [r["seconds"] for r in rs]
-        per_stage = {k: np.mean([s_.get(k, 0.0) for s_ in st]) for k in sorted({k for s_ in st for k in s_})}
+        st_ = [r["seconds"] for r in rs]
+        per_stage = {k: np.mean([s_.get(k, 0.0) for s_ in st_]) for k in sorted({k for s_ in st_ for k in s_})}
         lines.append(
-            f"- {m}: lower T_err and lower R_err than the kinematic replay on {n_better} of {len(rs)} clips; "
+            f"- {run}: lower T_err and lower R_err than the kinematic replay on {n_better} of {len(rs)} clips; "
             "mean seconds per stage: " + ", ".join(f"{k} {v:.0f}" for k, v in per_stage.items())
         )
     lines += [
@@ -354,9 +385,9 @@ def run_transfer_bench(
         "| clip | method | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | wall s |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    yn = lambda b: "y" if b else "-"  # noqa: E731
     for r in rows:
         s_ = r["success"]
-        yn = lambda b: "y" if b else "-"  # noqa: E731
         lines.append(
             f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
             f"{r['CD_mm']:.1f} | " + " | ".join(yn(s_[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} |"

@@ -136,8 +136,8 @@ def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
 @click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
 @_friendly
 def transfer(
-    demo: Path, hand: str, target: str, curriculum: str, stages: str, budget: str, out: Path, resume: bool,
-    config_path: Path | None, sets: tuple[str, ...], render: bool,
+    demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
+    resume: bool, config_path: Path | None, sets: tuple[str, ...], render: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -149,7 +149,7 @@ def transfer(
     cfg.budget(budget)
     res = run_transfer(
         demo, out, hand_ref=hand, target=target, curriculum=curriculum, stages=st, budget=budget, resume=resume,
-        config=cfg, render=render, progress=True,
+        config=cfg, render=render, progress=True, method=method,
     )  # fmt: skip
     click.echo(json.dumps(res.metrics))
     k = res.kinematic_metrics
@@ -227,7 +227,14 @@ def bench_sim(
 @click.option(
     "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped unless named."
 )
-@click.option("--curricula", default="default,none,curriculum2", show_default=True)
+@click.option(
+    "--runs",
+    "--curricula",
+    "runs",
+    default="default,none,curriculum2",
+    show_default=True,
+    help="Comma-separated runs: a curriculum (stages 1,2), CURRICULUM+mpc (then closed-loop MPC), mpc-base, mpc-soften.",
+)
 @click.option("--stages", default="1,2", show_default=True)
 @click.option("--budget", default="fast", show_default=True)
 @click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
@@ -235,20 +242,20 @@ def bench_sim(
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
 @_friendly
 def bench_transfer(
-    data_dir: Path, clip_names: str, pattern: str, curricula: str, stages: str, budget: str, target: str, hand: str,
+    data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path,
 ) -> None:  # fmt: skip
-    """Stage-1/2 transfer on clips of DATA_DIR for several curricula, beside the kinematic replay (resumable)."""
+    """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
     _setup_runtime()
-    from quasisim.bench import run_transfer_bench
-    from quasisim.curriculum import load_curriculum
+    from quasisim.bench import _run_spec, run_transfer_bench
     from quasisim.transfer import parse_stages
 
-    curs = tuple(c.strip() for c in curricula.split(",") if c.strip())
-    for c in curs:
-        load_curriculum(c)
+    st = parse_stages(stages)
+    rs = tuple(c.strip() for c in runs.split(",") if c.strip())
+    for r in rs:
+        _run_spec(r, st)
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    run_transfer_bench(data_dir, names, pattern, curs, parse_stages(stages), budget, target, hand, out)
+    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out)
 
 
 if __name__ == "__main__":  # pragma: no cover

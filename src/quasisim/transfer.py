@@ -37,6 +37,7 @@ from quasisim.curriculum import Curriculum, load_curriculum
 from quasisim.demo import Demo, load_demo
 from quasisim.errors import InputError, QuasisimError, choice_error
 from quasisim.io import save_json_atomic, save_npz_atomic
+from quasisim.mpc import MPCOptions, mpc_params, run_mpc
 from quasisim.optimize import (
     Reference,
     StepBudget,
@@ -51,7 +52,8 @@ from quasisim.optimize import (
 )
 
 CONFIG_PATH = Path(__file__).parent / "configs" / "transfer.yaml"
-STAGES = ("1", "2")
+STAGES = ("1", "2", "mpc")
+METHODS = ("ours", "mpc-base", "mpc-soften", "kinematic")
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,8 @@ class TransferConfig:
 
     weights: Weights
     budgets: dict[str, Budget]
+    mpc: MPCOptions = field(default_factory=MPCOptions)
+    soften_samples: int = 4
     path: str = ""
 
     @classmethod
@@ -101,7 +105,7 @@ def parse_stages(text: str) -> tuple[str, ...]:
     if bad or not stages:
         raise QuasisimError(
             f"unknown stage(s) {', '.join(bad) or '(none given)'}; valid stages: {', '.join(STAGES)} "
-            "(stage 3 and mpc, the fitting to the target and closed-loop tracking, are not implemented yet)"
+            "(stage 3, fitting residual physics to the target, is not implemented yet)"
         )
     return tuple(s for s in STAGES if s in stages)
 
@@ -124,7 +128,7 @@ class Checkpoints:
         if resume and info_path.is_file():
             old = json.loads(info_path.read_text())
             for k, v in run_info.items():
-                if old.get(k) != v:
+                if k in old and old[k] != v:  # keys an older version did not write are not compared
                     raise InputError(info_path, k, f"{old.get(k)!r} to resume this run (or a new --out)", repr(v))
         save_json_atomic(info_path, run_info)
 
@@ -230,6 +234,7 @@ def run_transfer(
     config: TransferConfig | None = None,
     render: bool = True,
     progress: bool = True,
+    method: str = "ours",
 ) -> TransferResult:
     """Stages 1 and/or 2 on one demonstration; writes ``OUT/controls.npz``, ``OUT/metrics.json`` (judged in
     ``target``), ``OUT/report.html`` and ``OUT/summary.json``. See the module docstring."""
@@ -242,6 +247,16 @@ def run_transfer(
 
     if target not in TARGETS:
         raise choice_error("target", target, TARGETS)
+    if method not in METHODS:
+        raise choice_error("method", method, METHODS)
+    if method == "kinematic":
+        stages = ()
+    elif method in ("mpc-base", "mpc-soften"):
+        stages = ("mpc",)
+    if "mpc" in stages and target != "mujoco":
+        raise QuasisimError(
+            f"closed-loop MPC runs in MuJoCo only (target {target!r}); use --target mujoco or leave out the mpc stage"
+        )
     out = Path(out)
     cfg = config or TransferConfig.from_yaml()
     bud = cfg.budget(budget)
@@ -251,8 +266,8 @@ def run_transfer(
     bar = _Bar(progress)
     run_info = {
         "demo": demo.name, "demo_sha256": _file_digest(Path(demo_path)), "hand": str(hand_ref),
-        "curriculum": cur.name, "stages": list(stages), "budget": budget,
-        "budget_settings": dataclasses.asdict(bud), "weights": dataclasses.asdict(cfg.weights),
+        "curriculum": cur.name, "stages": list(stages), "budget": budget, "method": method,
+        "mpc": dataclasses.asdict(cfg.mpc), "budget_settings": dataclasses.asdict(bud), "weights": dataclasses.asdict(cfg.weights),
     }  # fmt: skip
     ck = Checkpoints(out / "checkpoints", run_info, resume)
     seconds: dict[str, float] = {}
@@ -391,24 +406,42 @@ def run_transfer(
                 f"{float(d['wall_s']):.0f} s; mass {s_desc['mass_kg'] * 1e3:.0f} g"
             )
 
-    # ---- outputs ----
+    # ---- closed-loop MPC in the target ----
     p_out = sysid.apply(p_final, obj.mass, obj.inertia)
-    states = jax.jit(lambda pp, tt: simulate(model, pp, tt, base_quat, demo.fps, obj0))(p_out, traj)
-    sim_qpos = _sim_qpos(model, states, traj, base_rot)
+    q_out = traj.q_targets
+    scene = scene_for(demo, hand, base_rot, obj)
+    extras: dict[str, Any] = {"kinematic_q": np.asarray(kin["q"])}
+    if "mpc" in stages:
+        d = ck.load("mpc")
+        if d is None:
+            opts = dataclasses.replace(cfg.mpc, soften=cfg.soften_samples if method == "mpc-soften" else 0)
+            p_mpc = p_out if method == "ours" else mpc_params(params0, None, obj.mass, obj.inertia)
+            r = run_mpc(demo, scene, model, p_mpc, q_out, opts, cfg.weights, progress=progress)
+            d = {"q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s)}
+            ck.save("mpc", **d)
+        seconds["mpc"] = float(d["wall_s"])
+        extras["plan_q"] = q_out
+        q_out = np.asarray(d["q_targets"], np.float64)
+        curves["mpc window loss per frame"] = [float(x) for x in d["window_loss"]]
+        bar.write(f"mpc done in {seconds['mpc']:.0f} s")
+
+    # ---- outputs ----
+    if stages:
+        states = jax.jit(lambda pp, tt: simulate(model, pp, tt, base_quat, demo.fps, obj0))(p_out, traj)
+        extras["sim_qpos"] = _sim_qpos(model, states, traj, base_rot)
+    label = "kinematic" if method == "kinematic" else method if method != "ours" else "transfer"
     controls = Controls(
-        hand=str(hand_ref), demo=demo.name, method=f"transfer[{cur.name};stages {','.join(stages)};{budget}]",
-        fps=demo.fps, base_rot=base_rot, q_targets=traj.q_targets, joint_names=hand.joint_names,
-        extras={"sim_qpos": sim_qpos, "kinematic_q": np.asarray(kin["q"])},
+        hand=str(hand_ref), demo=demo.name, method=f"{label}[{cur.name};stages {','.join(stages)};{budget}]",
+        fps=demo.fps, base_rot=base_rot, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
     )  # fmt: skip
     controls.save(out / "controls.npz")
-    scene = scene_for(demo, hand, base_rot, obj)
     kin_ev = evaluate_controls(
         demo, dataclasses.replace(controls, q_targets=np.asarray(kin["q"]), method="kinematic"), target,
         None, render=False, scene=scene,
     )  # fmt: skip
     summary = {
         "demo": demo.name, "hand": hand.name, "target": target, "curriculum": cur.name, "stages": list(stages),
-        "budget": budget, "seconds": seconds, "simulators": sim_summary,
+        "budget": budget, "method": method, "seconds": seconds, "simulators": sim_summary,
         "kinematic_metrics": kin_ev.metrics, "sysid": sysid.describe(obj.mass),
     }  # fmt: skip
     from quasisim.report import loss_plot
@@ -417,7 +450,7 @@ def run_transfer(
     km = kin_ev.metrics
     ev = evaluate_controls(
         demo, controls, target, out, render=render, scene=scene,
-        title=f"{demo.name}: transfer ({cur.name} curriculum, stages {','.join(stages)}) in {target}",
+        title=f"{demo.name}: {label} ({cur.name} curriculum, stages {','.join(stages) or 'none'}) in {target}",
         extra_info={
             "kinematic replay in the same target": f"R_err {km['R_err_deg']:.1f} deg, T_err {km['T_err_cm']:.2f} cm, "
             f"MPJPE {km['MPJPE_mm']:.1f} mm, success {km['success']}",

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.rotations import np_mat_to_quat, sign_continuous
+from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
 from quasisim.targets import Rollout
 from quasisim.targets.scene import Scene
 
@@ -253,49 +253,96 @@ class MujocoTarget:
 
         The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``).
         """
-        import mujoco
-
         q_targets = np.asarray(q_targets, dtype=np.float64)
-        mm, m = self.mm, self.mm.model
         hand = self.scene.hand
         if q_targets.ndim != 2 or q_targets.shape[1] != 6 + hand.n_joints:
             raise ValueError(f"q_targets must have shape (T, {6 + hand.n_joints}), got {q_targets.shape}")
         T = len(q_targets)
-        d = mujoco.MjData(m)
-        mm.set_state(d, q_targets[0], self.scene.object_pos0, self.scene.object_quat0)
-        fps = self.scene.fps
-        n = self.substeps
-        if init_qvel and T > 1:
-            d.qvel[mm.hand_dof] = (q_targets[1] - q_targets[0]) * fps
-        qpos = np.zeros((T, 6 + hand.n_joints))
-        opos = np.zeros((T, 3))
-        oquat = np.zeros((T, 4))
-        kps = np.zeros((T, len(hand.kp_names), 3))
+        qd0 = (q_targets[1] - q_targets[0]) * self.scene.fps if init_qvel and T > 1 else None
+        sess = self.session(q_targets[0], qd0)
         t0 = time.perf_counter()
         for t in range(T):
-            qpos[t] = d.qpos[mm.hand_qpos]
-            opos[t] = d.qpos[mm.obj_qpos : mm.obj_qpos + 3]
-            oquat[t] = d.qpos[mm.obj_qpos + 3 : mm.obj_qpos + 7]
-            kps[t] = d.site_xpos[mm.kp_site]
-            if t == T - 1:
-                break
-            qa, qb = q_targets[t], q_targets[t + 1]
-            d.ctrl[mm.ff_act] = (qb - qa) * fps
-            for k in range(n):
-                s = (k + 1) / n
-                d.ctrl[mm.pd_act] = (1 - s) * qa + s * qb
-                mujoco.mj_step(m, d)
-        wall = time.perf_counter() - t0
-        oquat = sign_continuous(oquat)
+            sess.record()
+            if t < T - 1:
+                sess.advance(q_targets[t], q_targets[t + 1])
+        return sess.result(time.perf_counter() - t0)
+
+    def session(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> MujocoSession:
+        """A step-by-step run (closed-loop control): the hand at ``q0`` (6 + J) with velocity ``qd0``,
+        the object at the demo's initial pose, at rest."""
+        return MujocoSession(self, np.asarray(q0, np.float64), qd0)
+
+
+class MujocoSession:
+    """One MuJoCo run advanced frame by frame: :meth:`observe` the state, :meth:`advance` one control frame."""
+
+    def __init__(self, target: MujocoTarget, q0: np.ndarray, qd0: np.ndarray | None) -> None:
+        import mujoco
+
+        self.target = target
+        mm = target.mm
+        self.data = mujoco.MjData(mm.model)
+        mm.set_state(self.data, q0, target.scene.object_pos0, target.scene.object_quat0)
+        if qd0 is not None:
+            self.data.qvel[mm.hand_dof] = qd0
+        self._rec: dict[str, list[np.ndarray]] = {"qpos": [], "opos": [], "oquat": [], "kps": []}
+
+    def observe(self) -> dict[str, np.ndarray]:
+        """Hand ``qpos``/``qvel`` (6 + J), object origin ``obj_pos``, ``obj_quat`` (w x y z), world linear
+        velocity of the centre of mass ``obj_vel`` and world angular velocity ``obj_angvel``, ``keypoints``."""
+        mm, d = self.target.mm, self.data
+        self._sync()
+        o = mm.obj_qpos
+        quat = d.qpos[o + 3 : o + 7].copy()
+        R = np_quat_to_mat(quat)
+        w = R @ d.qvel[mm.obj_dof + 3 : mm.obj_dof + 6]  # free joint: angular velocity in the body frame
+        com = R @ np.asarray(self.target.scene.obj.com)
+        v = d.qvel[mm.obj_dof : mm.obj_dof + 3] + np.cross(w, com)  # free joint: velocity of the frame origin
+        return {
+            "qpos": d.qpos[mm.hand_qpos].copy(), "qvel": d.qvel[mm.hand_dof].copy(),
+            "obj_pos": d.qpos[o : o + 3].copy(), "obj_quat": quat, "obj_vel": v, "obj_angvel": w,
+            "keypoints": d.site_xpos[mm.kp_site].copy(),
+        }  # fmt: skip
+
+    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
+        """One control frame: PD targets interpolated from ``qa`` to ``qb`` with their velocity fed forward."""
+        import mujoco
+
+        mm, d, m = self.target.mm, self.data, self.target.mm.model
+        fps, n = self.target.scene.fps, self.target.substeps
+        d.ctrl[mm.ff_act] = (qb - qa) * fps
+        for k in range(n):
+            s = (k + 1) / n
+            d.ctrl[mm.pd_act] = (1 - s) * qa + s * qb
+            mujoco.mj_step(m, d)
+
+    def _sync(self) -> None:
+        """Positions of bodies and sites for the current ``qpos`` (``mj_step`` leaves them one step behind)."""
+        import mujoco
+
+        mujoco.mj_kinematics(self.target.mm.model, self.data)
+
+    def record(self) -> None:
+        """Append the current frame (hand qpos, object pose, keypoint sites) to the run's record."""
+        mm, d = self.target.mm, self.data
+        self._sync()
+        self._rec["qpos"].append(d.qpos[mm.hand_qpos].copy())
+        self._rec["opos"].append(d.qpos[mm.obj_qpos : mm.obj_qpos + 3].copy())
+        self._rec["oquat"].append(d.qpos[mm.obj_qpos + 3 : mm.obj_qpos + 7].copy())
+        self._rec["kps"].append(d.site_xpos[mm.kp_site].copy())
+
+    def result(self, wall_s: float) -> Rollout:
+        """The recorded frames as a :class:`Rollout`."""
+        hand = self.target.scene.hand
         return Rollout(
-            target=self.name,
-            qpos=qpos,
-            object_pos=opos,
-            object_quat=oquat,
-            keypoints=kps,
+            target=self.target.name,
+            qpos=np.array(self._rec["qpos"]),
+            object_pos=np.array(self._rec["opos"]),
+            object_quat=sign_continuous(np.array(self._rec["oquat"])),
+            keypoints=np.array(self._rec["kps"]),
             kp_human=hand.kp_human.copy(),
             kp_metric=hand.kp_metric.copy(),
-            dt=float(m.opt.timestep),
-            substeps=n,
-            wall_s=wall,
+            dt=float(self.target.mm.model.opt.timestep),
+            substeps=self.target.substeps,
+            wall_s=wall_s,
         )

@@ -1,0 +1,114 @@
+"""Closed-loop MPC: the MuJoCo session's observations, the observed quasi-physical state, the loop itself."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="module")
+def short(tmp_path_factory: pytest.TempPathFactory):
+    from quasisim.assets.hand import load_hand
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import load_object_for, scene_for
+    from quasisim.retarget import kinematic_controls
+    from quasisim.synthetic import write_example
+
+    p: Path = write_example("cube_lift", tmp_path_factory.mktemp("mpc"), n_frames=12)
+    demo = load_demo(p)
+    hand = load_hand("shadow")
+    c = kinematic_controls(hand, demo, "shadow")
+    obj = load_object_for(demo)
+    return demo, hand, obj, c, scene_for(demo, hand, c.base_rot, obj)
+
+
+def test_session_replays_like_rollout_and_observes_velocities(short) -> None:
+    """Stepping a session frame by frame is the rollout; the observed object velocity is its centre of
+    mass's (finite difference over one physics step)."""
+    import mujoco
+
+    from quasisim.rotations import np_quat_to_mat
+    from quasisim.targets.mujoco_target import MujocoTarget
+
+    demo, _hand, obj, c, scene = short
+    tgt = MujocoTarget(scene)
+    r = tgt.rollout(c.q_targets)
+    sess = tgt.session(c.q_targets[0], (c.q_targets[1] - c.q_targets[0]) * demo.fps)
+    for t in range(demo.n_frames):
+        sess.record()
+        if t < demo.n_frames - 1:
+            sess.advance(c.q_targets[t], c.q_targets[t + 1])
+    r2 = sess.result(0.0)
+    np.testing.assert_array_equal(r.object_pos, r2.object_pos)
+    np.testing.assert_array_equal(r.qpos, r2.qpos)
+
+    # give the object a spin and a throw, compare the observed com velocity with a finite difference
+    s = tgt.session(c.q_targets[0])
+    d, mm = s.data, tgt.mm
+    d.qpos[mm.obj_qpos + 2] += 0.3  # lift it off the table
+    d.qvel[mm.obj_dof : mm.obj_dof + 6] = [0.2, -0.1, 0.5, 3.0, -2.0, 1.0]
+    mujoco.mj_forward(mm.model, d)
+    obs = s.observe()
+
+    def com(o: dict) -> np.ndarray:
+        return o["obj_pos"] + np_quat_to_mat(o["obj_quat"]) @ np.asarray(obj.com)
+
+    c0 = com(obs)
+    h = mm.model.opt.timestep
+    mujoco.mj_step(mm.model, d)
+    v_fd = (com(s.observe()) - c0) / h
+    np.testing.assert_allclose(obs["obj_vel"], v_fd, atol=0.05)  # one step of gravity: 0.02 m/s
+
+
+def test_observed_state_matches_the_observation(short) -> None:
+    from quasisim.kinematics import fk_full, keypoints
+    from quasisim.mpc import observed_state
+    from quasisim.rotations import np_mat_to_quat
+    from quasisim.sim.build import SimOptions, build_model
+    from quasisim.sim.step import object_pose
+    from quasisim.targets.mujoco_target import MujocoTarget
+    from quasisim.targets.scene import size_table
+
+    demo, hand, obj, c, scene = short
+    model = build_model(hand, obj, size_table(demo, obj)[0], SimOptions.for_fps(demo.fps), demo.object_pos[0])
+    sess = MujocoTarget(scene).session(c.q_targets[0])
+    for t in range(3):
+        sess.advance(c.q_targets[t], c.q_targets[t + 1])
+    obs = sess.observe()
+    s = observed_state(model, obs, jnp.asarray(np_mat_to_quat(scene.base_rot), jnp.float32))
+    pos, _quat = object_pose(model, s)
+    np.testing.assert_allclose(np.asarray(pos), obs["obj_pos"], atol=1e-5)
+    import jax
+
+    from quasisim.optimize import hand_keypoints
+
+    kp = np.asarray(hand_keypoints(model, jax.tree_util.tree_map(lambda x: x[None], s)))[0]
+    kp_ref = np.asarray(keypoints(hand, fk_full(hand, jnp.asarray(scene.base_rot), jnp.asarray(obs["qpos"]))))
+    np.testing.assert_allclose(kp, kp_ref, atol=2e-5)
+    np.testing.assert_allclose(kp, obs["keypoints"], atol=2e-5)  # and MuJoCo's own sites
+
+
+@pytest.mark.slow
+def test_mpc_loop_applies_what_it_plans(short) -> None:
+    """The closed loop changes the plan, the applied targets replayed open-loop give the same run
+    (MuJoCo is deterministic), and the first frame is left alone."""
+    from quasisim.mpc import MPCOptions, mpc_params, run_mpc
+    from quasisim.sim.build import SimOptions, build_model, default_params
+    from quasisim.targets.mujoco_target import MujocoTarget
+    from quasisim.targets.scene import size_table
+
+    demo, hand, obj, c, scene = short
+    model = build_model(
+        hand, obj, size_table(demo, obj)[0], SimOptions.for_fps(demo.fps, 5, n_candidates=32), demo.object_pos[0]
+    )
+    p = mpc_params(default_params(model, obj.mass, obj.inertia), None, obj.mass, obj.inertia)
+    res = run_mpc(demo, scene, model, p, c.q_targets, MPCOptions(horizon=2, steps=1, lr=1e-3), progress=False)
+    assert res.q_targets.shape == c.q_targets.shape and len(res.window_loss) == demo.n_frames - 1
+    np.testing.assert_array_equal(res.q_targets[0], c.q_targets[0])
+    assert np.abs(res.q_targets - c.q_targets).max() > 1e-4
+    again = MujocoTarget(scene).rollout(res.q_targets)
+    np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-12)
+    np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-12)
