@@ -301,12 +301,14 @@ def run_transfer_bench(
     target: str,
     hand_name: str,
     out: Path,
+    report_only: bool = False,
 ) -> str:
     """Transfer runs on clips beside the kinematic replay (same target): ``runs`` name curricula (stages 1-2),
     ``CURRICULUM+mpc`` (then closed-loop MPC) and the MPC baselines ``mpc-base``, ``mpc-soften``.
 
     Each run writes into ``out/<clip>/<run>`` and is resumed from its checkpoints, so an interrupted
-    benchmark continues where it stopped; finished runs (``summary.json`` present) are read back. A
+    benchmark continues where it stopped; finished runs (``summary.json`` present) are read back
+    (``report_only``: only those, nothing is run). A
     ``CURRICULUM+mpc`` run starts from the stage-1/2 checkpoints of the ``CURRICULUM`` run when present."""
     import shutil
 
@@ -326,6 +328,8 @@ def run_transfer_bench(
         for run, (method, cur, st) in specs.items():
             d = out / p.stem / run
             summ = d / "summary.json"
+            if not summ.is_file() and report_only:
+                continue
             if not summ.is_file():
                 base_ck = out / p.stem / cur / "checkpoints"
                 if "+" in run and base_ck.is_dir() and not (d / "checkpoints").is_dir():

@@ -240,10 +240,11 @@ def bench_sim(
 @click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
 @click.option("--hand", default="shadow", show_default=True)
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
+@click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
-    out: Path,
+    out: Path, report_only: bool,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
     _setup_runtime()
@@ -255,7 +256,7 @@ def bench_transfer(
     for r in rs:
         _run_spec(r, st)
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out)
+    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only)
 
 
 if __name__ == "__main__":  # pragma: no cover
