@@ -112,14 +112,24 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
 
 def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> None:
     from quasisim.cli import main
+    from quasisim.transfer import METHODS
+
+    choices = next(p for p in main.commands["transfer"].params if p.name == "method").type.choices
+    assert tuple(choices) == METHODS
 
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "1,3"])
-    assert r.exit_code == 2 and "valid stages: 1, 2" in r.output
+    assert r.exit_code == 2 and "valid stages: 1, 2, mpc" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--budget", "huge"])
     assert r.exit_code == 2 and "valid options: fast, paper" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--curriculum", "soft"])
     assert r.exit_code == 2 and "curriculum2, default, none" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--set", "budgets.fast.x=1"])
     assert r.exit_code == 2 and "budgets.fast.x" in r.output
+    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--method", "rl"])
+    assert r.exit_code == 2 and "mpc-base" in r.output
+    r = CliRunner().invoke(
+        main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "mpc", "--target", "pybullet"]
+    )
+    assert r.exit_code == 2 and "MuJoCo only" in r.output
     r = CliRunner().invoke(main, ["transfer", str(tmp_path / "nope.npz"), "--out", str(tmp_path)])
     assert r.exit_code == 2 and "nope.npz" in r.output

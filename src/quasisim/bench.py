@@ -133,10 +133,15 @@ def run_baseline(
         n = sum(1 for r in rows if r["target"] == tgt)
         lines.append(f"\n{tgt}: object lifted (>= 3 cm or half the demo's lift) in {n_lift} of {n} clips.")
     lines += ["", CLIP_HEAD.format(g="target"), *[clip_row(r, "target") for r in rows]]
+    return _publish(out, "baseline", rows, lines)
+
+
+def _publish(out: Path, name: str, rows: list[dict[str, Any]], lines: list[str]) -> str:
+    """Write ``out/name.json`` (rows) and ``out/name.md`` (the markdown), print the markdown."""
     text = "\n".join(lines) + "\n"
     out.mkdir(parents=True, exist_ok=True)
-    save_json_atomic(out / "baseline.json", rows)
-    save_text_atomic(out / "baseline.md", text)
+    save_json_atomic(out / f"{name}.json", rows)
+    save_text_atomic(out / f"{name}.md", text)
     print(text)
     return text
 
@@ -396,9 +401,4 @@ def run_transfer_bench(
             f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
             f"{r['CD_mm']:.1f} | " + " | ".join(yn(s_[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} |"
         )
-    text = "\n".join(lines) + "\n"
-    out.mkdir(parents=True, exist_ok=True)
-    save_json_atomic(out / "transfer.json", rows)
-    save_text_atomic(out / "transfer.md", text)
-    print(text)
-    return text
+    return _publish(out, "transfer", rows, lines)

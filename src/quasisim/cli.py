@@ -124,7 +124,15 @@ def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
 )
 @click.option("--curriculum", default="default", show_default=True, help="default, curriculum2, none or a YAML path.")
 @click.option(
-    "--stages", default="1,2", show_default=True, help="Stages to run (1: point dynamics, 2: contact curriculum)."
+    "--stages", default="1,2", show_default=True, help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo)."
+)
+@click.option(
+    "--method",
+    type=click.Choice(["ours", "mpc-base", "mpc-soften", "kinematic"]),
+    default="ours",
+    show_default=True,
+    help="ours: the curriculum stages; mpc-base / mpc-soften: MPC baselines without the curriculum; "
+    "kinematic: the kinematic retarget only.",
 )
 @click.option("--budget", default="fast", show_default=True, help="Step budget from the config: fast or paper.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")

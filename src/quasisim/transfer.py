@@ -215,6 +215,16 @@ class _Bar:
 
         return step, bar.close
 
+    def optimise(
+        self, desc: str, value_and_grad: Callable[[Any], Any], x0: Any, steps: int, lr: float, sb: StepBudget
+    ) -> tuple[Any, StepLog]:
+        """:func:`adam_steps` with a progress bar and ``sb``'s early-termination settings."""
+        step, close = self.run(desc, steps)
+        try:
+            return adam_steps(value_and_grad, x0, steps, lr, sb.patience, sb.min_rel_improvement, on_step=step)
+        finally:
+            close()
+
     def write(self, text: str) -> None:
         if self.enabled:
             from tqdm import tqdm
@@ -327,13 +337,11 @@ def run_transfer(
         rp_ck = ck.load("stage1_robot")
         if rp_ck is None:
             w = cfg.weights.arrays()
-            step, close = bar.run(f"stage 1d robot point set (sim {i1 + 1})", bud.robot_points.control_steps)
-            traj, log = adam_steps(
-                lambda x: _pick(vg(x, sysid, p1, w), 0), traj, bud.robot_points.control_steps,
-                bud.robot_points.control_lr, bud.robot_points.patience, bud.robot_points.min_rel_improvement,
-                on_step=step,
+            rb = bud.robot_points
+            traj, log = bar.optimise(
+                f"stage 1d robot point set (sim {i1 + 1})", lambda x: _pick(vg(x, sysid, p1, w), 0), traj,
+                rb.control_steps, rb.control_lr, rb,
             )  # fmt: skip
-            close()
             rp_ck = _traj_arrays(traj, sysid, log, log.wall_s)
             ck.save("stage1_robot", **rp_ck)
         traj, sysid = _traj_from(rp_ck)
@@ -374,18 +382,14 @@ def run_transfer(
                         traj = start
                 log_s = StepLog()
                 if sb.sysid_steps > 0:
-                    step, close = bar.run(f"{label} identify S", sb.sysid_steps)
-                    sysid, log_s = adam_steps(
-                        lambda s, traj=traj, p=p: _pick(vg(traj, s, p, w2), 1), sysid, sb.sysid_steps, sb.sysid_lr,
-                        sb.patience, sb.min_rel_improvement, on_step=step,
+                    sysid, log_s = bar.optimise(
+                        f"{label} identify S", lambda s, traj=traj, p=p: _pick(vg(traj, s, p, w2), 1), sysid,
+                        sb.sysid_steps, sb.sysid_lr, sb,
                     )  # fmt: skip
-                    close()
-                step, close = bar.run(f"{label} controls", sb.control_steps)
-                traj, log_c = adam_steps(
-                    lambda x, sysid=sysid, p=p: _pick(vg(x, sysid, p, w2), 0), traj, sb.control_steps, sb.control_lr,
-                    sb.patience, sb.min_rel_improvement, on_step=step,
+                traj, log_c = bar.optimise(
+                    f"{label} controls", lambda x, sysid=sysid, p=p: _pick(vg(x, sysid, p, w2), 0), traj,
+                    sb.control_steps, sb.control_lr, sb,
                 )  # fmt: skip
-                close()
                 d = _traj_arrays(traj, sysid, None, time.perf_counter() - t2)
                 d["losses"] = np.asarray(log_s.losses + log_c.losses, np.float64)
                 d["n_sysid"] = np.array(len(log_s.losses))
@@ -518,12 +522,10 @@ def _stage1_human(
     sysid = SysID.init()
     w = weights.arrays(points=0.0)
     traj = Trajectory.from_q(fit.q, model.n_points)
-    step, close = bar.run(f"stage 1b human point set (sim {i1 + 1})", sb.control_steps)
-    traj, log = adam_steps(
-        lambda x: vg(x, sysid, params, w), traj, sb.control_steps, sb.control_lr, sb.patience,
-        sb.min_rel_improvement, on_step=step,
+    traj, log = bar.optimise(
+        f"stage 1b human point set (sim {i1 + 1})", lambda x: vg(x, sysid, params, w), traj, sb.control_steps,
+        sb.control_lr, sb,
     )  # fmt: skip
-    close()
 
     @jax.jit
     def points_of(tt: Trajectory) -> jax.Array:
