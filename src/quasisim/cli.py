@@ -124,7 +124,10 @@ def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
 )
 @click.option("--curriculum", default="default", show_default=True, help="default, curriculum2, none or a YAML path.")
 @click.option(
-    "--stages", default="1,2", show_default=True, help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo)."
+    "--stages",
+    default="1,2",
+    show_default=True,
+    help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo).",
 )
 @click.option(
     "--method",
