@@ -96,6 +96,11 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     assert metrics == res.metrics
     summary = json.loads((out / "summary.json").read_text())
     assert [s["sim"] for s in summary["simulators"]] == [2, 3]
+    # restart guard: sim 3 started from the best candidate in sim 3, and its first (identification) step
+    # evaluated exactly that trajectory
+    s3 = summary["simulators"][1]
+    assert set(s3["start_losses"]) == {"previous", "stage_start", "kinematic"}
+    assert s3["loss_first"] == pytest.approx(min(s3["start_losses"].values()), rel=1e-5)
     assert set(summary["seconds"]) >= {"retarget", "stage1", "stage2"}
     html = (out / "report.html").read_text()
     assert "optimisation loss per simulator" in html and "kinematic replay in the same target" in html

@@ -303,7 +303,7 @@ def run_transfer(
     params0 = default_params(model, obj.mass, obj.inertia)
     obj0 = (demo.object_pos[0], demo.object_quat[0])
     metric = np.flatnonzero(hand.kp_metric)
-    traj = Trajectory.from_q(kin["q"], model.n_points)
+    traj = kin_traj = Trajectory.from_q(kin["q"], model.n_points)
     sysid = SysID.init()
     relaxed = [i for i, s in enumerate(cur.stages) if s.alpha > 0 and not s.residual]
     rigid = [i for i, s in enumerate(cur.stages) if s.alpha == 0 and not s.residual]
@@ -371,15 +371,19 @@ def run_transfer(
             if d is None:
                 t2 = time.perf_counter()
                 label = f"stage 2 sim {i + 1} ({n + 1}/{len(rigid)})"
+                start_losses: dict[str, float] = {}
                 if n > 0:
-                    # keep the better of the previous simulator's result and the stage's start in this simulator
-                    l_prev = float(vg(traj, sysid, p, w2)[0][0])
-                    l_start = float(vg(start, sysid, p, w2)[0][0])
-                    if l_start < l_prev:
+                    # restart guard: in this simulator, continue from the best of the previous simulator's
+                    # result, the stage's start (stage 1's result) and the kinematic retarget
+                    cands = {"previous": traj, "stage_start": start, "kinematic": kin_traj}
+                    start_losses = {k: float(vg(t, sysid, p, w2)[0][0]) for k, t in cands.items()}
+                    best = min(start_losses, key=start_losses.__getitem__)
+                    if best != "previous":
                         bar.write(
-                            f"sim {i + 1}: restarting from the stage's initial trajectory ({l_start:.5f} < {l_prev:.5f})"
+                            f"sim {i + 1}: restarting from {best} "
+                            f"({start_losses[best]:.5f} < previous {start_losses['previous']:.5f})"
                         )
-                        traj = start
+                        traj = cands[best]
                 log_s = StepLog()
                 if sb.sysid_steps > 0:
                     sysid, log_s = bar.optimise(
@@ -394,6 +398,7 @@ def run_transfer(
                 d["losses"] = np.asarray(log_s.losses + log_c.losses, np.float64)
                 d["n_sysid"] = np.array(len(log_s.losses))
                 d["terms"] = np.array(json.dumps(log_c.terms[-1] if log_c.terms else {}))
+                d["start_losses"] = np.array(json.dumps(start_losses))
                 ck.save(name, **d)
             traj, sysid = _traj_from(d)
             losses = [float(x) for x in d["losses"]]
@@ -403,7 +408,8 @@ def run_transfer(
             sim_summary.append(
                 {"sim": i + 1, **{k: float(v) for k, v in cur.params_overrides(i).items()}, "steps": len(losses),
                  "loss_first": losses[0] if losses else None, "loss_best": min(losses) if losses else None,
-                 "wall_s": float(d["wall_s"]), **s_desc}
+                 "wall_s": float(d["wall_s"]), **s_desc,
+                 "start_losses": json.loads(str(d["start_losses"])) if "start_losses" in d else None}
             )  # fmt: skip
             bar.write(
                 f"sim {i + 1}: loss {losses[0]:.5f} -> {min(losses):.5f} in {len(losses)} steps, "
