@@ -402,3 +402,64 @@ def run_transfer_bench(
             f"{r['CD_mm']:.1f} | " + " | ".join(yn(s_[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} |"
         )
     return _publish(out, "transfer", rows, lines)
+
+
+def run_predict_bench(
+    data_dir: Path, clip_names: tuple[str, ...], pattern: str, horizon: int, curriculum: str, hand_name: str,
+    out: Path,
+) -> str:  # fmt: skip
+    """Open-loop ``horizon``-frame prediction error of the quasi-physical simulator against MuJoCo (no
+    residual physics, nominal S) under the kinematic retarget's PD targets, for each rigid simulator of
+    ``curriculum``, beside the zero-motion predictor. See :mod:`quasisim.fit`."""
+    import jax.numpy as jnp
+    from tqdm import tqdm
+
+    from quasisim.assets.hand import load_hand
+    from quasisim.curriculum import load_curriculum
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import load_object_for, scene_for
+    from quasisim.fit import prediction_error, record_target
+    from quasisim.retarget import retarget
+    from quasisim.rotations import np_mat_to_quat
+    from quasisim.sim.build import SimOptions, build_model, default_params
+    from quasisim.targets.scene import size_table
+
+    cur = load_curriculum(curriculum)
+    rigid = [i for i, s in enumerate(cur.stages) if s.alpha == 0 and not s.residual]
+    paths = [data_dir / f"{c}.npz" for c in clip_names] if clip_names else clips(data_dir, pattern)
+    hand = load_hand(hand_name)
+    rows: list[dict[str, Any]] = []
+    for p in tqdm(paths, desc="clips", unit="clip"):
+        demo = load_demo(p)
+        rt = retarget(hand, demo)
+        obj = load_object_for(demo)
+        table, _ = size_table(demo, obj)
+        model = build_model(hand, obj, table, SimOptions.for_fps(demo.fps), demo.object_pos[0])
+        p0 = default_params(model, obj.mass, obj.inertia)
+        params = {
+            f"sim {i + 1} (d_c {100 * cur.stages[i].d_c:g} cm)": p0.replace(**cur.params_overrides(i)) for i in rigid
+        }
+        scene = scene_for(demo, hand, rt.base_rot, obj)
+        t0 = time.perf_counter()
+        obs, ro = record_target(scene, rt.q, demo.fps)
+        errs = prediction_error(
+            model, params, np_mat_to_quat(rt.base_rot), demo.fps, jnp.asarray(rt.q), obs, ro, horizon
+        )
+        wall = time.perf_counter() - t0
+        for name, e in errs.items():
+            rows.append({"clip": p.stem, "simulator": name, **e.summary(), "wall_s": wall})
+    lines = [
+        header(f"{horizon}-frame prediction error against MuJoCo ({hand_name}, kinematic retarget's PD targets)"),
+        f"Mean over clips and start frames, after {horizon} frames; zero-motion: the object stays where it was.",
+        "",
+        "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for sim in dict.fromkeys(r["simulator"] for r in rows):
+        rs = [r for r in rows if r["simulator"] == sim]
+        mean = lambda k, rs=rs: float(np.mean([r[k] for r in rs]))  # noqa: E731
+        lines.append(
+            f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
+            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} |"
+        )
+    return _publish(out, "predict", rows, lines)

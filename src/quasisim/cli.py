@@ -270,5 +270,30 @@ def bench_transfer(
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only)
 
 
+@bench.command("predict")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
+@click.option("--horizon", default=10, show_default=True, type=click.IntRange(1, 50), help="Frames predicted.")
+@click.option("--curriculum", default="default", show_default=True, help="Whose rigid simulators to compare.")
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/predict"), show_default=True)
+@_friendly
+def bench_predict(
+    data_dir: Path, clip_names: str, pattern: str, horizon: int, curriculum: str, hand: str, out: Path
+) -> None:
+    """Open-loop prediction error of the quasi-physical simulators against MuJoCo (the fit of stage 3)."""
+    _setup_runtime()
+    from quasisim.bench import run_predict_bench
+
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    missing = [n for n in names if not (data_dir / f"{n}.npz").is_file()]
+    if missing:
+        raise QuasisimError(f"clips not found in {data_dir}: {', '.join(missing)}")
+    run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

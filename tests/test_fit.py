@@ -1,0 +1,60 @@
+"""Open-loop prediction of the quasi-physical simulator from MuJoCo's recorded states (stage 3's measure)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+@pytest.mark.slow
+def test_prediction_error_against_mujoco(tmp_path: Path) -> None:
+    from quasisim.assets.hand import load_hand
+    from quasisim.curriculum import load_curriculum
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import load_object_for, scene_for
+    from quasisim.fit import prediction_error, record_target
+    from quasisim.retarget import retarget
+    from quasisim.rotations import np_mat_to_quat
+    from quasisim.sim.build import SimOptions, build_model, default_params
+    from quasisim.synthetic import write_example
+    from quasisim.targets.scene import size_table
+
+    demo = load_demo(write_example("cube_lift", tmp_path, n_frames=16))
+    hand = load_hand("shadow")
+    rt = retarget(hand, demo)
+    obj = load_object_for(demo)
+    table, _ = size_table(demo, obj)
+    model = build_model(hand, obj, table, SimOptions.for_fps(demo.fps), demo.object_pos[0])
+    p0 = default_params(model, obj.mass, obj.inertia)
+    cur = load_curriculum("default")
+    stiff, soft = p0.replace(**cur.params_overrides(8)), p0.replace(**cur.params_overrides(1))
+    bq = np_mat_to_quat(rt.base_rot)
+    obs, ro = record_target(scene_for(demo, hand, rt.base_rot, obj), rt.q, demo.fps)
+    assert len(obs) == demo.n_frames and np.allclose(obs[0]["obj_pos"], ro.object_pos[0])
+
+    e = prediction_error(model, {"stiff": stiff, "soft": soft}, bq, demo.fps, rt.q, obs, ro, horizon=3)
+    s, f = e["stiff"], e["soft"]
+    assert s.n_windows == demo.n_frames - 3 and s.obj_pos_cm.shape == (3,)
+    # the hand follows the same PD targets in both: keypoints agree within millimetres after one frame
+    assert s.keypoints_mm[0] < 5.0
+    # the stiffest simulator is the closest to MuJoCo; with d_c = 10 cm the object is pushed from afar
+    assert s.obj_pos_cm[-1] < 0.5 * f.obj_pos_cm[-1]
+    assert np.all(np.diff(f.obj_pos_cm) > 0)  # errors accumulate over the horizon
+
+    # while the hand approaches, the object rests on the table in both simulators
+    early = prediction_error(model, {"stiff": stiff}, bq, demo.fps, rt.q[:6], obs[:6], ro, horizon=3)["stiff"]
+    assert early.obj_pos_cm[-1] < 0.05 and early.obj_rot_deg[-1] < 0.5
+
+    with pytest.raises(ValueError, match="more than 20 frames"):
+        prediction_error(model, {"stiff": stiff}, bq, demo.fps, rt.q, obs, ro, horizon=20)
+
+
+def test_bench_predict_rejects_unknown_clips(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--clips", "nope"])
+    assert r.exit_code == 2 and "clips not found" in r.output and "nope" in r.output
