@@ -450,16 +450,18 @@ def run_predict_bench(
             rows.append({"clip": p.stem, "simulator": name, **e.summary(), "wall_s": wall})
     lines = [
         header(f"{horizon}-frame prediction error against MuJoCo ({hand_name}, kinematic retarget's PD targets)"),
-        f"Mean over clips and start frames, after {horizon} frames; zero-motion: the object stays where it was.",
+        f"Mean over clips and start frames, after {horizon} frames; zero-motion: the object stays where it was; "
+        "diverged: windows whose prediction became non-finite (left out of the means).",
         "",
-        "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) |",
-        "|---|---|---|---|---|---|---|",
+        "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) | diverged |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for sim in dict.fromkeys(r["simulator"] for r in rows):
         rs = [r for r in rows if r["simulator"] == sim]
-        mean = lambda k, rs=rs: float(np.mean([r[k] for r in rs]))  # noqa: E731
+        mean = lambda k, rs=rs: float(np.nanmean([r[k] for r in rs]))  # noqa: E731
         lines.append(
             f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
-            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} |"
+            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} | "
+            f"{sum(r['n_diverged'] for r in rs)} of {sum(r['n_windows'] for r in rs)} |"
         )
     return _publish(out, "predict", rows, lines)

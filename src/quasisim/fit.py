@@ -34,7 +34,8 @@ class PredictionError:
     """Errors of ``H``-step open-loop predictions, averaged over the windows of one clip.
 
     Attributes:
-        horizon: H (frames).  n_windows: windows averaged (start frames ``0 .. T - H - 1``).
+        horizon: H (frames).  n_windows: windows (start frames ``0 .. T - H - 1``).
+        n_diverged: windows whose prediction became non-finite (left out of the means).
         obj_pos_cm: (H,) object position error after h = 1..H frames (cm).
         obj_rot_deg: (H,) object rotation error (deg).
         keypoints_mm: (H,) mean robot-keypoint error (mm).
@@ -43,6 +44,7 @@ class PredictionError:
 
     horizon: int
     n_windows: int
+    n_diverged: int
     obj_pos_cm: np.ndarray
     obj_rot_deg: np.ndarray
     keypoints_mm: np.ndarray
@@ -54,6 +56,7 @@ class PredictionError:
         return {
             "horizon": self.horizon,
             "n_windows": self.n_windows,
+            "n_diverged": self.n_diverged,
             "obj_pos_cm": float(self.obj_pos_cm[-1]),
             "obj_rot_deg": float(self.obj_rot_deg[-1]),
             "keypoints_mm": float(self.keypoints_mm[-1]),
@@ -116,6 +119,7 @@ def prediction_error(
         srot_e.append(rot_err_deg(ro.object_quat[t][None], ro.object_quat[sl]))
     m = lambda x: np.mean(np.stack(x), 0)  # noqa: E731
     out = {}
+    mf = lambda x, ok: np.mean(np.stack(x)[ok], 0) if ok.any() else np.full(horizon, np.nan)  # noqa: E731
     for name, p in params.items():
         pos_e, rot_e, kp_e = [], [], []
         for t, s0, win in zip(starts, s0s, wins, strict=True):
@@ -124,5 +128,8 @@ def prediction_error(
             pos_e.append(np.linalg.norm(pos - ro.object_pos[sl], axis=-1) * 100.0)
             rot_e.append(rot_err_deg(quat, ro.object_quat[sl]))
             kp_e.append(np.linalg.norm(kp - ro.keypoints[sl], axis=-1).mean(-1) * 1000.0)
-        out[name] = PredictionError(horizon, len(starts), m(pos_e), m(rot_e), m(kp_e), m(spos_e), m(srot_e))
+        ok = np.isfinite(np.stack(pos_e)).all(1) & np.isfinite(np.stack(kp_e)).all(1)
+        out[name] = PredictionError(
+            horizon, len(starts), int((~ok).sum()), mf(pos_e, ok), mf(rot_e, ok), mf(kp_e, ok), m(spos_e), m(srot_e)
+        )
     return out
