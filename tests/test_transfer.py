@@ -114,6 +114,13 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     # the optimisation moved the trajectory away from the kinematic retarget
     assert np.abs(c.q_targets - c.extras["kinematic_q"]).max() > 1e-5
 
+    # the benchmark's cross-simulator judgement: the run's controls and the kinematic retarget in PyBullet
+    from quasisim.bench import _judged
+
+    m_pb, k_pb = _judged(short_demo, out, "pybullet")
+    assert set(m_pb) == set(metrics) and m_pb != k_pb
+    assert json.loads((out / "metrics_pybullet.json").read_text()) == {"metrics": m_pb, "kinematic_metrics": k_pb}
+
 
 def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> None:
     from quasisim.cli import main

@@ -307,9 +307,12 @@ def run_transfer_bench(
     hand_name: str,
     out: Path,
     report_only: bool = False,
+    judge: str | None = None,
 ) -> str:
     """Transfer runs on clips beside the kinematic replay (same target): ``runs`` name curricula (stages 1-2),
     ``CURRICULUM+mpc`` (then closed-loop MPC) and the MPC baselines ``mpc-base``, ``mpc-soften``.
+    With ``judge`` (another simulator), the table judges each run's controls and the kinematic retarget
+    open loop in that simulator instead (cached as ``metrics_<judge>.json`` beside each run).
 
     Each run writes into ``out/<clip>/<run>`` and is resumed from its checkpoints, so an interrupted
     benchmark continues where it stopped; finished runs (``summary.json`` present) are read back
@@ -336,6 +339,8 @@ def run_transfer_bench(
             if not summ.is_file() and report_only:
                 continue
             if not summ.is_file():
+                for stale in d.glob("metrics_*.json"):  # judgements of an earlier, unfinished or redone run
+                    stale.unlink()
                 base_ck = out / p.stem / cur / "checkpoints"
                 if "+" in run and base_ck.is_dir() and not (d / "checkpoints").is_dir():
                     (d / "checkpoints").mkdir(parents=True)
@@ -356,6 +361,8 @@ def run_transfer_bench(
                 s["bench_wall_s"] = time.perf_counter() - t0
                 save_json_atomic(summ, s)
             s = json.loads(summ.read_text())
+            if judge and judge != target:
+                s["metrics"], s["kinematic_metrics"] = _judged(p, d, judge)
             k = s["kinematic_metrics"]
             if not any(r["clip"] == p.stem and r["method"] == "kinematic" for r in rows):
                 rows.append(
@@ -374,8 +381,9 @@ def run_transfer_bench(
             )  # fmt: skip
     for r in rows:
         r["lifted"] = False  # not recomputed here (see the baseline benchmark)
+    judged_in = judge or target
     lines = [
-        header(f"Transfer ({hand_name}, judged in {target}, budget {budget}, stages {','.join(stages)})"),
+        header(f"Transfer ({hand_name}, optimised for {target}, judged in {judged_in}, budget {budget})"),
         SUMMARY_HEAD.format(g="method"),
         *summary_rows(rows, "method"),
         "",
@@ -401,7 +409,28 @@ def run_transfer_bench(
             f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
             f"{r['CD_mm']:.1f} | " + " | ".join(yn(s_[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} |"
         )
-    return _publish(out, "transfer", rows, lines)
+    return _publish(out, "transfer" if judged_in == target else f"transfer_{judged_in}", rows, lines)
+
+
+def _judged(demo_path: Path, run_dir: Path, judge: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Metrics of a finished run's controls and of its kinematic retarget, replayed open loop in ``judge``."""
+    cache = run_dir / f"metrics_{judge}.json"
+    if cache.is_file():
+        d = json.loads(cache.read_text())
+        return d["metrics"], d["kinematic_metrics"]
+    from quasisim.controls import load_controls
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import evaluate_controls
+
+    demo = load_demo(demo_path)
+    c = load_controls(run_dir / "controls.npz")
+    kin = dataclasses.replace(c, q_targets=np.asarray(c.extras["kinematic_q"]), method="kinematic")
+    d = {
+        "metrics": evaluate_controls(demo, c, judge, None, render=False).metrics,
+        "kinematic_metrics": evaluate_controls(demo, kin, judge, None, render=False).metrics,
+    }
+    save_json_atomic(cache, d)
+    return d["metrics"], d["kinematic_metrics"]
 
 
 def run_predict_bench(

@@ -252,10 +252,16 @@ def bench_sim(
 @click.option("--hand", default="shadow", show_default=True)
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
 @click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
+@click.option(
+    "--judge",
+    type=TARGET_CHOICE,
+    default=None,
+    help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
+)
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
-    out: Path, report_only: bool,
+    out: Path, report_only: bool, judge: str | None,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
     _setup_runtime()
@@ -267,7 +273,7 @@ def bench_transfer(
     for r in rs:
         _run_spec(r, st)
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only)
+    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge)
 
 
 @bench.command("predict")
