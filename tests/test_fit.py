@@ -58,3 +58,14 @@ def test_bench_predict_rejects_unknown_clips(tmp_path: Path) -> None:
 
     r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--clips", "nope"])
     assert r.exit_code == 2 and "clips not found" in r.output and "nope" in r.output
+
+
+def test_bench_predict_rejects_bad_simulator_and_friction(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--sim", "1"])  # sim 1 is the point set
+    assert r.exit_code == 2 and "--sim 1" in r.output and "valid: 2, 3, 4, 5, 6, 7, 8, 9" in r.output
+    r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--sim", "9", "--mu", "-1"])
+    assert r.exit_code == 2 and "--mu" in r.output and "positive" in r.output

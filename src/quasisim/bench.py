@@ -435,17 +435,19 @@ def _judged(demo_path: Path, run_dir: Path, judge: str) -> tuple[dict[str, Any],
 
 def run_predict_bench(
     data_dir: Path, clip_names: tuple[str, ...], pattern: str, horizon: int, curriculum: str, hand_name: str,
-    out: Path,
+    out: Path, sims: tuple[int, ...] = (), mus: tuple[float, ...] = (),
 ) -> str:  # fmt: skip
     """Open-loop ``horizon``-frame prediction error of the quasi-physical simulator against MuJoCo (no
     residual physics, nominal S) under the kinematic retarget's PD targets, for each rigid simulator of
-    ``curriculum``, beside the zero-motion predictor. See :mod:`quasisim.fit`."""
+    ``curriculum`` (or those numbered in ``sims``, 1-based), beside the zero-motion predictor; with ``mus``,
+    each simulator once per friction coefficient instead of the curriculum's. See :mod:`quasisim.fit`."""
     import jax.numpy as jnp
     from tqdm import tqdm
 
     from quasisim.assets.hand import load_hand
     from quasisim.curriculum import load_curriculum
     from quasisim.demo import load_demo
+    from quasisim.errors import QuasisimError
     from quasisim.evaluate import load_object_for, scene_for
     from quasisim.fit import prediction_error, record_target
     from quasisim.retarget import retarget
@@ -455,6 +457,15 @@ def run_predict_bench(
 
     cur = load_curriculum(curriculum)
     rigid = [i for i, s in enumerate(cur.stages) if s.alpha == 0 and not s.residual]
+    if sims:
+        bad = [n for n in sims if n - 1 not in rigid]
+        if bad:
+            raise QuasisimError(
+                f"--sim {bad[0]}: not a rigid simulator of curriculum {cur.name!r}; valid: {', '.join(str(i + 1) for i in rigid)}"
+            )
+        rigid = [n - 1 for n in sims]
+    if any(not (np.isfinite(m) and m > 0) for m in mus):
+        raise QuasisimError(f"--mu: friction coefficients must be positive numbers, got {list(mus)}")
     paths = [data_dir / f"{c}.npz" for c in clip_names] if clip_names else clips(data_dir, pattern)
     hand = load_hand(hand_name)
     rows: list[dict[str, Any]] = []
@@ -466,7 +477,11 @@ def run_predict_bench(
         model = build_model(hand, obj, table, SimOptions.for_fps(demo.fps), demo.object_pos[0])
         p0 = default_params(model, obj.mass, obj.inertia)
         params = {
-            f"sim {i + 1} (d_c {100 * cur.stages[i].d_c:g} cm)": p0.replace(**cur.params_overrides(i)) for i in rigid
+            f"sim {i + 1} (d_c {100 * cur.stages[i].d_c:g} cm{f', mu {m:g}' if mus else ''})": p0.replace(
+                **{**cur.params_overrides(i), **({"mu": m} if mus else {})}
+            )
+            for i in rigid
+            for m in (mus or (cur.mu,))
         }
         scene = scene_for(demo, hand, rt.base_rot, obj)
         t0 = time.perf_counter()

@@ -284,12 +284,15 @@ def bench_transfer(
 @click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
 @click.option("--horizon", default=10, show_default=True, type=click.IntRange(1, 50), help="Frames predicted.")
 @click.option("--curriculum", default="default", show_default=True, help="Whose rigid simulators to compare.")
+@click.option("--sim", "sims", multiple=True, type=int, help="Only these simulators (1-based, repeatable).")
+@click.option("--mu", "mus", multiple=True, type=float, help="Friction coefficients to compare (repeatable).")
 @click.option("--hand", default="shadow", show_default=True)
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/predict"), show_default=True)
 @_friendly
 def bench_predict(
-    data_dir: Path, clip_names: str, pattern: str, horizon: int, curriculum: str, hand: str, out: Path
-) -> None:
+    data_dir: Path, clip_names: str, pattern: str, horizon: int, curriculum: str, sims: tuple[int, ...],
+    mus: tuple[float, ...], hand: str, out: Path,
+) -> None:  # fmt: skip
     """Open-loop prediction error of the quasi-physical simulators against MuJoCo (the fit of stage 3)."""
     _setup_runtime()
     from quasisim.bench import run_predict_bench
@@ -298,7 +301,7 @@ def bench_predict(
     missing = [n for n in names if not (data_dir / f"{n}.npz").is_file()]
     if missing:
         raise QuasisimError(f"clips not found in {data_dir}: {', '.join(missing)}")
-    run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out)
+    run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out, sims, mus)
 
 
 if __name__ == "__main__":  # pragma: no cover
