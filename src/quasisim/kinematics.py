@@ -94,7 +94,7 @@ def forward_kinematics_with_joints(
     """Body poses and the world frames of the joints (for geometric Jacobians)."""
     tr = _tree(model)
     B, J = model.n_bodies, model.n_joints
-    dtype = jnp.result_type(root_pos, q)
+    dtype = jnp.result_type(root_pos, root_rot, q, tr.local_pos)  # as the arithmetic below promotes
     pos = jnp.zeros((B, 3), dtype).at[0].set(root_pos)
     rot = jnp.zeros((B, 3, 3), dtype).at[0].set(root_rot)
     jaxis = jnp.zeros((J + 1, 3), dtype)  # row J collects writes of padded (absent) joints

@@ -1,0 +1,1 @@
+"""Hand and object assets."""

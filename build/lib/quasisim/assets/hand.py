@@ -1,0 +1,415 @@
+"""Robot hands: per-hand YAML configs and the parsed kinematic/geometric model.
+
+Any MJCF or URDF hand is parsed by MuJoCo's compiler (which resolves defaults, includes and mesh
+frames) and then copied into :class:`HandModel`, plain numpy arrays that the JAX kinematics, the
+quasi-physical simulator and both target simulators (MuJoCo, PyBullet) are built from. The hand's root
+body becomes the child of a floating 6-DoF base; joints of the root body itself (e.g. Shadow's wrist
+joint WRJ0) and everything above it (forearm) are dropped.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.errors import InputError, QuasisimError, choice_error
+
+HANDS_DIR = Path(__file__).parent / "hands"
+ROBOT_PATH_ENV = "QUASISIM_ROBOT_PATH"
+
+HINGE, SLIDE = 0, 1
+GEOM_TYPES = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+
+
+@dataclass(frozen=True)
+class KeypointSpec:
+    """A robot keypoint that corresponds to one of the 21 human keypoints.
+
+    Attributes:
+        name: label.
+        human: index of the human keypoint (MediaPipe order, 0..20).
+        body: robot body the point is attached to (ignored when ``site`` is given).
+        pos: offset in the body frame (m).
+        site: take body and offset from this MJCF site instead.
+        weight: weight in the retargeting objective.
+        metric: used in MPJPE (the paper uses 5 fingertips + 3 wrist/palm points).
+    """
+
+    name: str
+    human: int
+    body: str = ""
+    pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    site: str = ""
+    weight: float = 1.0
+    metric: bool = True
+
+
+@dataclass(frozen=True)
+class Gains:
+    kp: float
+    kv: float
+
+
+@dataclass(frozen=True)
+class PDConfig:
+    """PD gains used in the target simulators (SI units: N/m, N s/m, N m/rad, N m s/rad)."""
+
+    base_pos: Gains = Gains(1.0e4, 250.0)
+    base_rot: Gains = Gains(500.0, 5.0)
+    joint: Gains = Gains(5.0, 0.1)
+    joint_damping: float = 0.1
+    joint_armature: float = 1.0e-3
+    joint_force_limit: float = 10.0
+
+
+@dataclass(frozen=True)
+class PointSetConfig:
+    """How the quasi-physical point set is sampled around the collision geometry.
+
+    Attributes:
+        spacing: mean distance between neighbouring points on the surface (m).
+        offset: points lie in a shell between the surface and ``offset`` outside it (m).
+        seed: random seed for the sampling.
+    """
+
+    spacing: float = 0.006
+    offset: float = 0.002
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class HandConfig:
+    """Per-hand configuration, loaded from YAML (see ``assets/hands/shadow.yaml``)."""
+
+    name: str
+    model: str
+    root_body: str
+    keypoints: tuple[KeypointSpec, ...]
+    description: str = ""
+    pd: PDConfig = PDConfig()
+    points: PointSetConfig = PointSetConfig()
+    exclude_geoms: tuple[str, ...] = ()
+    wrist_fit_human: tuple[int, ...] = (0, 5, 9, 13, 17)
+    path: str = ""
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> HandConfig:
+        path = Path(path)
+        data = apply_overrides(read_yaml(path), overrides)
+        data["path"] = str(path.resolve())
+        cfg = build(cls, data, path)
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        if not self.keypoints:
+            raise InputError(self.path, "keypoints", "at least one keypoint", "none")
+        for i, kp in enumerate(self.keypoints):
+            if not 0 <= kp.human <= 20:
+                raise InputError(self.path, f"keypoints[{i}].human", "an index in 0..20", str(kp.human))
+            if not (kp.body or kp.site):
+                raise InputError(self.path, f"keypoints[{i}]", "a 'body' or a 'site'", "neither")
+            if kp.weight < 0:
+                raise InputError(self.path, f"keypoints[{i}].weight", "a non-negative weight", str(kp.weight))
+        if self.points.spacing <= 0 or self.points.offset < 0:
+            raise InputError(self.path, "points", "spacing > 0 and offset >= 0", str(self.points))
+        for i in self.wrist_fit_human:
+            if i not in [k.human for k in self.keypoints]:
+                raise InputError(self.path, "wrist_fit_human", "human indices that have a robot keypoint", str(i))
+
+
+@dataclass(frozen=True, eq=False)
+class Geom:
+    """One geom of the hand in its body's frame. ``size`` follows MuJoCo's conventions."""
+
+    name: str
+    body: int
+    type: str
+    size: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    collision: bool
+    rgba: np.ndarray
+    vertices: np.ndarray | None = None
+    faces: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class HandModel:
+    """The parsed hand: a tree of bodies below the root, joints, geoms and keypoints (numpy, SI units).
+
+    Body 0 is the root; its frame is the hand frame driven by the floating base. Every other body ``b``
+    has ``body_parent[b] < b``, a pose relative to its parent (``body_pos``, ``body_quat``, w x y z) and
+    zero or more joints applied in order, as in MuJoCo.
+    """
+
+    config: HandConfig
+    source: Path
+    body_names: tuple[str, ...]
+    body_parent: np.ndarray
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    body_mass: np.ndarray
+    body_ipos: np.ndarray
+    body_iquat: np.ndarray
+    body_inertia: np.ndarray
+    joint_names: tuple[str, ...]
+    joint_body: np.ndarray
+    joint_type: np.ndarray
+    joint_axis: np.ndarray
+    joint_pos: np.ndarray
+    joint_range: np.ndarray
+    joint_limited: np.ndarray
+    geoms: tuple[Geom, ...]
+    kp_names: tuple[str, ...]
+    kp_body: np.ndarray
+    kp_pos: np.ndarray
+    kp_human: np.ndarray
+    kp_weight: np.ndarray
+    kp_metric: np.ndarray
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.body_names)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def total_mass(self) -> float:
+        return float(self.body_mass.sum())
+
+    def rest_q(self) -> np.ndarray:
+        """A neutral joint vector: 0 clipped into each joint's range."""
+        lo, hi = self.joint_range[:, 0], self.joint_range[:, 1]
+        q = np.zeros(self.n_joints)
+        return np.where(self.joint_limited, np.clip(q, lo, hi), q)
+
+    def body_joints(self, b: int) -> np.ndarray:
+        return np.flatnonzero(self.joint_body == b)
+
+    def collision_geoms(self) -> tuple[Geom, ...]:
+        return tuple(g for g in self.geoms if g.collision)
+
+    def human_index_of_keypoints(self, metric_only: bool = True) -> np.ndarray:
+        mask = self.kp_metric if metric_only else np.ones(len(self.kp_names), bool)
+        return self.kp_human[mask]
+
+
+# ---- loading ------------------------------------------------------------------------------------
+
+
+def builtin_hands() -> list[str]:
+    return sorted(p.stem for p in HANDS_DIR.glob("*.yaml"))
+
+
+def resolve_hand_config(hand: str | Path, overrides: dict[str, Any] | None = None) -> HandConfig:
+    """A built-in hand name (``shadow``, ``allegro``) or a path to a hand YAML."""
+    p = Path(hand)
+    if p.suffix in (".yaml", ".yml"):
+        return HandConfig.from_yaml(p, overrides)
+    if str(hand) in builtin_hands():
+        return HandConfig.from_yaml(HANDS_DIR / f"{hand}.yaml", overrides)
+    raise choice_error("hand", str(hand), [*builtin_hands(), "<path/to/hand.yaml>"])
+
+
+def resolve_model_path(cfg: HandConfig) -> Path:
+    """Find the MJCF/URDF named by ``cfg.model``.
+
+    ``gymnasium_robotics:REL`` is a file inside the installed gymnasium-robotics package; a relative
+    path is looked up beside the YAML and then in each folder of ``$QUASISIM_ROBOT_PATH``.
+    """
+    if cfg.model.startswith("gymnasium_robotics:"):
+        import importlib.util
+
+        spec = importlib.util.find_spec("gymnasium_robotics")  # locate without importing (it prints notices)
+        if spec is None or spec.origin is None:
+            raise QuasisimError(
+                f"hand '{cfg.name}' needs the gymnasium-robotics package (pip install gymnasium-robotics)"
+            )
+        p = Path(spec.origin).parent / "envs" / "assets" / cfg.model.split(":", 1)[1]
+        if not p.is_file():
+            raise InputError(cfg.path, "model", f"a file inside gymnasium-robotics at {p}", "no such file")
+        return p
+    p = Path(os.path.expandvars(cfg.model)).expanduser()
+    candidates = (
+        [p]
+        if p.is_absolute()
+        else [Path(cfg.path).parent / p]
+        + [Path(d) / p for d in os.environ.get(ROBOT_PATH_ENV, "").split(os.pathsep) if d]
+    )
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    raise InputError(
+        cfg.path,
+        "model",
+        f"an MJCF/URDF file; looked in {', '.join(str(c) for c in candidates)} "
+        f"(set ${ROBOT_PATH_ENV} to the folder that holds it)",
+        "no such file",
+    )
+
+
+def _compile(path: Path) -> Any:
+    import mujoco
+
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+    except Exception as e:
+        raise InputError(path, None, "an MJCF or URDF file MuJoCo can parse", str(e).replace("\n", " ")) from None
+    spec.compiler.balanceinertia = True
+    spec.compiler.fusestatic = False
+    spec.compiler.discardvisual = False
+    try:
+        return spec.compile()
+    except Exception as e:
+        raise InputError(path, None, "a model MuJoCo can compile", str(e).replace("\n", " ")) from None
+
+
+def load_hand(hand: str | Path | HandConfig, overrides: dict[str, Any] | None = None) -> HandModel:
+    """Load a hand by built-in name, YAML path or config; results are cached per config."""
+    cfg = hand if isinstance(hand, HandConfig) else resolve_hand_config(hand, overrides)
+    return _load_hand_cached(cfg)
+
+
+@cache
+def _load_hand_cached(cfg: HandConfig) -> HandModel:
+    import mujoco
+
+    src = resolve_model_path(cfg)
+    m = _compile(src)
+
+    def name_of(obj: Any, i: int) -> str:
+        return mujoco.mj_id2name(m, obj, i) or ""
+
+    body_names_all = [name_of(mujoco.mjtObj.mjOBJ_BODY, b) for b in range(m.nbody)]
+    if cfg.root_body not in body_names_all:
+        raise InputError(cfg.path, "root_body", f"one of the bodies {', '.join(body_names_all[1:])}", cfg.root_body)
+    root = body_names_all.index(cfg.root_body)
+    keep = [root]
+    for b in range(root + 1, m.nbody):
+        if m.body_parentid[b] in keep:
+            keep.append(b)
+    new_index = {old: i for i, old in enumerate(keep)}
+
+    body_parent = np.array([-1] + [new_index[int(m.body_parentid[b])] for b in keep[1:]])
+    body_pos = np.array([np.zeros(3)] + [m.body_pos[b] for b in keep[1:]])
+    body_quat = np.array([np.array([1.0, 0, 0, 0])] + [m.body_quat[b] for b in keep[1:]])
+
+    jn, jb, jt, jax_, jp, jr, jl = [], [], [], [], [], [], []
+    for b in keep[1:]:
+        for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
+            t = int(m.jnt_type[j])
+            if t == mujoco.mjtJoint.mjJNT_HINGE:
+                jt.append(HINGE)
+            elif t == mujoco.mjtJoint.mjJNT_SLIDE:
+                jt.append(SLIDE)
+            else:
+                raise InputError(
+                    src, f"joint {name_of(mujoco.mjtObj.mjOBJ_JOINT, j)}", "hinge or slide joints", "a ball/free joint"
+                )
+            if m.qpos0[m.jnt_qposadr[j]] != 0.0:
+                raise InputError(
+                    src, f"joint {name_of(mujoco.mjtObj.mjOBJ_JOINT, j)}", "ref = 0", "a non-zero reference"
+                )
+            jn.append(name_of(mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
+            jb.append(new_index[b])
+            jax_.append(m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j]))
+            jp.append(m.jnt_pos[j])
+            jr.append(m.jnt_range[j])
+            jl.append(bool(m.jnt_limited[j]))
+    if not jn:
+        raise InputError(src, "joints", "at least one hinge/slide joint below the root body", "none")
+
+    geoms = []
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        if b not in new_index:
+            continue
+        gname = name_of(mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
+        if gname in cfg.exclude_geoms:
+            continue
+        gtype = GEOM_TYPES[int(m.geom_type[g])]
+        verts = faces = None
+        if gtype == "mesh":
+            mid = int(m.geom_dataid[g])
+            va, vn = m.mesh_vertadr[mid], m.mesh_vertnum[mid]
+            fa, fn = m.mesh_faceadr[mid], m.mesh_facenum[mid]
+            verts = np.array(m.mesh_vert[va : va + vn], dtype=np.float64)
+            faces = np.array(m.mesh_face[fa : fa + fn], dtype=np.int64)
+        geoms.append(
+            Geom(
+                name=gname,
+                body=new_index[b],
+                type=gtype,
+                size=np.array(m.geom_size[g], dtype=np.float64),
+                pos=np.array(m.geom_pos[g], dtype=np.float64),
+                quat=np.array(m.geom_quat[g], dtype=np.float64),
+                collision=bool(m.geom_contype[g] or m.geom_conaffinity[g]) and gtype != "plane",
+                rgba=np.array(m.geom_rgba[g], dtype=np.float64),
+                vertices=verts,
+                faces=faces,
+            )
+        )
+    if not any(g.collision for g in geoms):
+        raise InputError(src, "geoms", "collision geoms below the root body", "none")
+
+    site_names = [name_of(mujoco.mjtObj.mjOBJ_SITE, s) for s in range(m.nsite)]
+    kb, kpos = [], []
+    for i, kp in enumerate(cfg.keypoints):
+        if kp.site:
+            if kp.site not in site_names:
+                raise InputError(cfg.path, f"keypoints[{i}].site", f"a site of {src.name}", kp.site)
+            s = site_names.index(kp.site)
+            b = int(m.site_bodyid[s])
+            pos = np.array(m.site_pos[s]) + np.array(kp.pos)
+        else:
+            if kp.body not in body_names_all:
+                raise InputError(cfg.path, f"keypoints[{i}].body", f"a body of {src.name}", kp.body)
+            b = body_names_all.index(kp.body)
+            pos = np.array(kp.pos, dtype=np.float64)
+        if b not in new_index:
+            raise InputError(
+                cfg.path, f"keypoints[{i}]", f"a body below the root body {cfg.root_body}", kp.body or kp.site
+            )
+        kb.append(new_index[b])
+        kpos.append(pos)
+
+    return HandModel(
+        config=cfg,
+        source=src,
+        body_names=tuple(body_names_all[b] for b in keep),
+        body_parent=body_parent,
+        body_pos=body_pos.astype(np.float64),
+        body_quat=body_quat.astype(np.float64),
+        body_mass=np.array([m.body_mass[b] for b in keep], dtype=np.float64),
+        body_ipos=np.array([m.body_ipos[b] for b in keep], dtype=np.float64),
+        body_iquat=np.array([m.body_iquat[b] for b in keep], dtype=np.float64),
+        body_inertia=np.array([m.body_inertia[b] for b in keep], dtype=np.float64),
+        joint_names=tuple(jn),
+        joint_body=np.array(jb),
+        joint_type=np.array(jt),
+        joint_axis=np.array(jax_, dtype=np.float64),
+        joint_pos=np.array(jp, dtype=np.float64),
+        joint_range=np.array(jr, dtype=np.float64),
+        joint_limited=np.array(jl),
+        geoms=tuple(geoms),
+        kp_names=tuple(k.name for k in cfg.keypoints),
+        kp_body=np.array(kb),
+        kp_pos=np.array(kpos, dtype=np.float64),
+        kp_human=np.array([k.human for k in cfg.keypoints]),
+        kp_weight=np.array([k.weight for k in cfg.keypoints], dtype=np.float64),
+        kp_metric=np.array([k.metric for k in cfg.keypoints]),
+    )

@@ -1,0 +1,308 @@
+"""Command line interface: ``quasisim --help``."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from quasisim.errors import QuasisimError
+
+TARGET_CHOICE = click.Choice(["mujoco", "pybullet"])
+
+
+def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn quasisim's own errors into a one-line message and exit code 2 (no traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except QuasisimError as e:
+            click.echo(f"error: {e}", err=True)
+            sys.exit(2)
+
+    return wrapper
+
+
+def _setup_runtime() -> None:
+    from quasisim.runtime import configure_jax
+
+    configure_jax()
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="quasisim")
+def main() -> None:
+    """quasisim: turn human hand-object demonstrations into robot-hand controls that work in MuJoCo/PyBullet."""
+
+
+@main.command()
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--name", "names", multiple=True, help="Example to write (repeatable); default: all.")
+@click.option("--frames", default=60, show_default=True, help="Frames per example (20 fps).")
+@_friendly
+def example(out: Path, names: tuple[str, ...], frames: int) -> None:
+    """Write the built-in synthetic example demo(s) (demo npz v1 + meshes/) to OUT."""
+    from quasisim.synthetic import EXAMPLES, write_example
+
+    for n in names or EXAMPLES:
+        p = write_example(n, out, n_frames=frames)
+        click.echo(str(p))
+
+
+@main.command()
+@click.argument("demo", type=click.Path(path_type=Path))
+@click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@_friendly
+def retarget(demo: Path, hand: str, out: Path) -> None:
+    """Kinematic retargeting of DEMO to a robot hand: writes OUT/kinematic.npz (PD targets per frame)."""
+    _setup_runtime()
+    from quasisim.assets.hand import load_hand
+    from quasisim.demo import load_demo
+    from quasisim.retarget import kinematic_controls
+
+    d = load_demo(demo)
+    h = load_hand(hand)
+    t0 = time.perf_counter()
+    c = kinematic_controls(h, d, hand, progress=True)
+    path = c.save(out / "kinematic.npz")
+    err = c.extras["retarget_keypoint_error"][:, h.kp_metric].mean() * 1e3
+    click.echo(
+        f"{path}  ({d.n_frames} frames, mean metric keypoint error {err:.1f} mm, {time.perf_counter() - t0:.1f} s)"
+    )
+
+
+@main.command()
+@click.argument("demo", type=click.Path(path_type=Path))
+@click.argument("controls", type=click.Path(path_type=Path))
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
+@_friendly
+def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -> None:
+    """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
+    _setup_runtime()
+    from quasisim.assets.hand import load_hand
+    from quasisim.controls import load_controls
+    from quasisim.demo import load_demo
+    from quasisim.evaluate import check_controls, evaluate_controls
+
+    d = load_demo(demo)
+    c = load_controls(controls)
+    check_controls(d, c, load_hand(c.hand), controls)
+    ev = evaluate_controls(d, c, target, out, render=render, progress=True)
+    click.echo(json.dumps(ev.metrics))
+    click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}, {out / 'report.html'}")
+
+
+def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
+    """``--set a.b=1.5`` options -> {"a.b": 1.5} (values parsed as YAML scalars)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for s in sets:
+        if "=" not in s:
+            raise QuasisimError(f"--set expects KEY=VALUE (e.g. budgets.fast.sim.control_steps=20), got {s!r}")
+        k, v = s.split("=", 1)
+        out[k.strip()] = yaml.safe_load(v)
+    return out
+
+
+@main.command()
+@click.argument("demo", type=click.Path(path_type=Path))
+@click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option(
+    "--target", type=TARGET_CHOICE, default="mujoco", show_default=True, help="Simulator that judges the result."
+)
+@click.option("--curriculum", default="default", show_default=True, help="default, curriculum2, none or a YAML path.")
+@click.option(
+    "--stages",
+    default="1,2",
+    show_default=True,
+    help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo).",
+)
+@click.option(
+    "--method",
+    type=click.Choice(["ours", "mpc-base", "mpc-soften", "kinematic"]),
+    default="ours",
+    show_default=True,
+    help="ours: the curriculum stages; mpc-base / mpc-soften: MPC baselines without the curriculum; "
+    "kinematic: the kinematic retarget only.",
+)
+@click.option("--budget", default="fast", show_default=True, help="Step budget from the config: fast or paper.")
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--resume", is_flag=True, help="Continue the run in OUT from its last checkpoint.")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
+@click.option(
+    "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
+)
+@click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
+@_friendly
+def transfer(
+    demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
+    resume: bool, config_path: Path | None, sets: tuple[str, ...], render: bool,
+) -> None:  # fmt: skip
+    """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
+    OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
+    _setup_runtime()
+    from quasisim.transfer import CONFIG_PATH, TransferConfig, parse_stages, run_transfer
+
+    st = parse_stages(stages)
+    cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
+    cfg.budget(budget)
+    res = run_transfer(
+        demo, out, hand_ref=hand, target=target, curriculum=curriculum, stages=st, budget=budget, resume=resume,
+        config=cfg, render=render, progress=True, method=method,
+    )  # fmt: skip
+    click.echo(json.dumps(res.metrics))
+    k = res.kinematic_metrics
+    click.echo(f"kinematic replay in {target}: R_err {k['R_err_deg']:.1f} deg, T_err {k['T_err_cm']:.2f} cm")
+    click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'report.html'}, {out / 'summary.json'}")
+
+
+@main.group()
+def bench() -> None:
+    """Benchmarks whose output goes into BENCHMARKS.md."""
+
+
+@bench.command("baseline")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--hand", default="shadow", show_default=True)
+@click.option(
+    "--target", "targets", type=TARGET_CHOICE, multiple=True, default=("mujoco", "pybullet"), show_default=True
+)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/baseline"), show_default=True)
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz are skipped unless named."
+)
+@click.option("--render/--no-render", default=False, show_default=True)
+@_friendly
+def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool) -> None:
+    """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
+    _setup_runtime()
+    from quasisim.bench import run_baseline
+
+    run_baseline(data_dir, hand, targets, out, pattern, render)
+
+
+@bench.command("sim")
+@click.option(
+    "--data",
+    "data_dir",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=None,
+    help="Folder of clips (default: $QUASISIM_DATA).",
+)
+@click.option("--clip", default="grab_s1_apple_lift", show_default=True, help="Clip of the speed measurement.")
+@click.option("--study-clips", default="grab_s1_apple_lift,grab_s1_cubesmall_lift,grab_s1_mug_lift", show_default=True)
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--substeps", type=int, default=None, help="Substeps per frame (default: dt of about 1 ms).")
+@click.option(
+    "--dt-study",
+    default="50,20,10",
+    show_default=True,
+    help="Substeps per frame compared with 100 (dt 0.5 ms at 20 fps).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON only.")
+@_friendly
+def bench_sim(
+    data_dir: Path | None, clip: str, study_clips: str, hand: str, substeps: int | None, dt_study: str, as_json: bool
+) -> None:
+    """Simulator speed (forward, forward+backward, memory), MuJoCo on the same scene, step-size study."""
+    import os
+
+    _setup_runtime()
+    from quasisim.bench import run_sim_bench
+
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    if not (data / f"{clip}.npz").is_file():
+        raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
+    study = tuple(int(x) for x in dt_study.split(",") if x.strip())
+    clips_ = tuple(c for c in study_clips.split(",") if c.strip())
+    run_sim_bench(data, clip, clips_, hand, substeps, study, as_json)
+
+
+@bench.command("transfer")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped unless named."
+)
+@click.option(
+    "--runs",
+    "--curricula",
+    "runs",
+    default="default,none,curriculum2",
+    show_default=True,
+    help="Comma-separated runs: a curriculum (stages 1,2), CURRICULUM+mpc (then closed-loop MPC), mpc-base, mpc-soften.",
+)
+@click.option("--stages", default="1,2", show_default=True)
+@click.option("--budget", default="fast", show_default=True)
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
+@click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
+@click.option(
+    "--judge",
+    type=TARGET_CHOICE,
+    default=None,
+    help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
+)
+@_friendly
+def bench_transfer(
+    data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
+    out: Path, report_only: bool, judge: str | None,
+) -> None:  # fmt: skip
+    """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
+    _setup_runtime()
+    from quasisim.bench import _run_spec, run_transfer_bench
+    from quasisim.transfer import parse_stages
+
+    st = parse_stages(stages)
+    rs = tuple(c.strip() for c in runs.split(",") if c.strip())
+    for r in rs:
+        _run_spec(r, st)
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge)
+
+
+@bench.command("predict")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
+@click.option("--horizon", default=10, show_default=True, type=click.IntRange(1, 50), help="Frames predicted.")
+@click.option("--curriculum", default="default", show_default=True, help="Whose rigid simulators to compare.")
+@click.option("--sim", "sims", multiple=True, type=int, help="Only these simulators (1-based, repeatable).")
+@click.option("--mu", "mus", multiple=True, type=float, help="Friction coefficients to compare (repeatable).")
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/predict"), show_default=True)
+@_friendly
+def bench_predict(
+    data_dir: Path, clip_names: str, pattern: str, horizon: int, curriculum: str, sims: tuple[int, ...],
+    mus: tuple[float, ...], hand: str, out: Path,
+) -> None:  # fmt: skip
+    """Open-loop prediction error of the quasi-physical simulators against MuJoCo (the fit of stage 3)."""
+    _setup_runtime()
+    from quasisim.bench import run_predict_bench
+
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    missing = [n for n in names if not (data_dir / f"{n}.npz").is_file()]
+    if missing:
+        raise QuasisimError(f"clips not found in {data_dir}: {', '.join(missing)}")
+    run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out, sims, mus)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,36 @@
+"""Errors with messages a user can act on: which file, which field, what was expected."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class QuasisimError(Exception):
+    """Base class of every error quasisim raises on purpose."""
+
+
+class InputError(QuasisimError, ValueError):
+    """Bad user input: names the file, the field and what was expected.
+
+    The message is one line, e.g.
+    ``demo.npz: field 'object_quat': expected unit quaternions (|q| = 1 +- 1e-3), got |q| = 0.5 at frame 3``.
+    """
+
+    def __init__(self, path: str | Path | None, field: str | None, expected: str, got: str | None = None) -> None:
+        self.path = None if path is None else str(path)
+        self.field = field
+        self.expected = expected
+        self.got = got
+        where = self.path or "<input>"
+        msg = f"{where}: "
+        if field:
+            msg += f"field '{field}': "
+        msg += f"expected {expected}"
+        if got is not None:
+            msg += f", got {got}"
+        super().__init__(msg)
+
+
+def choice_error(kind: str, value: object, options: list[str] | tuple[str, ...]) -> QuasisimError:
+    """An error for an unknown option that lists the valid ones."""
+    return QuasisimError(f"unknown {kind} {value!r}; valid options: {', '.join(sorted(options))}")

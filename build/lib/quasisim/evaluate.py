@@ -1,0 +1,145 @@
+"""Judge a control trajectory in a target simulator: scene, rollout, metrics, report."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.assets.hand import HandModel, load_hand
+from quasisim.controls import Controls
+from quasisim.demo import Demo
+from quasisim.errors import InputError
+from quasisim.io import save_json_atomic
+from quasisim.metrics import PerFrame, evaluate_rollout
+from quasisim.pointset import HandPoints, sample_hand_points, surface_points_over_time
+from quasisim.targets import Rollout, make_target
+from quasisim.targets.scene import PhysicsOptions, Scene, make_scene
+
+CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    metrics: dict[str, Any]
+    per_frame: PerFrame
+    rollout: Rollout
+    scene: Scene
+
+
+def load_object_for(demo: Demo, density: float | None = None, mass: float | None = None) -> Any:
+    from quasisim.assets.object import DEFAULT_DENSITY, load_object
+
+    return load_object(demo.object_mesh_path, name=demo.object_name, density=density or DEFAULT_DENSITY, mass=mass)
+
+
+def scene_for(
+    demo: Demo, hand: HandModel, base_rot: np.ndarray, obj: Any = None, physics: PhysicsOptions | None = None
+) -> Scene:
+    return make_scene(demo, hand, base_rot, obj if obj is not None else load_object_for(demo), physics)
+
+
+_CD_POINTS: dict[int, HandPoints] = {}
+
+
+def robot_surface(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray) -> np.ndarray:
+    """(T, P, 3) robot collision-surface samples per frame (for the Chamfer distance)."""
+    pts = _CD_POINTS.get(id(hand))
+    if pts is None:
+        pts = _CD_POINTS[id(hand)] = sample_hand_points(hand, CD_SPACING, 0.0, seed=1)
+    return surface_points_over_time(hand, base_rot, qpos, pts)
+
+
+def check_controls(demo: Demo, controls: Controls, hand: HandModel, path: str | Path | None = None) -> None:
+    if controls.n_frames != demo.n_frames:
+        raise InputError(path, "q_targets", f"{demo.n_frames} frames (as demo {demo.name})", f"{controls.n_frames}")
+    if tuple(controls.joint_names) != tuple(hand.joint_names):
+        raise InputError(
+            path, "joint_names", f"the joints of hand '{hand.name}'", f"{len(controls.joint_names)} other joints"
+        )
+
+
+def evaluate_controls(
+    demo: Demo,
+    controls: Controls,
+    target: str,
+    out_dir: str | Path | None = None,
+    render: bool = True,
+    scene: Scene | None = None,
+    title: str | None = None,
+    extra_info: dict[str, Any] | None = None,
+    extra_images: dict[str, bytes] | None = None,
+    progress: bool = False,
+) -> Evaluation:
+    """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
+    ``metrics.json``, ``rollout.npz`` and ``report.html`` there."""
+    hand = scene.hand if scene is not None else load_hand(controls.hand)
+    check_controls(demo, controls, hand)
+    scene = scene or scene_for(demo, hand, controls.base_rot)
+    tgt = make_target(target, scene)
+    rollout = tgt.rollout(controls.q_targets)
+    surf = robot_surface(hand, scene.base_rot, rollout.qpos)
+    metrics, pf = evaluate_rollout(demo, rollout, surf)
+    ev = Evaluation(metrics, pf, rollout, scene)
+    if out_dir is not None:
+        write_outputs(ev, demo, controls, target, Path(out_dir), render, title, extra_info, extra_images, progress)
+    return ev
+
+
+def write_outputs(
+    ev: Evaluation,
+    demo: Demo,
+    controls: Controls,
+    target: str,
+    out_dir: Path,
+    render: bool,
+    title: str | None,
+    extra_info: dict[str, Any] | None,
+    extra_images: dict[str, bytes] | None,
+    progress: bool,
+) -> None:
+    from quasisim.report import write_report
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_json_atomic(out_dir / "metrics.json", ev.metrics)
+    ev.rollout.save(out_dir / "rollout.npz")
+    frames = None
+    notes = list(ev.scene.notes)
+    if render:
+        t0 = time.perf_counter()
+        try:
+            from quasisim.render import render_side_by_side
+
+            r = ev.rollout
+            frames = render_side_by_side(ev.scene, demo, r.qpos, r.object_pos, r.object_quat, progress=progress)
+        except Exception as e:  # no GL context on this machine: keep the report, say why
+            notes.append(f"rendering unavailable ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
+        render_s = time.perf_counter() - t0
+    else:
+        render_s = 0.0
+    t = ev.scene.table
+    info = {
+        "demo": f"{demo.name} ({demo.n_frames} frames at {demo.fps:g} fps)",
+        "hand": ev.scene.hand.name,
+        "method": controls.method,
+        "target": f"{target} (dt {ev.rollout.dt * 1e3:g} ms, {ev.rollout.substeps} substeps per frame)",
+        "object": f"{ev.scene.obj.name}: {ev.scene.obj.mass * 1e3:.0f} g, {len(ev.scene.obj.convex_parts())} convex parts",
+        "table": f"x [{t.xmin:.3f}, {t.xmax:.3f}] y [{t.ymin:.3f}, {t.ymax:.3f}] top {t.top:.3f} m",
+        "rollout wall time": f"{ev.rollout.wall_s:.2f} s",
+        "render wall time": f"{render_s:.1f} s",
+        **(extra_info or {}),
+    }
+    write_report(
+        out_dir / "report.html",
+        title or f"{demo.name}: {controls.method} in {target}",
+        ev.metrics,
+        ev.per_frame,
+        demo.fps,
+        frames,
+        info,
+        notes,
+        extra_images,
+    )

@@ -1,0 +1,159 @@
+"""Differentiable forward kinematics of a :class:`~quasisim.assets.hand.HandModel` in JAX.
+
+Conventions (the same as MuJoCo's ``mj_kinematics``): a body's frame is its parent's frame composed with
+the body's fixed pose, then with each of its joints in order; a hinge rotates about its axis through its
+anchor, a slide translates along its axis.
+
+The floating base ("base coordinates") is 3 slides along the world axes and 3 hinges about the axes of a
+fixed per-clip frame ``R_base``: the hand root is at ``p = base[:3]`` with orientation
+``R = R_base @ Rx(base[3]) @ Ry(base[4]) @ Rz(base[5])``. ``R_base`` is chosen per clip so that the
+middle angle stays far from gimbal lock. A full generalized position is ``qfull = [base (6), joints (J)]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from quasisim.assets.hand import HINGE, HandModel
+from quasisim.rotations import axis_angle_to_mat, euler_xyz_to_mat, np_quat_to_mat
+
+Array = jnp.ndarray
+
+
+class BodyPoses(NamedTuple):
+    """World poses of all bodies: ``pos`` (B, 3) m, ``rot`` (B, 3, 3)."""
+
+    pos: Array
+    rot: Array
+
+
+def base_to_root(base: Array, base_rot: Array) -> tuple[Array, Array]:
+    """Base coordinates (6,) and fixed frame ``base_rot`` (3, 3) -> root position (3,), rotation (3, 3)."""
+    return base[:3], base_rot @ euler_xyz_to_mat(base[3:6])
+
+
+@dataclass(frozen=True, eq=False)
+class _Tree:
+    """Per-depth batches of bodies so that FK is a handful of vectorised steps (fast to compile)."""
+
+    levels: tuple[np.ndarray, ...]
+    parent: np.ndarray
+    local_rot: np.ndarray
+    local_pos: np.ndarray
+    jidx: np.ndarray  # (B, M) joint indices applied in order, -1 = none
+    jhinge: np.ndarray  # (B, M) bool
+    jaxis: np.ndarray  # (B, M, 3)
+    jpos: np.ndarray  # (B, M, 3)
+
+
+def _tree(model: HandModel) -> _Tree:
+    cached = model.extras.get("_fk_tree")
+    if cached is not None:
+        return cached
+    B = model.n_bodies
+    depth = np.zeros(B, dtype=int)
+    for b in range(1, B):
+        depth[b] = depth[model.body_parent[b]] + 1
+    levels = tuple(np.flatnonzero(depth == d) for d in range(1, depth.max() + 1))
+    M = max(1, max(len(model.body_joints(b)) for b in range(B)))
+    jidx = -np.ones((B, M), dtype=int)
+    jhinge = np.ones((B, M), dtype=bool)
+    jaxis = np.tile(np.array([0.0, 0.0, 1.0]), (B, M, 1))
+    jpos = np.zeros((B, M, 3))
+    for b in range(B):
+        for m, j in enumerate(model.body_joints(b)):
+            jidx[b, m] = j
+            jhinge[b, m] = model.joint_type[j] == HINGE
+            jaxis[b, m] = model.joint_axis[j]
+            jpos[b, m] = model.joint_pos[j]
+    tree = _Tree(levels, model.body_parent, np_quat_to_mat(model.body_quat), model.body_pos, jidx, jhinge, jaxis, jpos)
+    model.extras["_fk_tree"] = tree
+    return tree
+
+
+class JointFrames(NamedTuple):
+    """World axis (J, 3) and anchor (J, 3) of every joint, as applied in FK."""
+
+    axis: Array
+    anchor: Array
+
+
+def forward_kinematics(model: HandModel, root_pos: Array, root_rot: Array, q: Array) -> BodyPoses:
+    """World poses of every body for root pose (``root_pos`` (3,), ``root_rot`` (3, 3)) and joints ``q`` (J,)."""
+    return forward_kinematics_with_joints(model, root_pos, root_rot, q)[0]
+
+
+def forward_kinematics_with_joints(
+    model: HandModel, root_pos: Array, root_rot: Array, q: Array
+) -> tuple[BodyPoses, JointFrames]:
+    """Body poses and the world frames of the joints (for geometric Jacobians)."""
+    tr = _tree(model)
+    B, J = model.n_bodies, model.n_joints
+    dtype = jnp.result_type(root_pos, root_rot, q, tr.local_pos)  # as the arithmetic below promotes
+    pos = jnp.zeros((B, 3), dtype).at[0].set(root_pos)
+    rot = jnp.zeros((B, 3, 3), dtype).at[0].set(root_rot)
+    jaxis = jnp.zeros((J + 1, 3), dtype)  # row J collects writes of padded (absent) joints
+    janchor = jnp.zeros((J + 1, 3), dtype)
+    qpad = jnp.concatenate([q, jnp.zeros(1, q.dtype)])  # index -1 -> 0 displacement
+    for idx_np in tr.levels:
+        # index arrays converted at trace time: JAX caches numpy constants per dtype mode (x64 on/off)
+        idx = jnp.asarray(idx_np)
+        par = jnp.asarray(tr.parent[idx_np])
+        Rp, xp = rot[par], pos[par]
+        R = Rp @ tr.local_rot[idx_np]
+        x = xp + jnp.einsum("nij,nj->ni", Rp, tr.local_pos[idx_np])
+        for m in range(tr.jidx.shape[1]):
+            j = tr.jidx[idx_np, m]
+            if (j < 0).all():
+                continue
+            angle = qpad[jnp.asarray(j)]
+            axis, jp, hinge = tr.jaxis[idx_np, m], tr.jpos[idx_np, m], tr.jhinge[idx_np, m]
+            anchor = x + jnp.einsum("nij,nj->ni", R, jp)
+            axis_w = jnp.einsum("nij,nj->ni", R, axis)
+            jrow = jnp.asarray(np.where(j < 0, J, j))
+            jaxis = jaxis.at[jrow].set(axis_w)
+            janchor = janchor.at[jrow].set(anchor)
+            Rh = R @ axis_angle_to_mat(jnp.asarray(axis, dtype), jnp.where(hinge, angle, 0.0))
+            xh = anchor - jnp.einsum("nij,nj->ni", Rh, jp)
+            xs = x + axis_w * jnp.where(hinge, 0.0, angle)[:, None]
+            R = Rh
+            x = jnp.where(hinge[:, None], xh, xs)
+        pos = pos.at[idx].set(x)
+        rot = rot.at[idx].set(R)
+    return BodyPoses(pos, rot), JointFrames(jaxis[:J], janchor[:J])
+
+
+def fk_full(model: HandModel, base_rot: Array, qfull: Array) -> BodyPoses:
+    """Forward kinematics from a full generalized position ``[base (6), joints (J)]``."""
+    p, R = base_to_root(qfull[:6], base_rot)
+    return forward_kinematics(model, p, R, qfull[6:])
+
+
+def points_world(poses: BodyPoses, body: Array | np.ndarray, local: Array) -> Array:
+    """World positions (N, 3) of points attached to ``body`` (N,) at body-frame offsets ``local`` (N, 3)."""
+    return poses.pos[body] + jnp.einsum("nij,nj->ni", poses.rot[body], local)
+
+
+def keypoints(model: HandModel, poses: BodyPoses) -> Array:
+    """Robot keypoints (K, 3) in the order of the hand config."""
+    return points_world(poses, model.kp_body, jnp.asarray(model.kp_pos))
+
+
+def body_com(model: HandModel, poses: BodyPoses) -> Array:
+    """Centres of mass of the bodies (B, 3)."""
+    return points_world(poses, np.arange(model.n_bodies), jnp.asarray(model.body_ipos))
+
+
+def make_keypoint_fn(model: HandModel, base_rot: np.ndarray) -> jax.stages.Wrapped:
+    """jit-compiled ``qfull (..., 6 + J) -> keypoints (..., K, 3)`` for a fixed base frame."""
+    R0 = jnp.asarray(base_rot)
+
+    def f(qfull: Array) -> Array:
+        return keypoints(model, fk_full(model, R0, qfull))
+
+    return jax.jit(jnp.vectorize(f, signature="(n)->(k,d)"))

@@ -1,0 +1,101 @@
+"""Points sampled on (and in a thin shell around) a hand's collision surface, attached to its bodies.
+
+Used for the quasi-physical point set (contacts), for the Chamfer-distance metric and for rendering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from quasisim.assets.hand import Geom, HandModel
+from quasisim.rotations import np_quat_to_mat
+
+
+@dataclass(frozen=True, eq=False)
+class HandPoints:
+    """Points attached to hand bodies: ``body`` (N,), body-frame ``local`` (N, 3) and ``normal`` (N, 3)."""
+
+    body: np.ndarray
+    local: np.ndarray
+    normal: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return len(self.body)
+
+
+def geom_mesh(g: Geom):  # noqa: ANN201 - trimesh.Trimesh
+    """A trimesh of one geom in its body's frame."""
+    import trimesh
+
+    s = g.size
+    if g.type == "box":
+        m = trimesh.creation.box(extents=2 * s)
+    elif g.type == "capsule":
+        m = trimesh.creation.capsule(height=2 * s[1], radius=s[0], count=[16, 16])
+    elif g.type == "cylinder":
+        m = trimesh.creation.cylinder(radius=s[0], height=2 * s[1], sections=24)
+    elif g.type == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=2, radius=s[0])
+    elif g.type == "ellipsoid":
+        m = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        m.apply_scale(s)
+    elif g.type == "mesh":
+        m = trimesh.Trimesh(g.vertices, g.faces, process=False)
+    else:
+        raise ValueError(f"geom {g.name}: type {g.type} has no surface to sample")
+    T = np.eye(4)
+    T[:3, :3] = np_quat_to_mat(g.quat)
+    T[:3, 3] = g.pos
+    m.apply_transform(T)
+    return m
+
+
+def sample_hand_points(hand: HandModel, spacing: float, offset: float, seed: int = 0) -> HandPoints:
+    """Sample points every ~``spacing`` m on each collision geom and push them out by U(0, ``offset``).
+
+    Points that fall inside another collision geom of the same body are dropped (overlapping boxes).
+    """
+    import logging
+
+    import trimesh
+
+    logging.getLogger("trimesh").setLevel(logging.ERROR)  # "only got n/m samples" notices
+    rng = np.random.default_rng(seed)
+    geoms = hand.collision_geoms()
+    meshes = [geom_mesh(g) for g in geoms]
+    bodies, locs, norms = [], [], []
+    for g, m in zip(geoms, meshes, strict=True):
+        n = max(4, round(m.area / spacing**2))
+        pts, fid = trimesh.sample.sample_surface_even(m, n, seed=int(rng.integers(1 << 31)))
+        if len(pts) == 0:
+            continue
+        nrm = m.face_normals[fid]
+        pts = pts + nrm * rng.uniform(0.0, offset, (len(pts), 1))
+        keep = np.ones(len(pts), bool)
+        for h, mh in zip(geoms, meshes, strict=True):
+            if h is not g and h.body == g.body and mh.is_watertight:
+                keep &= ~mh.contains(pts)
+        bodies.append(np.full(int(keep.sum()), g.body))
+        locs.append(pts[keep])
+        norms.append(nrm[keep])
+    return HandPoints(np.concatenate(bodies), np.concatenate(locs), np.concatenate(norms))
+
+
+def surface_points_over_time(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray, pts: HandPoints) -> np.ndarray:
+    """(T, N, 3) world positions of ``pts`` for hand configurations ``qpos`` (T, 6 + J)."""
+    import jax
+
+    from quasisim.kinematics import fk_full, points_world
+
+    R0 = jnp.asarray(base_rot, dtype=jnp.float32)
+
+    @jax.jit
+    @jax.vmap
+    def f(q: jnp.ndarray) -> jnp.ndarray:
+        return points_world(fk_full(hand, R0, q), pts.body, jnp.asarray(pts.local, dtype=jnp.float32))
+
+    return np.asarray(f(jnp.asarray(qpos, dtype=jnp.float32)), dtype=np.float64)

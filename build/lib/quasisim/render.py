@@ -1,0 +1,147 @@
+"""Offscreen MuJoCo rendering of the reference (human keypoints + demo object) beside a result rollout.
+
+Rendering uses ``MUJOCO_GL`` (``egl`` by default, set by ``import quasisim``; ``osmesa`` also works).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from quasisim.demo import BONES, Demo
+from quasisim.rotations import np_quat_to_mat
+from quasisim.targets.scene import Scene
+
+SKIN = np.array([0.93, 0.72, 0.6, 1.0], dtype=np.float32)
+GHOST = np.array([0.2, 0.5, 0.95, 0.6], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class Camera:
+    lookat: np.ndarray
+    distance: float
+    azimuth: float
+    elevation: float
+
+
+def default_camera(demo: Demo) -> Camera:
+    """Look at the object's mean position from the side of the approaching hand."""
+    obj = demo.object_pos.mean(axis=0)
+    wrist = demo.right_joints[:, 0].mean(axis=0)
+    d = obj - wrist
+    az = float(np.degrees(np.arctan2(d[1], d[0]))) + 90.0
+    span = float(np.ptp(np.concatenate([demo.object_pos, demo.right_joints[:, 0]]), axis=0).max())
+    return Camera(lookat=obj, distance=float(np.clip(0.45 + 0.8 * span, 0.5, 1.4)), azimuth=az, elevation=-25.0)
+
+
+def _add_sphere(mujoco: Any, scn: Any, pos: np.ndarray, r: float, rgba: np.ndarray) -> None:
+    if scn.ngeom >= scn.maxgeom:
+        return
+    g = scn.geoms[scn.ngeom]
+    mujoco.mjv_initGeom(g, mujoco.mjtGeom.mjGEOM_SPHERE, np.array([r, 0, 0]), pos, np.eye(3).ravel(), rgba)
+    scn.ngeom += 1
+
+
+def _add_capsule(mujoco: Any, scn: Any, a: np.ndarray, b: np.ndarray, r: float, rgba: np.ndarray) -> None:
+    if scn.ngeom >= scn.maxgeom:
+        return
+    g = scn.geoms[scn.ngeom]
+    mujoco.mjv_initGeom(g, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.eye(3).ravel(), rgba)
+    mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_CAPSULE, r, a, b)
+    scn.ngeom += 1
+
+
+def _add_skeleton(mujoco: Any, scn: Any, joints: np.ndarray, rgba: np.ndarray, r: float = 0.007) -> None:
+    for a, b in BONES:
+        _add_capsule(mujoco, scn, joints[a], joints[b], r, rgba)
+    for p in joints:
+        _add_sphere(mujoco, scn, p, r * 1.15, rgba)
+
+
+class SideBySide:
+    """Renders frame ``t`` of the reference and of a result with the same camera."""
+
+    def __init__(
+        self, scene: Scene, demo: Demo, width: int = 400, height: int = 300, camera: Camera | None = None
+    ) -> None:
+        import mujoco
+
+        from quasisim.targets.mujoco_target import MujocoModel
+
+        self.mujoco = mujoco
+        self.mm = MujocoModel(scene, visual=True)
+        self.demo = demo
+        self.renderer = mujoco.Renderer(self.mm.model, height=height, width=width, max_geom=4000)
+        self.data = mujoco.MjData(self.mm.model)
+        cam = camera or default_camera(demo)
+        self.cam = mujoco.MjvCamera()
+        self.cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        self.cam.lookat[:] = cam.lookat
+        self.cam.distance = cam.distance
+        self.cam.azimuth = cam.azimuth
+        self.cam.elevation = cam.elevation
+        self.opt_ref = mujoco.MjvOption()
+        self.opt_res = mujoco.MjvOption()
+        # group 1: visual meshes (object, hand); group 3: collision shapes (hand without visual meshes)
+        for opt in (self.opt_ref, self.opt_res):
+            opt.geomgroup[:] = [1, 1, 0, 1, 0, 0]
+        self._hide_hand_q = None
+
+    def _render(
+        self, qfull: np.ndarray, opos: np.ndarray, oquat: np.ndarray, joints: np.ndarray | None, ghost: bool
+    ) -> np.ndarray:
+        mujoco = self.mujoco
+        self.mm.set_state(self.data, qfull, opos, oquat)
+        self.renderer.update_scene(self.data, camera=self.cam, scene_option=self.opt_res)
+        if joints is not None:
+            _add_skeleton(mujoco, self.renderer.scene, joints, GHOST if ghost else SKIN, r=0.004 if ghost else 0.007)
+        return self.renderer.render().copy()
+
+    def reference(self, t: int) -> np.ndarray:
+        far = np.zeros(6 + self.mm.scene.hand.n_joints)
+        far[2] = -50.0  # park the robot hand out of view
+        d = self.demo
+        return self._render(far, d.object_pos[t], d.object_quat[t], d.right_joints[t], ghost=False)
+
+    def result(
+        self, t: int, qpos: np.ndarray, opos: np.ndarray, oquat: np.ndarray, show_human: bool = True
+    ) -> np.ndarray:
+        joints = self.demo.right_joints[t] if show_human else None
+        return self._render(qpos[t], opos[t], oquat[t], joints, ghost=True)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def render_side_by_side(
+    scene: Scene,
+    demo: Demo,
+    qpos: np.ndarray,
+    opos: np.ndarray,
+    oquat: np.ndarray,
+    frames: list[int] | None = None,
+    width: int = 400,
+    height: int = 300,
+    progress: bool = False,
+) -> list[np.ndarray]:
+    """Side-by-side images [reference | result] (H, 2W, 3) for ``frames`` (default: all)."""
+    from tqdm import tqdm
+
+    frames = list(range(demo.n_frames)) if frames is None else frames
+    r = SideBySide(scene, demo, width, height)
+    try:
+        out = []
+        for t in tqdm(frames, desc="render", disable=not progress, leave=False):
+            out.append(np.concatenate([r.reference(t), r.result(t, qpos, opos, oquat)], axis=1))
+        return out
+    finally:
+        r.close()
+
+
+def object_corners(scene: Scene, pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """(8, 3) world corners of the object's bounding box at a pose (for quick plots)."""
+    lo, hi = scene.obj.vertices.min(0), scene.obj.vertices.max(0)
+    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return c @ np_quat_to_mat(quat).T + pos

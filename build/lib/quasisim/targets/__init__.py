@@ -1,0 +1,87 @@
+"""Realistic target simulators (MuJoCo, PyBullet): PD targets per frame in, per-frame states out.
+
+Both targets build the same :class:`~quasisim.targets.scene.Scene` and share :class:`Rollout`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from quasisim.errors import choice_error
+from quasisim.io import save_npz_atomic
+
+TARGETS = ("mujoco", "pybullet")
+
+
+@dataclass(frozen=True, eq=False)
+class Rollout:
+    """What a target simulator produced, sampled at the control frames (T frames).
+
+    Attributes:
+        target: ``"mujoco"`` or ``"pybullet"``.
+        qpos: (T, 6 + J) measured hand generalized positions (base coordinates + joints).
+        object_pos: (T, 3) m.  object_quat: (T, 4) w x y z.
+        keypoints: (T, K, 3) all robot keypoints of the hand config (m).
+        kp_human: (K,) human keypoint index of each robot keypoint.  kp_metric: (K,) used in MPJPE.
+        dt: physics step (s); substeps: physics steps per control frame; wall_s: wall time of the rollout.
+    """
+
+    target: str
+    qpos: np.ndarray
+    object_pos: np.ndarray
+    object_quat: np.ndarray
+    keypoints: np.ndarray
+    kp_human: np.ndarray
+    kp_metric: np.ndarray
+    dt: float
+    substeps: int
+    wall_s: float
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def robot_keypoints(self) -> np.ndarray:
+        """(T, K_metric, 3) the keypoints used by the metrics."""
+        return self.keypoints[:, self.kp_metric]
+
+    @property
+    def human_keypoint_index(self) -> np.ndarray:
+        return self.kp_human[self.kp_metric]
+
+    def save(self, path: str | Path) -> Path:
+        """``rollout.npz``: object_pos, object_quat, robot_keypoints, human_keypoint_index (+ full state)."""
+        return save_npz_atomic(
+            path,
+            target=np.array(self.target),
+            object_pos=self.object_pos.astype(np.float64),
+            object_quat=self.object_quat.astype(np.float64),
+            robot_keypoints=self.robot_keypoints.astype(np.float64),
+            human_keypoint_index=self.human_keypoint_index.astype(np.int64),
+            qpos=self.qpos.astype(np.float64),
+            all_keypoints=self.keypoints.astype(np.float64),
+            all_human_keypoint_index=self.kp_human.astype(np.int64),
+            dt=np.array(self.dt),
+            substeps=np.array(self.substeps),
+        )
+
+
+class Target(Protocol):
+    name: str
+
+    def rollout(self, q_targets: np.ndarray) -> Rollout: ...
+
+
+def make_target(name: str, scene: Any) -> Target:
+    """Build target simulator ``name`` (one of :data:`TARGETS`) for ``scene``."""
+    if name == "mujoco":
+        from quasisim.targets.mujoco_target import MujocoTarget
+
+        return MujocoTarget(scene)
+    if name == "pybullet":
+        from quasisim.targets.pybullet_target import PybulletTarget
+
+        return PybulletTarget(scene)
+    raise choice_error("target", name, TARGETS)

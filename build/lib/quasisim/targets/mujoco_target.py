@@ -1,0 +1,348 @@
+"""MuJoCo target: the hand on a PD-driven floating base, the object as convex pieces, a finite table.
+
+Set-up (stated once, used for every figure):
+
+* ``timestep`` 2 ms (``PhysicsOptions.mujoco_dt``), ``implicitfast`` integrator, elliptic friction cones,
+  ``impratio`` 10, sliding friction 1 on every contact, gravity -9.81 m/s^2 along z.
+* Hand base: 3 slide joints along world x, y, z and 3 hinges about the axes of ``scene.base_rot``
+  (intrinsic x-y-z), all on the hand's root body. Finger joints as in the hand model, with the hand
+  config's damping and armature. No hand self-collision; the hand collides with the object and the table.
+* PD control per degree of freedom, ``tau = kp (q* - q) + kv (qd* - qd)``: one position actuator
+  (gain ``kp``, bias ``-kp q - kv qd``) plus one feed-forward actuator (``kv qd*``). Within a control
+  frame the targets are interpolated linearly and ``qd*`` is the frame-to-frame velocity of the targets.
+* Object: free body with the asset's mass, centre of mass and inertia; collision from its convex parts.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
+from quasisim.targets import Rollout
+from quasisim.targets.scene import Scene
+
+HAND_PREFIX = "hand/"
+# collision bits: hand (type 2, affinity 1) touches object/table (type 1, affinity 3), not itself.
+HAND_CONTYPE, HAND_CONAFFINITY = 2, 1
+WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
+
+
+def _geom_type(mujoco: Any, name: str) -> Any:
+    return getattr(mujoco.mjtGeom, f"mjGEOM_{name.upper()}")
+
+
+def build_spec(scene: Scene, visual: bool = True) -> Any:
+    """An ``mujoco.MjSpec`` of the scene (compile with ``.compile()``)."""
+    import mujoco
+
+    hand = scene.hand
+    pd = hand.config.pd
+    spec = mujoco.MjSpec()
+    spec.modelname = f"quasisim_{hand.name}"
+    spec.compiler.degree = False
+    spec.option.timestep = scene.physics.mujoco_dt
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.impratio = 10.0
+    spec.option.gravity = [0.0, 0.0, -scene.physics.gravity]
+    spec.visual.global_.offwidth = 1280
+    spec.visual.global_.offheight = 960
+    spec.visual.quality.shadowsize = 2048
+    fr = [scene.physics.friction, 0.005, 0.0001]
+
+    if visual:
+        spec.add_texture(
+            name="sky",
+            type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+            builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+            rgb1=[0.75, 0.82, 0.9],
+            rgb2=[0.95, 0.96, 0.98],
+            width=64,
+            height=64,
+        )
+    wb = spec.worldbody
+    wb.add_light(
+        pos=[0, 0, scene.table.top + 2.0],
+        dir=[0, 0, -1],
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        diffuse=[0.7, 0.7, 0.7],
+    )
+    floor_z = 0.0
+    wb.add_geom(
+        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[5, 5, 0.1], pos=[0, 0, floor_z],
+        rgba=[0.85, 0.85, 0.82, 1], contype=0, conaffinity=0,
+    )  # fmt: skip
+    t = scene.table
+    wb.add_geom(
+        name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=t.half_size.tolist(), pos=t.center.tolist(),
+        rgba=[0.62, 0.5, 0.38, 1], contype=WORLD_CONTYPE, conaffinity=WORLD_CONAFFINITY, friction=fr,
+    )  # fmt: skip
+
+    # ---- hand on its floating base ----
+    bodies: list[Any] = []
+    for b in range(hand.n_bodies):
+        if b == 0:
+            body = wb.add_body(
+                name=HAND_PREFIX + hand.body_names[0], pos=[0, 0, 0], quat=np_mat_to_quat(scene.base_rot).tolist()
+            )
+            for k, ax in enumerate(("x", "y", "z")):
+                body.add_joint(
+                    name=f"{HAND_PREFIX}base_t{ax}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=scene.base_rot[k].tolist(),
+                    limited=False, armature=0.0, damping=0.0,
+                )  # fmt: skip
+            for k, ax in enumerate(("x", "y", "z")):
+                e = np.eye(3)[k]
+                body.add_joint(
+                    name=f"{HAND_PREFIX}base_r{ax}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=e.tolist(),
+                    limited=False, armature=0.0, damping=0.0,
+                )  # fmt: skip
+        else:
+            parent = bodies[hand.body_parent[b]]
+            body = parent.add_body(
+                name=HAND_PREFIX + hand.body_names[b], pos=hand.body_pos[b].tolist(), quat=hand.body_quat[b].tolist()
+            )
+            for j in hand.body_joints(b):
+                body.add_joint(
+                    name=HAND_PREFIX + hand.joint_names[j],
+                    type=mujoco.mjtJoint.mjJNT_HINGE if hand.joint_type[j] == 0 else mujoco.mjtJoint.mjJNT_SLIDE,
+                    axis=hand.joint_axis[j].tolist(), pos=hand.joint_pos[j].tolist(),
+                    limited=bool(hand.joint_limited[j]), range=hand.joint_range[j].tolist(),
+                    damping=pd.joint_damping, armature=pd.joint_armature,
+                )  # fmt: skip
+        if hand.body_mass[b] > 0 or b == 0 or len(hand.body_joints(b)):
+            # moving bodies need positive mass and inertia; massless fixed links (URDF frames) stay massless
+            body.mass = float(max(hand.body_mass[b], 1e-6))
+            body.ipos = hand.body_ipos[b].tolist()
+            body.iquat = hand.body_iquat[b].tolist()
+            body.inertia = np.maximum(hand.body_inertia[b], 1e-9).tolist()
+            body.explicitinertial = True
+        bodies.append(body)
+    for gi, g in enumerate(hand.geoms):
+        if not g.collision and not visual:
+            continue
+        kw: dict[str, Any] = {
+            "name": f"{HAND_PREFIX}{g.name or gi}",
+            "type": _geom_type(mujoco, g.type),
+            "size": g.size.tolist(),
+            "pos": g.pos.tolist(),
+            "quat": g.quat.tolist(),
+            "rgba": g.rgba.tolist(),
+        }
+        if g.type == "mesh":
+            mname = f"{HAND_PREFIX}mesh{gi}"
+            spec.add_mesh(name=mname, uservert=g.vertices.ravel().tolist(), userface=g.faces.ravel().tolist())
+            kw["meshname"] = mname
+        if g.collision:
+            kw.update(contype=HAND_CONTYPE, conaffinity=HAND_CONAFFINITY, friction=fr, group=3, condim=3)
+            if visual and any(not h.collision for h in hand.geoms if h.body == g.body):
+                kw["rgba"] = [0, 0, 0, 0]  # the body has visual meshes; keep collision shapes invisible
+        else:
+            kw.update(contype=0, conaffinity=0, group=1)
+        bodies[g.body].add_geom(**kw)
+    for k, name in enumerate(hand.kp_names):
+        bodies[hand.kp_body[k]].add_site(
+            name=f"{HAND_PREFIX}kp/{name}", pos=hand.kp_pos[k].tolist(), size=[0.004, 0, 0], group=4
+        )
+
+    # ---- object ----
+    obj = scene.obj
+    ob = wb.add_body(name="object", pos=scene.object_pos0.tolist(), quat=scene.object_quat0.tolist())
+    ob.add_freejoint(name="object_free")
+    evals, evecs = np.linalg.eigh(obj.inertia)
+    if np.linalg.det(evecs) < 0:
+        evecs[:, 0] *= -1
+    ob.mass = float(obj.mass)
+    ob.ipos = obj.com.tolist()
+    ob.iquat = np_mat_to_quat(evecs).tolist()
+    ob.inertia = np.maximum(evals, 1e-9).tolist()
+    ob.explicitinertial = True
+    for i, (v, f) in enumerate(obj.convex_parts()):
+        spec.add_mesh(name=f"object_part{i}", uservert=v.ravel().tolist(), userface=f.ravel().tolist())
+        ob.add_geom(
+            name=f"object_part{i}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"object_part{i}",
+            contype=WORLD_CONTYPE, conaffinity=WORLD_CONAFFINITY, friction=fr, group=3, rgba=[0, 0, 0, 0],
+            density=0.0, condim=3,
+        )  # fmt: skip
+    if visual:
+        spec.add_mesh(name="object_visual", uservert=obj.vertices.ravel().tolist(), userface=obj.faces.ravel().tolist())
+        ob.add_geom(
+            name="object_visual", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="object_visual",
+            contype=0, conaffinity=0, group=1, rgba=[0.85, 0.35, 0.25, 1], density=0.0,
+        )  # fmt: skip
+
+    # ---- actuators: PD position + velocity feed-forward on every hand dof ----
+    dof_names = [f"{HAND_PREFIX}base_t{a}" for a in "xyz"] + [f"{HAND_PREFIX}base_r{a}" for a in "xyz"]
+    dof_names += [HAND_PREFIX + n for n in hand.joint_names]
+    for i, jn in enumerate(dof_names):
+        gains = pd.base_pos if i < 3 else pd.base_rot if i < 6 else pd.joint
+        limit = None if i < 6 else pd.joint_force_limit
+        for kind in ("pd", "ff"):
+            act = spec.add_actuator(name=f"{kind}/{jn}", target=jn, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            act.gaintype = mujoco.mjtGain.mjGAIN_FIXED
+            act.biastype = mujoco.mjtBias.mjBIAS_AFFINE
+            gp = np.zeros(10)
+            bp = np.zeros(10)
+            if kind == "pd":
+                gp[0], bp[1], bp[2] = gains.kp, -gains.kp, -gains.kv
+            else:
+                gp[0] = gains.kv
+            act.gainprm = gp.tolist()
+            act.biasprm = bp.tolist()
+            act.ctrllimited = False
+            if limit is not None and kind == "pd":
+                act.forcelimited = True
+                act.forcerange = [-limit, limit]
+    return spec
+
+
+class MujocoModel:
+    """A compiled scene with index maps for the hand dofs, keypoint sites and the object."""
+
+    def __init__(self, scene: Scene, visual: bool = True) -> None:
+        import mujoco
+
+        self.scene = scene
+        self.model = build_spec(scene, visual=visual).compile()
+        m = self.model
+        hand = scene.hand
+        names = [f"{HAND_PREFIX}base_t{a}" for a in "xyz"] + [f"{HAND_PREFIX}base_r{a}" for a in "xyz"]
+        names += [HAND_PREFIX + n for n in hand.joint_names]
+        jid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
+        self.hand_qpos = np.array([m.jnt_qposadr[j] for j in jid])
+        self.hand_dof = np.array([m.jnt_dofadr[j] for j in jid])
+        self.pd_act = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"pd/{n}") for n in names])
+        self.ff_act = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff/{n}") for n in names])
+        self.kp_site = np.array(
+            [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{HAND_PREFIX}kp/{n}") for n in hand.kp_names]
+        )
+        self.hand_body = np.array(
+            [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, HAND_PREFIX + n) for n in hand.body_names]
+        )
+        oj = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "object_free")
+        self.obj_qpos = int(m.jnt_qposadr[oj])
+        self.obj_dof = int(m.jnt_dofadr[oj])
+        self.obj_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")
+
+    def set_state(self, data: Any, qfull: np.ndarray, obj_pos: np.ndarray, obj_quat: np.ndarray) -> None:
+        import mujoco
+
+        data.qpos[self.hand_qpos] = qfull
+        data.qpos[self.obj_qpos : self.obj_qpos + 3] = obj_pos
+        data.qpos[self.obj_qpos + 3 : self.obj_qpos + 7] = obj_quat
+        mujoco.mj_forward(self.model, data)
+
+
+class MujocoTarget:
+    """Roll PD targets out in MuJoCo. See the module docstring for the set-up."""
+
+    name = "mujoco"
+
+    def __init__(self, scene: Scene) -> None:
+        self.scene = scene
+        self.mm = MujocoModel(scene, visual=False)
+
+    @property
+    def substeps(self) -> int:
+        return max(1, round(1.0 / (self.scene.fps * self.scene.physics.mujoco_dt)))
+
+    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> Rollout:
+        """Run the PD targets ``q_targets`` (T, 6 + J) from the demo's initial object pose.
+
+        The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``).
+        """
+        q_targets = np.asarray(q_targets, dtype=np.float64)
+        hand = self.scene.hand
+        if q_targets.ndim != 2 or q_targets.shape[1] != 6 + hand.n_joints:
+            raise ValueError(f"q_targets must have shape (T, {6 + hand.n_joints}), got {q_targets.shape}")
+        T = len(q_targets)
+        qd0 = (q_targets[1] - q_targets[0]) * self.scene.fps if init_qvel and T > 1 else None
+        sess = self.session(q_targets[0], qd0)
+        t0 = time.perf_counter()
+        for t in range(T):
+            sess.record()
+            if t < T - 1:
+                sess.advance(q_targets[t], q_targets[t + 1])
+        return sess.result(time.perf_counter() - t0)
+
+    def session(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> MujocoSession:
+        """A step-by-step run (closed-loop control): the hand at ``q0`` (6 + J) with velocity ``qd0``,
+        the object at the demo's initial pose, at rest."""
+        return MujocoSession(self, np.asarray(q0, np.float64), qd0)
+
+
+class MujocoSession:
+    """One MuJoCo run advanced frame by frame: :meth:`observe` the state, :meth:`advance` one control frame."""
+
+    def __init__(self, target: MujocoTarget, q0: np.ndarray, qd0: np.ndarray | None) -> None:
+        import mujoco
+
+        self.target = target
+        mm = target.mm
+        self.data = mujoco.MjData(mm.model)
+        mm.set_state(self.data, q0, target.scene.object_pos0, target.scene.object_quat0)
+        if qd0 is not None:
+            self.data.qvel[mm.hand_dof] = qd0
+        self._rec: dict[str, list[np.ndarray]] = {"qpos": [], "opos": [], "oquat": [], "kps": []}
+
+    def observe(self) -> dict[str, np.ndarray]:
+        """Hand ``qpos``/``qvel`` (6 + J), object origin ``obj_pos``, ``obj_quat`` (w x y z), world linear
+        velocity of the centre of mass ``obj_vel`` and world angular velocity ``obj_angvel``, ``keypoints``."""
+        mm, d = self.target.mm, self.data
+        self._sync()
+        o = mm.obj_qpos
+        quat = d.qpos[o + 3 : o + 7].copy()
+        R = np_quat_to_mat(quat)
+        w = R @ d.qvel[mm.obj_dof + 3 : mm.obj_dof + 6]  # free joint: angular velocity in the body frame
+        com = R @ np.asarray(self.target.scene.obj.com)
+        v = d.qvel[mm.obj_dof : mm.obj_dof + 3] + np.cross(w, com)  # free joint: velocity of the frame origin
+        return {
+            "qpos": d.qpos[mm.hand_qpos].copy(), "qvel": d.qvel[mm.hand_dof].copy(),
+            "obj_pos": d.qpos[o : o + 3].copy(), "obj_quat": quat, "obj_vel": v, "obj_angvel": w,
+            "keypoints": d.site_xpos[mm.kp_site].copy(),
+        }  # fmt: skip
+
+    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
+        """One control frame: PD targets interpolated from ``qa`` to ``qb`` with their velocity fed forward."""
+        import mujoco
+
+        mm, d, m = self.target.mm, self.data, self.target.mm.model
+        fps, n = self.target.scene.fps, self.target.substeps
+        d.ctrl[mm.ff_act] = (qb - qa) * fps
+        for k in range(n):
+            s = (k + 1) / n
+            d.ctrl[mm.pd_act] = (1 - s) * qa + s * qb
+            mujoco.mj_step(m, d)
+
+    def _sync(self) -> None:
+        """Positions of bodies and sites for the current ``qpos`` (``mj_step`` leaves them one step behind)."""
+        import mujoco
+
+        mujoco.mj_kinematics(self.target.mm.model, self.data)
+
+    def record(self) -> None:
+        """Append the current frame (hand qpos, object pose, keypoint sites) to the run's record."""
+        mm, d = self.target.mm, self.data
+        self._sync()
+        self._rec["qpos"].append(d.qpos[mm.hand_qpos].copy())
+        self._rec["opos"].append(d.qpos[mm.obj_qpos : mm.obj_qpos + 3].copy())
+        self._rec["oquat"].append(d.qpos[mm.obj_qpos + 3 : mm.obj_qpos + 7].copy())
+        self._rec["kps"].append(d.site_xpos[mm.kp_site].copy())
+
+    def result(self, wall_s: float) -> Rollout:
+        """The recorded frames as a :class:`Rollout`."""
+        hand = self.target.scene.hand
+        return Rollout(
+            target=self.target.name,
+            qpos=np.array(self._rec["qpos"]),
+            object_pos=np.array(self._rec["opos"]),
+            object_quat=sign_continuous(np.array(self._rec["oquat"])),
+            keypoints=np.array(self._rec["kps"]),
+            kp_human=hand.kp_human.copy(),
+            kp_metric=hand.kp_metric.copy(),
+            dt=float(self.target.mm.model.opt.timestep),
+            substeps=self.target.substeps,
+            wall_s=wall_s,
+        )
