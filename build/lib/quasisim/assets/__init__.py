@@ -1,1 +1,0 @@
-"""Hand and object assets."""
