@@ -478,7 +478,7 @@ def run_predict_bench(
         p0 = default_params(model, obj.mass, obj.inertia)
         params = {
             f"sim {i + 1} (d_c {100 * cur.stages[i].d_c:g} cm{f', mu {m:g}' if mus else ''})": p0.replace(
-                **{**cur.params_overrides(i), **({"mu": m} if mus else {})}
+                **{**cur.params_overrides(i), "mu": m}
             )
             for i in rigid
             for m in (mus or (cur.mu,))
