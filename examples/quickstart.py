@@ -9,10 +9,11 @@ import sys
 from pathlib import Path
 
 from quasisim.assets.hand import load_hand
-from quasisim.demo import load_demo
-from quasisim.evaluate import evaluate_controls
-from quasisim.retarget import kinematic_controls
-from quasisim.synthetic import write_example
+from quasisim.data.demo import load_demo
+from quasisim.data.synthetic import write_example
+from quasisim.eval.evaluate import evaluate_controls
+from quasisim.method.retarget import kinematic_controls
+from quasisim.runtime import configure
 
 
 def main(out: Path) -> dict:
@@ -25,4 +26,5 @@ def main(out: Path) -> dict:
 
 
 if __name__ == "__main__":
+    configure()  # offscreen rendering, XLA settings, compilation cache (the CLI does this too)
     main(Path(sys.argv[1] if len(sys.argv) > 1 else "out/quickstart"))

@@ -11,11 +11,10 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("QUASISIM_DATA") or REPO.parent / "shared" / "data")
 ROBOTS = Path(os.environ.get("QUASISIM_ROBOT_PATH") or REPO.parent / "shared" / "robots")
 os.environ.setdefault("QUASISIM_ROBOT_PATH", str(ROBOTS))
-os.environ.setdefault("MUJOCO_GL", "egl")
 
-from quasisim.runtime import configure_jax  # noqa: E402
+from quasisim.runtime import configure  # noqa: E402
 
-configure_jax()
+configure()
 
 
 @pytest.fixture(scope="session")
@@ -44,7 +43,7 @@ def allegro():
 @pytest.fixture(scope="session")
 def example_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The synthetic examples written once per session."""
-    from quasisim.synthetic import write_examples
+    from quasisim.data.synthetic import write_examples
 
     d = tmp_path_factory.mktemp("examples")
     write_examples(d)

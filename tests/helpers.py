@@ -6,6 +6,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
+# the stiffest analytical simulator of the default curriculum (sim 9), as default_params' contact settings
+STIFF = {"alpha": 0.0, "d_c": 0.0, "k_n": 4.0e6, "k_f": 1.0e7, "k_d": 1.0e3, "mu": 10.0}
+
 
 def box_object(extents: tuple[float, float, float] = (0.05, 0.05, 0.05), density: float = 500.0) -> SimpleNamespace:
     import trimesh

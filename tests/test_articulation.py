@@ -51,7 +51,7 @@ def test_mass_matrix_and_bias_match_mujoco(hand_fixture: str, request: pytest.Fi
 
 def test_point_jacobian_matches_autodiff(shadow) -> None:
     """The geometric Jacobian of a body origin equals d(position)/dq by forward-mode autodiff."""
-    from quasisim.kinematics import forward_kinematics
+    from quasisim.sim.kinematics import forward_kinematics
 
     rng = np.random.default_rng(1)
     q = jnp.asarray(rng.uniform(*shadow.joint_range.T))

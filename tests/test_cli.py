@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from quasisim.cli import main
-from quasisim.metrics import METRIC_KEYS, SUCCESS_KEYS
+from quasisim.eval.metrics import METRIC_KEYS, SUCCESS_KEYS
 
 
 def _run(args: list[str]) -> str:
@@ -20,8 +20,8 @@ def _run(args: list[str]) -> str:
 
 
 def _check_outputs(out: Path, demo_path: Path) -> dict:
-    from quasisim.demo import load_demo
-    from quasisim.metrics import evaluate_rollout
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.metrics import evaluate_rollout
 
     m = json.loads((out / "metrics.json").read_text())
     assert tuple(m) == METRIC_KEYS and tuple(m["success"]) == SUCCESS_KEYS

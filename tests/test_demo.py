@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quasisim.demo import FORMAT, load_demo, save_demo
+from quasisim.data.demo import FORMAT, load_demo, save_demo
 from quasisim.errors import InputError
 
 
@@ -94,8 +94,9 @@ def test_cli_bad_input_exit_code(tmp_path: Path) -> None:
     r = CliRunner().invoke(main, ["retarget", str(p), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2
     assert "object_quat" in r.output and "Traceback" not in r.output
-    r = CliRunner().invoke(main, ["retarget", str(p), "--hand", "nohand", "--out", str(tmp_path / "o")])
-    assert r.exit_code != 0
+    ok = _write(tmp_path / "ok")
+    r = CliRunner().invoke(main, ["retarget", str(ok), "--hand", "nohand", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "nohand" in r.output and "shadow" in r.output and "Traceback" not in r.output
 
 
 def test_real_clips_load(data_dir: Path) -> None:

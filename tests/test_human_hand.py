@@ -8,9 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from quasisim.demo import BONES, load_demo
-from quasisim.human_hand import build_human_hand, human_hand_trajectory
-from quasisim.kinematics import forward_kinematics, keypoints
+from quasisim.assets.human_hand import build_human_hand
+from quasisim.data.demo import BONES, load_demo
+from quasisim.method.stage1 import fit_human_hand as human_hand_trajectory
+from quasisim.sim.kinematics import forward_kinematics, keypoints
 
 CLIP = "grab_s1_apple_lift.npz"
 
@@ -23,7 +24,7 @@ def real(data_dir):
 
 @pytest.fixture(scope="module")
 def synthetic():
-    from quasisim.synthetic import make_example
+    from quasisim.data.synthetic import make_example
 
     demo, _ = make_example("cube_lift")
     return demo, build_human_hand(demo.right_joints)
@@ -80,7 +81,7 @@ def test_ik_fits_synthetic_demo(synthetic) -> None:
 
 def test_model_structure_points_and_mass(synthetic) -> None:
     from quasisim.assets.hand import HINGE
-    from quasisim.pointset import sample_hand_points
+    from quasisim.sim.pointset import sample_hand_points
 
     _, hand = synthetic
     fingers = ("thumb", "index", "middle", "ring", "little")

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from helpers import scene_with
 from quasisim.assets.hand import HandConfig, load_hand
 from quasisim.errors import InputError, QuasisimError
-from quasisim.kinematics import fk_full, keypoints
+from quasisim.sim.kinematics import fk_full, keypoints
 
 
 def _random_q(hand, rng: np.random.Generator) -> np.ndarray:

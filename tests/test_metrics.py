@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from quasisim.metrics import (
+from quasisim.eval.metrics import (
     PerFrame,
     chamfer_mm,
     evaluate_rollout,

@@ -8,14 +8,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from quasisim.method.problem import make_problem
+
 
 @pytest.fixture(scope="module")
 def short(tmp_path_factory: pytest.TempPathFactory):
     from quasisim.assets.hand import load_hand
-    from quasisim.demo import load_demo
-    from quasisim.evaluate import load_object_for, scene_for
-    from quasisim.retarget import kinematic_controls
-    from quasisim.synthetic import write_example
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.eval.evaluate import load_object_for, scene_for
+    from quasisim.method.retarget import kinematic_controls
 
     p: Path = write_example("cube_lift", tmp_path_factory.mktemp("mpc"), n_frames=12)
     demo = load_demo(p)
@@ -64,16 +66,14 @@ def test_session_replays_like_rollout_and_observes_velocities(short) -> None:
 
 
 def test_observed_state_matches_the_observation(short) -> None:
-    from quasisim.kinematics import fk_full, keypoints
-    from quasisim.mpc import observed_state
+    from quasisim.optim.trajectory import observed_state
     from quasisim.rotations import np_mat_to_quat
-    from quasisim.sim.build import SimOptions, build_model
+    from quasisim.sim.kinematics import fk_full, keypoints
     from quasisim.sim.step import object_pose
     from quasisim.targets.mujoco_target import MujocoTarget
-    from quasisim.targets.scene import size_table
 
     demo, hand, obj, c, scene = short
-    model = build_model(hand, obj, size_table(demo, obj)[0], SimOptions.for_fps(demo.fps), demo.object_pos[0])
+    model = make_problem(demo, hand, c.base_rot, 20, 128, obj).model
     sess = MujocoTarget(scene).session(c.q_targets[0])
     for t in range(3):
         sess.advance(c.q_targets[t], c.q_targets[t + 1])
@@ -83,7 +83,7 @@ def test_observed_state_matches_the_observation(short) -> None:
     np.testing.assert_allclose(np.asarray(pos), obs["obj_pos"], atol=1e-5)
     import jax
 
-    from quasisim.optimize import hand_keypoints
+    from quasisim.optim.objective import hand_keypoints
 
     kp = np.asarray(hand_keypoints(model, jax.tree_util.tree_map(lambda x: x[None], s)))[0]
     kp_ref = np.asarray(keypoints(hand, fk_full(hand, jnp.asarray(scene.base_rot), jnp.asarray(obs["qpos"]))))
@@ -92,23 +92,27 @@ def test_observed_state_matches_the_observation(short) -> None:
 
 
 @pytest.mark.slow
-def test_mpc_loop_applies_what_it_plans(short) -> None:
+def test_mpc_loop_applies_what_it_plans_and_lowers_its_window_loss(short) -> None:
     """The closed loop changes the plan, the applied targets replayed open-loop give the same run
-    (MuJoCo is deterministic), and the first frame is left alone."""
-    from quasisim.mpc import MPCOptions, mpc_params, run_mpc
-    from quasisim.sim.build import SimOptions, build_model, default_params
+    (MuJoCo is deterministic), the first frame is left alone, and the Adam steps lower the window loss
+    they optimise (a wrong gradient would leave the plan's own loss the best)."""
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.mpc import MPCOptions, run_mpc
     from quasisim.targets.mujoco_target import MujocoTarget
-    from quasisim.targets.scene import size_table
 
     demo, hand, obj, c, scene = short
-    model = build_model(
-        hand, obj, size_table(demo, obj)[0], SimOptions.for_fps(demo.fps, 5, n_candidates=32), demo.object_pos[0]
-    )
-    p = mpc_params(default_params(model, obj.mass, obj.inertia), None, obj.mass, obj.inertia)
-    res = run_mpc(demo, scene, model, p, c.q_targets, MPCOptions(horizon=2, steps=1, lr=1e-3), progress=False)
+    prob = make_problem(demo, hand, c.base_rot, 5, 32, obj)
+    cur = load_curriculum("default")
+    opts = MPCOptions(horizon=2, steps=3, lr=1e-3, soften=0, soften_range=0.1, seed=0)
+    weights = TransferConfig.from_yaml().weights
+    res = run_mpc(demo, scene, prob.model, prob.params(cur.contact(cur.stiffest)), c.q_targets, opts, weights, False)
     assert res.q_targets.shape == c.q_targets.shape and len(res.window_loss) == demo.n_frames - 1
     np.testing.assert_array_equal(res.q_targets[0], c.q_targets[0])
     assert np.abs(res.q_targets - c.q_targets).max() > 1e-4
     again = MujocoTarget(scene).rollout(res.q_targets)
     np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-12)
     np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-12)
+    lowered = res.window_loss < res.window_loss_start
+    assert lowered.mean() >= 0.8, (res.window_loss, res.window_loss_start)
+    assert res.window_loss.mean() < 0.99 * res.window_loss_start.mean()

@@ -15,8 +15,8 @@ from scipy.spatial.transform import Rotation
 
 from helpers import box_object, scene_with
 from quasisim.assets.hand import SLIDE, Geom
-from quasisim.kinematics import fk_full, keypoints
 from quasisim.rotations import np_quat_to_mat
+from quasisim.sim.kinematics import fk_full, keypoints
 from quasisim.targets import make_target
 from quasisim.targets.pybullet_target import COLLISION_MARGIN, PybulletTarget, _geom_shape
 
@@ -63,7 +63,6 @@ def _twisted(shadow):
         joint_range=jr,
         joint_pos=anchors,
         geoms=shadow.geoms + extra,
-        extras={},
     )
 
 

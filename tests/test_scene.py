@@ -46,7 +46,7 @@ def test_keypoint_inside_footprint_is_reported() -> None:
 
 def test_real_clips_tables(data_dir) -> None:
     from quasisim.assets.object import load_object
-    from quasisim.demo import load_demo
+    from quasisim.data.demo import load_demo
 
     for name in ("grab_s1_banana_eat_1.npz", "grab_s1_cup_pour_1.npz", "grab_s1_flashlight_on_1.npz"):
         d = load_demo(data_dir / name)

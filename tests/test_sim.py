@@ -9,8 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from quasisim.contact import spring_damper
+from helpers import STIFF
 from quasisim.sim.build import SimOptions, build_model, default_params
+from quasisim.sim.contact import spring_damper
 from quasisim.sim.step import frame, initial_state, rollout, substep
 from quasisim.sim.types import Control
 from quasisim.targets.scene import Table
@@ -59,7 +60,7 @@ def _zero_ctrl(model, n_pts: int | None = None, frames: int | None = None) -> Co
 def test_free_fall(shadow, cube) -> None:
     dt, n = 1e-3, 50
     model = _scene(shadow, cube, dt, n, top=-10.0)
-    params = default_params(model, cube.mass, cube.inertia)
+    params = default_params(model, cube.mass, cube.inertia, STIFF)
     s = _state(model, 0.5)
     states = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=10)))(s)
     z = np.asarray(states.obj_pos[:, 2])
@@ -73,7 +74,7 @@ def test_free_fall(shadow, cube) -> None:
 def test_resting_penetration_mg_over_k(shadow, cube) -> None:
     k = 2000.0
     model = _scene(shadow, cube, 1e-3, 100)
-    params = default_params(model, cube.mass, cube.inertia, table_k_n=k, table_k_d=10.0)
+    params = default_params(model, cube.mass, cube.inertia, STIFF, table_k_n=k, table_k_d=10.0)
     s = _state(model, HALF + 1e-4)
     states = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=20)))(s)
     surf = np.asarray(model.obj_surface)
@@ -101,7 +102,7 @@ def test_joint_damped_oscillation(shadow, cube) -> None:
     damp = np.zeros(shadow.n_joints)
     damp[j] = c
     params = default_params(
-        model, cube.mass, cube.inertia, gravity=np.zeros(3), joint_stiffness=stiff, joint_damping=damp, limit_k=0.0,
+        model, cube.mass, cube.inertia, STIFF, gravity=np.zeros(3), joint_stiffness=stiff, joint_damping=damp, limit_k=0.0,
         joint_kp=np.zeros(shadow.n_joints), joint_kv=np.zeros(shadow.n_joints),
     )  # fmt: skip
     q0 = np.zeros(shadow.n_joints)
@@ -133,7 +134,9 @@ def test_friction_stick_and_slide(shadow, cube, ratio: float, sticks: bool) -> N
     mu = 0.3
     dt, n, frames = 1e-3, 50, 10  # 0.5 s
     model = _scene(shadow, cube, dt, n)
-    params = default_params(model, cube.mass, cube.inertia, table_k_n=1e4, table_k_f=1e4, table_k_d=10.0, table_mu=mu)
+    params = default_params(
+        model, cube.mass, cube.inertia, STIFF, table_k_n=1e4, table_k_f=1e4, table_k_d=10.0, table_mu=mu
+    )
     s = _state(model, HALF)
     settle = jax.jit(lambda s: rollout(model, params, s, _zero_ctrl(model, frames=4)))
     s = jax.tree_util.tree_map(lambda x: x[-1], settle(s))
@@ -169,12 +172,12 @@ def test_no_force_beyond_contact_distance() -> None:
 
 def test_hand_contact_pushes_object_only_within_dc(shadow, cube) -> None:
     """A hand resting just outside d_c does not move the object; inside d_c it pushes it."""
-    from quasisim.kinematics import forward_kinematics
     from quasisim.rotations import quat_to_mat
+    from quasisim.sim.kinematics import forward_kinematics
     from quasisim.sim.step import Points, hand_points, object_origin, sdf_lookup
 
     model = _scene(shadow, cube, 1e-3, 20, top=-10.0, n_candidates=128)
-    params0 = default_params(model, cube.mass, cube.inertia, gravity=np.zeros(3))
+    params0 = default_params(model, cube.mass, cube.inertia, STIFF, gravity=np.zeros(3))
     s = _state(model, 0.0, root=(0.0, 0.0, 0.0))
     pts = Points(jnp.asarray(model.point_body), model.point_local)
     # place the object 1 cm beyond the index fingertip along the finger direction... measure the gap
@@ -194,8 +197,8 @@ def test_hand_contact_pushes_object_only_within_dc(shadow, cube) -> None:
 
 def _contact_setup(shadow, cube):
     """Object touching the index finger (soft contact) for gradient checks."""
-    from quasisim.kinematics import forward_kinematics
     from quasisim.rotations import quat_to_mat
+    from quasisim.sim.kinematics import forward_kinematics
 
     model = _scene(shadow, cube, 1e-3, 5, top=-10.0, n_candidates=128)
     s = _state(model, 0.0, root=(0.0, 0.0, 0.0))
@@ -230,7 +233,7 @@ def test_gradients_match_finite_differences(shadow, cube) -> None:
         model, s = _to64(model), _to64(s)
         params = _to64(
             default_params(
-                model, cube.mass, cube.inertia, d_c=0.02, k_n=2e3, k_f=5e2, k_d=10.0, mu=10.0, contact_scale=1.0
+                model, cube.mass, cube.inertia, STIFF, d_c=0.02, k_n=2e3, k_f=5e2, k_d=10.0, mu=10.0, contact_scale=1.0
             )
         )
         pts = _to64(Points(jnp.asarray(model.point_body), model.point_local))
@@ -253,15 +256,15 @@ def test_gradients_match_finite_differences(shadow, cube) -> None:
 
 
 def test_curriculum_runs_through_one_compiled_rollout(shadow, cube) -> None:
-    from quasisim.curriculum import load_curriculum
+    from quasisim.method.curriculum import load_curriculum
 
     model = _scene(shadow, cube, 2.5e-3, 4, top=0.0)
     s = _state(model, HALF, root=(0.0, -0.08, 0.05))
     f = jax.jit(lambda p, s: rollout(model, p, s, _zero_ctrl(model, frames=3)))
     cur = load_curriculum("default")
-    base = default_params(model, cube.mass, cube.inertia)
+    base = default_params(model, cube.mass, cube.inertia, STIFF)
     for i in range(len(cur.stages)):
-        out = f(base.replace(**cur.params_overrides(i)), s)
+        out = f(base.replace(**cur.contact(i)), s)
         assert np.isfinite(np.asarray(out.obj_pos)).all()
     assert f._cache_size() == 1
 
@@ -269,15 +272,15 @@ def test_curriculum_runs_through_one_compiled_rollout(shadow, cube) -> None:
 def test_unknown_param_lists_options(shadow, cube) -> None:
     model = _scene(shadow, cube, 1e-3, 1)
     with pytest.raises(KeyError, match="valid"):
-        default_params(model, cube.mass, cube.inertia, stiffness=1.0)
+        default_params(model, cube.mass, cube.inertia, STIFF, stiffness=1.0)
 
 
 def test_residual_networks(shadow, cube) -> None:
     """Deterministic init, zero output at init, switches, and a trained-looking residual moves the object."""
     import equinox as eqx
 
-    from quasisim.residual import ResidualConfig, ResidualNets
     from quasisim.sim.build import attach_residual
+    from quasisim.sim.residual import ResidualConfig, ResidualNets
 
     cfg = ResidualConfig(point_hidden=(16, 16), head_hidden=(16,), n_contacts=4, n_local=4, n_global=8)
     a, b, c = (eqx.filter(ResidualNets(cfg, seed=s), eqx.is_array) for s in (0, 0, 1))
@@ -286,7 +289,7 @@ def test_residual_networks(shadow, cube) -> None:
     assert any(not np.array_equal(x, y) for x, y in zip(la, lc, strict=True))
 
     model, s = _contact_setup(shadow, cube)
-    base = default_params(model, cube.mass, cube.inertia, d_c=0.02, k_n=2e3, k_f=5e2, contact_scale=1.0)
+    base = default_params(model, cube.mass, cube.inertia, STIFF, d_c=0.02, k_n=2e3, k_f=5e2, contact_scale=1.0)
     m2, p2 = attach_residual(model, base, ResidualNets(cfg, seed=0))
     ctrl = _zero_ctrl(model)
     out0 = jax.jit(lambda p: frame(model, p, s, ctrl))(base)

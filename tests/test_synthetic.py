@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from quasisim import synthetic
-from quasisim.demo import BONES, FINGERTIPS, Demo, load_demo
+from quasisim.data import synthetic
+from quasisim.data.demo import BONES, FINGERTIPS, Demo, load_demo
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_quat_to_mat, quat_angle_deg
 

@@ -1,7 +1,9 @@
-"""The transfer pipeline (stages 1 and 2): outputs, checkpoints, resume after a crash, CLI errors."""
+"""The transfer pipeline (stages 1 and 2): outputs, checkpoints, resume after a crash, CLI errors; stage 2
+lowers its objective."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -22,37 +24,37 @@ TINY = {
 CURRICULUM = """name: tiny
 mu: 10.0
 stages:
-  - {alpha: 0.1, d_c: 0.02, k_n: 4.0e4, k_f: 1.0e5, k_d: 1.0e3}
-  - {alpha: 0.0, d_c: 0.01, k_n: 4.0e5, k_f: 1.0e6, k_d: 1.0e3}
-  - {alpha: 0.0, d_c: 0.0, k_n: 4.0e6, k_f: 1.0e7, k_d: 1.0e3}
+  - {alpha: 0.1, d_c: 0.02, k_n: 4.0e4, k_f: 1.0e5, k_d: 1.0e3, residual: false}
+  - {alpha: 0.0, d_c: 0.01, k_n: 4.0e5, k_f: 1.0e6, k_d: 1.0e3, residual: false}
+  - {alpha: 0.0, d_c: 0.0, k_n: 4.0e6, k_f: 1.0e7, k_d: 1.0e3, residual: false}
   - {alpha: 0.0, d_c: 0.0, k_n: 4.0e6, k_f: 1.0e7, k_d: 1.0e3, residual: true}
 """
 
 
 @pytest.fixture(scope="module")
 def short_demo(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from quasisim.synthetic import write_example
+    from quasisim.data.synthetic import write_example
 
     return write_example("cube_lift", tmp_path_factory.mktemp("demo"), n_frames=16)
 
 
 @pytest.mark.slow
 def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path, tmp_path: Path, monkeypatch) -> None:
-    import quasisim.transfer as tr
-    from quasisim.controls import load_controls
-    from quasisim.curriculum import Curriculum
-    from quasisim.demo import load_demo
-    from quasisim.evaluate import evaluate_controls
+    import quasisim.optim.adam as adam
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.evaluate import evaluate_controls
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.pipeline import run_transfer
+    from quasisim.method.spec import TransferSpec
 
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
-    cur = Curriculum.from_yaml(tmp_path / "tiny.yaml")
-    cfg = tr.TransferConfig.from_yaml(overrides=TINY)
+    spec = TransferSpec(curriculum=str(tmp_path / "tiny.yaml"), render=False, progress=False)
+    cfg = TransferConfig.from_yaml(overrides=TINY)
     out = tmp_path / "run"
-    kw = dict(hand_ref="shadow", target="mujoco", curriculum=cur, stages=("1", "2"), budget="fast", config=cfg,
-              render=False, progress=False)  # fmt: skip
 
     # a crash in the last simulator's optimisation: what finished is checkpointed, nothing half-written
-    real = tr.adam_steps
+    real = adam.adam_steps
     calls = {"n": 0}
 
     def crashing(*a, **k):
@@ -61,9 +63,9 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
             raise KeyboardInterrupt("killed")
         return real(*a, **k)
 
-    monkeypatch.setattr(tr, "adam_steps", crashing)
+    monkeypatch.setattr(adam, "adam_steps", crashing)
     with pytest.raises(KeyboardInterrupt):
-        tr.run_transfer(short_demo, out, **kw)
+        run_transfer(short_demo, out, spec, cfg)
     ck = out / "checkpoints"
     names = sorted(p.name for p in ck.iterdir())
     assert names == ["kinematic.npz", "run.json", "stage1_human.npz", "stage1_robot.npz", "stage2_sim02.npz"], names
@@ -71,11 +73,11 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     mtimes = {p.name: p.stat().st_mtime_ns for p in ck.glob("*.npz")}
 
     # without --resume the folder is refused; with another curriculum the resume is refused
-    monkeypatch.setattr(tr, "adam_steps", real)
+    monkeypatch.setattr(adam, "adam_steps", real)
     with pytest.raises(QuasisimError, match="--resume"):
-        tr.run_transfer(short_demo, out, **kw)
+        run_transfer(short_demo, out, spec, cfg)
     with pytest.raises(InputError, match="curriculum"):
-        tr.run_transfer(short_demo, out, **{**kw, "curriculum": "none"}, resume=True)
+        run_transfer(short_demo, out, dataclasses.replace(spec, curriculum="none"), cfg, resume=True)
 
     # resume: only sim 3 is optimised (2 more optimisations), earlier checkpoints are reused untouched
     counted = {"n": 0}
@@ -84,8 +86,8 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
         counted["n"] += 1
         return real(*a, **k)
 
-    monkeypatch.setattr(tr, "adam_steps", counting)
-    res = tr.run_transfer(short_demo, out, **kw, resume=True)
+    monkeypatch.setattr(adam, "adam_steps", counting)
+    res = run_transfer(short_demo, out, spec, cfg, resume=True)
     assert counted["n"] == 2
     assert {p.name: p.stat().st_mtime_ns for p in ck.glob("*.npz") if p.name in mtimes} == mtimes
     assert (ck / "stage2_sim03.npz").is_file() and not (ck / "stage2_sim04.npz").exists()  # residual sim: stage 3
@@ -115,7 +117,7 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     assert np.abs(c.q_targets - c.extras["kinematic_q"]).max() > 1e-5
 
     # the benchmark's cross-simulator judgement: the run's controls and the kinematic retarget in PyBullet
-    from quasisim.bench import _judged
+    from quasisim.bench.transfer import _judged
 
     m_pb, k_pb = _judged(short_demo, out, "pybullet")
     assert set(m_pb) == set(metrics) and m_pb != k_pb
@@ -124,7 +126,7 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
 
 def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> None:
     from quasisim.cli import main
-    from quasisim.transfer import METHODS
+    from quasisim.method.spec import METHODS
 
     choices = next(p for p in main.commands["transfer"].params if p.name == "method").type.choices
     assert tuple(choices) == METHODS
@@ -145,3 +147,34 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
     assert r.exit_code == 2 and "MuJoCo only" in r.output
     r = CliRunner().invoke(main, ["transfer", str(tmp_path / "nope.npz"), "--out", str(tmp_path)])
     assert r.exit_code == 2 and "nope.npz" in r.output
+
+
+@pytest.mark.slow
+def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path) -> None:
+    """A few Adam steps on the controls in the stiffest analytical simulator lower the tracking objective
+    (from the kinematic retarget), and identification of S lowers it with the controls fixed."""
+    import jax
+
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.method import stage2
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.problem import make_problem
+    from quasisim.method.retarget import retarget
+    from quasisim.optim.adam import Progress, StepBudget
+    from quasisim.optim.sysid import SysID
+    from quasisim.optim.trajectory import Trajectory
+
+    demo, hand = load_demo(short_demo), load_hand("shadow")
+    rt = retarget(hand, demo)
+    prob = make_problem(demo, hand, rt.base_rot, 5, 32)
+    cur = load_curriculum("default")
+    params = prob.params(cur.contact(cur.stiffest))
+    vg = jax.jit(jax.value_and_grad(prob.objective(prob.reference()), argnums=(0, 1), has_aux=True))
+    w = TransferConfig.from_yaml().weights.arrays(points=0.0)
+    sb = StepBudget(control_steps=6, sysid_steps=4, control_lr=1e-3, sysid_lr=5e-2, patience=6, min_rel_improvement=0)
+    traj0 = Trajectory.from_q(rt.q, prob.model.n_points)
+    traj, sysid, log_s, log_c = stage2.one_simulator(vg, traj0, SysID.init(), params, w, sb, Progress(False), "t")
+    assert log_s.best < log_s.losses[0] and log_c.best < 0.98 * log_c.losses[0], (log_s.losses, log_c.losses)
+    assert float(vg(traj, sysid, params, w)[0][0]) == pytest.approx(log_c.best, rel=1e-6)

@@ -13,8 +13,13 @@ from typing import Any
 import click
 
 from quasisim.errors import QuasisimError
+from quasisim.method.spec import METHODS, TransferSpec, parse_stages
+from quasisim.targets import TARGETS
 
-TARGET_CHOICE = click.Choice(["mujoco", "pybullet"])
+# The commands import their modules when they run (JAX, MuJoCo and PyBullet take seconds to load; `--help`
+# and bad-option errors should not wait for them).
+
+TARGET_CHOICE = click.Choice(list(TARGETS))
 
 
 def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -32,9 +37,10 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _setup_runtime() -> None:
-    from quasisim.runtime import configure_jax
+    """Environment and JAX settings of every command (before MuJoCo or JAX load)."""
+    from quasisim.runtime import configure
 
-    configure_jax()
+    configure()
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -50,7 +56,7 @@ def main() -> None:
 @_friendly
 def example(out: Path, names: tuple[str, ...], frames: int) -> None:
     """Write the built-in synthetic example demo(s) (demo npz v1 + meshes/) to OUT."""
-    from quasisim.synthetic import EXAMPLES, write_example
+    from quasisim.data.synthetic import EXAMPLES, write_example
 
     for n in names or EXAMPLES:
         p = write_example(n, out, n_frames=frames)
@@ -66,8 +72,8 @@ def retarget(demo: Path, hand: str, out: Path) -> None:
     """Kinematic retargeting of DEMO to a robot hand: writes OUT/kinematic.npz (PD targets per frame)."""
     _setup_runtime()
     from quasisim.assets.hand import load_hand
-    from quasisim.demo import load_demo
-    from quasisim.retarget import kinematic_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.method.retarget import kinematic_controls
 
     d = load_demo(demo)
     h = load_hand(hand)
@@ -91,9 +97,9 @@ def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
     from quasisim.assets.hand import load_hand
-    from quasisim.controls import load_controls
-    from quasisim.demo import load_demo
-    from quasisim.evaluate import check_controls, evaluate_controls
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.evaluate import check_controls, evaluate_controls
 
     d = load_demo(demo)
     c = load_controls(controls)
@@ -116,35 +122,40 @@ def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
     return out
 
 
+_SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
+
+
 @main.command()
 @click.argument("demo", type=click.Path(path_type=Path))
-@click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option("--hand", default=_SPEC.hand, show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
 @click.option(
-    "--target", type=TARGET_CHOICE, default="mujoco", show_default=True, help="Simulator that judges the result."
+    "--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True, help="Simulator that judges the result."
 )
-@click.option("--curriculum", default="default", show_default=True, help="default, curriculum2, none or a YAML path.")
+@click.option(
+    "--curriculum", default=_SPEC.curriculum, show_default=True, help="default, curriculum2, none or a YAML path."
+)
 @click.option(
     "--stages",
-    default="1,2",
+    default=",".join(_SPEC.stages),
     show_default=True,
     help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo).",
 )
 @click.option(
     "--method",
-    type=click.Choice(["ours", "mpc-base", "mpc-soften", "kinematic"]),
-    default="ours",
+    type=click.Choice(METHODS),
+    default=_SPEC.method,
     show_default=True,
     help="ours: the curriculum stages; mpc-base / mpc-soften: MPC baselines without the curriculum; "
     "kinematic: the kinematic retarget only.",
 )
-@click.option("--budget", default="fast", show_default=True, help="Step budget from the config: fast or paper.")
+@click.option("--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--resume", is_flag=True, help="Continue the run in OUT from its last checkpoint.")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
 @click.option(
     "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
 )
-@click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
+@click.option("--render/--no-render", default=_SPEC.render, show_default=True, help="Render the video for the report.")
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
@@ -153,15 +164,13 @@ def transfer(
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
     _setup_runtime()
-    from quasisim.transfer import CONFIG_PATH, TransferConfig, parse_stages, run_transfer
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.method.pipeline import run_transfer
 
-    st = parse_stages(stages)
+    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, progress=True)
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
-    res = run_transfer(
-        demo, out, hand_ref=hand, target=target, curriculum=curriculum, stages=st, budget=budget, resume=resume,
-        config=cfg, render=render, progress=True, method=method,
-    )  # fmt: skip
+    res = run_transfer(demo, out, spec, cfg, resume)
     click.echo(json.dumps(res.metrics))
     k = res.kinematic_metrics
     click.echo(f"kinematic replay in {target}: R_err {k['R_err_deg']:.1f} deg, T_err {k['T_err_cm']:.2f} cm")
@@ -188,7 +197,7 @@ def bench() -> None:
 def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool) -> None:
     """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
     _setup_runtime()
-    from quasisim.bench import run_baseline
+    from quasisim.bench.baseline import run_baseline
 
     run_baseline(data_dir, hand, targets, out, pattern, render)
 
@@ -204,7 +213,7 @@ def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Pat
 @click.option("--clip", default="grab_s1_apple_lift", show_default=True, help="Clip of the speed measurement.")
 @click.option("--study-clips", default="grab_s1_apple_lift,grab_s1_cubesmall_lift,grab_s1_mug_lift", show_default=True)
 @click.option("--hand", default="shadow", show_default=True)
-@click.option("--substeps", type=int, default=None, help="Substeps per frame (default: dt of about 1 ms).")
+@click.option("--substeps", type=int, default=None, help="Substeps per frame (default: the fast budget's).")
 @click.option(
     "--dt-study",
     default="50,20,10",
@@ -220,7 +229,7 @@ def bench_sim(
     import os
 
     _setup_runtime()
-    from quasisim.bench import run_sim_bench
+    from quasisim.bench.sim import run_sim_bench
 
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     if not (data / f"{clip}.npz").is_file():
@@ -265,13 +274,12 @@ def bench_transfer(
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
     _setup_runtime()
-    from quasisim.bench import _run_spec, run_transfer_bench
-    from quasisim.transfer import parse_stages
+    from quasisim.bench.transfer import run_spec, run_transfer_bench
 
     st = parse_stages(stages)
     rs = tuple(c.strip() for c in runs.split(",") if c.strip())
     for r in rs:
-        _run_spec(r, st)
+        run_spec(r, st, TransferSpec())
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge)
 
@@ -295,12 +303,9 @@ def bench_predict(
 ) -> None:  # fmt: skip
     """Open-loop prediction error of the quasi-physical simulators against MuJoCo (the fit of stage 3)."""
     _setup_runtime()
-    from quasisim.bench import run_predict_bench
+    from quasisim.bench.predict import run_predict_bench
 
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    missing = [n for n in names if not (data_dir / f"{n}.npz").is_file()]
-    if missing:
-        raise QuasisimError(f"clips not found in {data_dir}: {', '.join(missing)}")
     run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out, sims, mus)
 
 

@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 Array = jnp.ndarray
 
 
-def quat_to_mat(q: Array) -> Array:
-    """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) rotation matrix."""
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+def _quat_matrix(q: Array, xp: Any) -> Array:
+    """(..., 4) w, x, y, z -> (..., 3, 3) with the array module ``xp`` (numpy or jax.numpy)."""
+    q = q / xp.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = jnp.stack(
+    r = xp.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
@@ -21,6 +24,11 @@ def quat_to_mat(q: Array) -> Array:
         axis=-1,
     )  # fmt: skip
     return r.reshape((*q.shape[:-1], 3, 3))
+
+
+def quat_to_mat(q: Array) -> Array:
+    """(..., 4) unit quaternion (w, x, y, z) -> (..., 3, 3) rotation matrix (JAX)."""
+    return _quat_matrix(q, jnp)
 
 
 def quat_mul(a: Array, b: Array) -> Array:
@@ -58,16 +66,15 @@ def axis_angle_to_mat(axis: Array, angle: Array) -> Array:
     return r.reshape((*jnp.shape(angle), 3, 3))
 
 
-def rotvec_to_mat(v: Array, eps: float = 1e-12) -> Array:
-    """Rotation vector (..., 3) -> (..., 3, 3); smooth (and differentiable) at zero."""
-    theta2 = jnp.sum(v * v, axis=-1)
-    safe = theta2 > eps
-    theta = jnp.sqrt(jnp.where(safe, theta2, 1.0))
-    a = jnp.where(safe, jnp.sin(theta) / theta, 1.0 - theta2 / 6.0)
-    b = jnp.where(safe, (1.0 - jnp.cos(theta)) / jnp.where(safe, theta2, 1.0), 0.5 - theta2 / 24.0)
-    K = skew(v)
-    eye = jnp.eye(3)
-    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+def quat_log(q: Array) -> Array:
+    """Rotation vector (..., 3) of unit quaternions (..., 4), shortest arc; smooth at the identity."""
+    q = q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
+    v = q[..., 1:]
+    s2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    s = jnp.sqrt(jnp.maximum(s2, 1e-20))
+    angle = 2.0 * jnp.arctan2(s, q[..., :1])
+    scale = jnp.where(s2 > 1e-12, angle / s, 2.0 / jnp.maximum(q[..., :1], 1e-6))
+    return v * scale
 
 
 def skew(v: Array) -> Array:
@@ -89,25 +96,12 @@ def euler_xyz_to_mat(e: Array) -> Array:
 
 
 def np_quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) w, x, y, z -> (..., 3, 3), numpy (safe to call while JAX traces)."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )  # fmt: skip
-    return r.reshape((*q.shape[:-1], 3, 3))
+    """(..., 4) w, x, y, z -> (..., 3, 3), numpy float64 (safe to call while JAX traces)."""
+    return _quat_matrix(np.asarray(q, dtype=np.float64), np)
 
 
 def np_mat_to_quat(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) -> (..., 4) w, x, y, z with w >= 0."""
-    from scipy.spatial.transform import Rotation
-
     shp = R.shape[:-2]
     xyzw = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
     q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
@@ -117,8 +111,6 @@ def np_mat_to_quat(R: np.ndarray) -> np.ndarray:
 
 def np_mat_to_euler_xyz(R: np.ndarray) -> np.ndarray:
     """Inverse of :func:`euler_xyz_to_mat` (intrinsic x-y-z), numpy."""
-    from scipy.spatial.transform import Rotation
-
     shp = R.shape[:-2]
     e = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("XYZ")
     return e.reshape((*shp, 3))

@@ -9,12 +9,14 @@ joint WRJ0) and everything above it (forearm) are dropped.
 
 from __future__ import annotations
 
+import importlib.util
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from quasisim.config import apply_overrides, build, read_yaml
@@ -173,7 +175,6 @@ class HandModel:
     kp_human: np.ndarray
     kp_weight: np.ndarray
     kp_metric: np.ndarray
-    extras: dict[str, Any] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -203,10 +204,6 @@ class HandModel:
     def collision_geoms(self) -> tuple[Geom, ...]:
         return tuple(g for g in self.geoms if g.collision)
 
-    def human_index_of_keypoints(self, metric_only: bool = True) -> np.ndarray:
-        mask = self.kp_metric if metric_only else np.ones(len(self.kp_names), bool)
-        return self.kp_human[mask]
-
 
 # ---- loading ------------------------------------------------------------------------------------
 
@@ -232,8 +229,6 @@ def resolve_model_path(cfg: HandConfig) -> Path:
     path is looked up beside the YAML and then in each folder of ``$QUASISIM_ROBOT_PATH``.
     """
     if cfg.model.startswith("gymnasium_robotics:"):
-        import importlib.util
-
         spec = importlib.util.find_spec("gymnasium_robotics")  # locate without importing (it prints notices)
         if spec is None or spec.origin is None:
             raise QuasisimError(
@@ -263,8 +258,6 @@ def resolve_model_path(cfg: HandConfig) -> Path:
 
 
 def _compile(path: Path) -> Any:
-    import mujoco
-
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except Exception as e:
@@ -286,45 +279,64 @@ def load_hand(hand: str | Path | HandConfig, overrides: dict[str, Any] | None = 
 
 @cache
 def _load_hand_cached(cfg: HandConfig) -> HandModel:
-    import mujoco
-
     src = resolve_model_path(cfg)
     m = _compile(src)
-
-    def name_of(obj: Any, i: int) -> str:
-        return mujoco.mj_id2name(m, obj, i) or ""
-
-    body_names_all = [name_of(mujoco.mjtObj.mjOBJ_BODY, b) for b in range(m.nbody)]
+    body_names_all = [_name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(m.nbody)]
     if cfg.root_body not in body_names_all:
         raise InputError(cfg.path, "root_body", f"one of the bodies {', '.join(body_names_all[1:])}", cfg.root_body)
-    root = body_names_all.index(cfg.root_body)
+    keep = _subtree(m, body_names_all.index(cfg.root_body))
+    new_index = {old: i for i, old in enumerate(keep)}
+    joints = _joints(m, keep, new_index, src)
+    geoms = _geoms(m, new_index, cfg, src)
+    kb, kpos = _keypoint_frames(m, cfg, src, body_names_all, new_index)
+    return HandModel(
+        config=cfg,
+        source=src,
+        body_names=tuple(body_names_all[b] for b in keep),
+        body_parent=np.array([-1] + [new_index[int(m.body_parentid[b])] for b in keep[1:]]),
+        body_pos=np.array([np.zeros(3)] + [m.body_pos[b] for b in keep[1:]], dtype=np.float64),
+        body_quat=np.array([np.array([1.0, 0, 0, 0])] + [m.body_quat[b] for b in keep[1:]], dtype=np.float64),
+        body_mass=np.array([m.body_mass[b] for b in keep], dtype=np.float64),
+        body_ipos=np.array([m.body_ipos[b] for b in keep], dtype=np.float64),
+        body_iquat=np.array([m.body_iquat[b] for b in keep], dtype=np.float64),
+        body_inertia=np.array([m.body_inertia[b] for b in keep], dtype=np.float64),
+        **joints,
+        geoms=geoms,
+        kp_names=tuple(k.name for k in cfg.keypoints),
+        kp_body=np.array(kb),
+        kp_pos=np.array(kpos, dtype=np.float64),
+        kp_human=np.array([k.human for k in cfg.keypoints]),
+        kp_weight=np.array([k.weight for k in cfg.keypoints], dtype=np.float64),
+        kp_metric=np.array([k.metric for k in cfg.keypoints]),
+    )
+
+
+def _name(m: Any, obj: Any, i: int) -> str:
+    return mujoco.mj_id2name(m, obj, i) or ""
+
+
+def _subtree(m: Any, root: int) -> list[int]:
+    """Body ids of ``root`` and its descendants, parents before children."""
     keep = [root]
     for b in range(root + 1, m.nbody):
         if m.body_parentid[b] in keep:
             keep.append(b)
-    new_index = {old: i for i, old in enumerate(keep)}
+    return keep
 
-    body_parent = np.array([-1] + [new_index[int(m.body_parentid[b])] for b in keep[1:]])
-    body_pos = np.array([np.zeros(3)] + [m.body_pos[b] for b in keep[1:]])
-    body_quat = np.array([np.array([1.0, 0, 0, 0])] + [m.body_quat[b] for b in keep[1:]])
 
+def _joints(m: Any, keep: list[int], new_index: dict[int, int], src: Path) -> dict[str, Any]:
+    """The joints of the kept bodies as :class:`HandModel` fields (hinge and slide joints only)."""
     jn, jb, jt, jax_, jp, jr, jl = [], [], [], [], [], [], []
     for b in keep[1:]:
         for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
             t = int(m.jnt_type[j])
-            if t == mujoco.mjtJoint.mjJNT_HINGE:
-                jt.append(HINGE)
-            elif t == mujoco.mjtJoint.mjJNT_SLIDE:
-                jt.append(SLIDE)
-            else:
-                raise InputError(
-                    src, f"joint {name_of(mujoco.mjtObj.mjOBJ_JOINT, j)}", "hinge or slide joints", "a ball/free joint"
-                )
+            name = _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
+            if t not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                raise InputError(src, f"joint {name}", "hinge or slide joints", "a ball/free joint")
             if m.qpos0[m.jnt_qposadr[j]] != 0.0:
-                raise InputError(
-                    src, f"joint {name_of(mujoco.mjtObj.mjOBJ_JOINT, j)}", "ref = 0", "a non-zero reference"
-                )
-            jn.append(name_of(mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
+                raise InputError(src, f"joint {name}", "ref = 0", "a non-zero reference")
+            jt.append(HINGE if t == mujoco.mjtJoint.mjJNT_HINGE else SLIDE)
+            jn.append(name or f"joint{j}")
             jb.append(new_index[b])
             jax_.append(m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j]))
             jp.append(m.jnt_pos[j])
@@ -332,14 +344,20 @@ def _load_hand_cached(cfg: HandConfig) -> HandModel:
             jl.append(bool(m.jnt_limited[j]))
     if not jn:
         raise InputError(src, "joints", "at least one hinge/slide joint below the root body", "none")
+    return {
+        "joint_names": tuple(jn), "joint_body": np.array(jb), "joint_type": np.array(jt),
+        "joint_axis": np.array(jax_, dtype=np.float64), "joint_pos": np.array(jp, dtype=np.float64),
+        "joint_range": np.array(jr, dtype=np.float64), "joint_limited": np.array(jl),
+    }  # fmt: skip
 
+
+def _geoms(m: Any, new_index: dict[int, int], cfg: HandConfig, src: Path) -> tuple[Geom, ...]:
+    """The geoms of the kept bodies (meshes with their vertices and faces), less ``cfg.exclude_geoms``."""
     geoms = []
     for g in range(m.ngeom):
         b = int(m.geom_bodyid[g])
-        if b not in new_index:
-            continue
-        gname = name_of(mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
-        if gname in cfg.exclude_geoms:
+        gname = _name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
+        if b not in new_index or gname in cfg.exclude_geoms:
             continue
         gtype = GEOM_TYPES[int(m.geom_type[g])]
         verts = faces = None
@@ -351,22 +369,22 @@ def _load_hand_cached(cfg: HandConfig) -> HandModel:
             faces = np.array(m.mesh_face[fa : fa + fn], dtype=np.int64)
         geoms.append(
             Geom(
-                name=gname,
-                body=new_index[b],
-                type=gtype,
-                size=np.array(m.geom_size[g], dtype=np.float64),
-                pos=np.array(m.geom_pos[g], dtype=np.float64),
-                quat=np.array(m.geom_quat[g], dtype=np.float64),
+                name=gname, body=new_index[b], type=gtype, size=np.array(m.geom_size[g], dtype=np.float64),
+                pos=np.array(m.geom_pos[g], dtype=np.float64), quat=np.array(m.geom_quat[g], dtype=np.float64),
                 collision=bool(m.geom_contype[g] or m.geom_conaffinity[g]) and gtype != "plane",
-                rgba=np.array(m.geom_rgba[g], dtype=np.float64),
-                vertices=verts,
-                faces=faces,
+                rgba=np.array(m.geom_rgba[g], dtype=np.float64), vertices=verts, faces=faces,
             )
-        )
+        )  # fmt: skip
     if not any(g.collision for g in geoms):
         raise InputError(src, "geoms", "collision geoms below the root body", "none")
+    return tuple(geoms)
 
-    site_names = [name_of(mujoco.mjtObj.mjOBJ_SITE, s) for s in range(m.nsite)]
+
+def _keypoint_frames(
+    m: Any, cfg: HandConfig, src: Path, body_names_all: list[str], new_index: dict[int, int]
+) -> tuple[list[int], list[np.ndarray]]:
+    """Each configured keypoint's body (new index) and its position in that body's frame (m)."""
+    site_names = [_name(m, mujoco.mjtObj.mjOBJ_SITE, s) for s in range(m.nsite)]
     kb, kpos = [], []
     for i, kp in enumerate(cfg.keypoints):
         if kp.site:
@@ -386,30 +404,4 @@ def _load_hand_cached(cfg: HandConfig) -> HandModel:
             )
         kb.append(new_index[b])
         kpos.append(pos)
-
-    return HandModel(
-        config=cfg,
-        source=src,
-        body_names=tuple(body_names_all[b] for b in keep),
-        body_parent=body_parent,
-        body_pos=body_pos.astype(np.float64),
-        body_quat=body_quat.astype(np.float64),
-        body_mass=np.array([m.body_mass[b] for b in keep], dtype=np.float64),
-        body_ipos=np.array([m.body_ipos[b] for b in keep], dtype=np.float64),
-        body_iquat=np.array([m.body_iquat[b] for b in keep], dtype=np.float64),
-        body_inertia=np.array([m.body_inertia[b] for b in keep], dtype=np.float64),
-        joint_names=tuple(jn),
-        joint_body=np.array(jb),
-        joint_type=np.array(jt),
-        joint_axis=np.array(jax_, dtype=np.float64),
-        joint_pos=np.array(jp, dtype=np.float64),
-        joint_range=np.array(jr, dtype=np.float64),
-        joint_limited=np.array(jl),
-        geoms=tuple(geoms),
-        kp_names=tuple(k.name for k in cfg.keypoints),
-        kp_body=np.array(kb),
-        kp_pos=np.array(kpos, dtype=np.float64),
-        kp_human=np.array([k.human for k in cfg.keypoints]),
-        kp_weight=np.array([k.weight for k in cfg.keypoints], dtype=np.float64),
-        kp_metric=np.array([k.metric for k in cfg.keypoints]),
-    )
+    return kb, kpos

@@ -17,14 +17,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import igl
 import jax
 import jax.numpy as jnp
 import numpy as np
 import trimesh
 
 from quasisim.errors import InputError
-from quasisim.io import save_npz_atomic
-from quasisim.runtime import cache_dir  # $QUASISIM_CACHE or ~/.cache/quasisim
+from quasisim.files import (
+    cache_dir,  # $QUASISIM_CACHE or ~/.cache/quasisim
+    save_npz_atomic,
+)
 
 DEFAULT_DENSITY = 500.0  # kg/m^3
 SDF_MAX_NODES = 600_000  # the grid is coarsened beyond this (bake ~10 s for a 30k-vertex mesh on 2 cores)
@@ -96,11 +99,6 @@ class SDFGrid:
         """(3,) object-frame position of the last node, m."""
         return self.origin + self.spacing * (np.asarray(self.shape) - 1)
 
-    @property
-    def bounds(self) -> np.ndarray:
-        """(2, 3) lower and upper corner of the grid box, m."""
-        return np.stack([self.origin, self.upper])
-
     def as_jax(self, dtype: Any = jnp.float32) -> SDFArrays:
         return SDFArrays(
             jnp.asarray(self.origin, dtype), jnp.asarray(self.spacing, dtype), jnp.asarray(self.values, dtype)
@@ -121,8 +119,6 @@ def bake_sdf(
     away from the surface). If the grid would have more than ``max_nodes`` nodes the spacing is
     increased until it fits, so ``result.spacing`` can be larger than requested.
     """
-    import igl
-
     if not (spacing > 0 and padding >= 0):
         raise ValueError(f"bake_sdf: need spacing > 0 and padding >= 0, got {spacing}, {padding}")
     V = np.ascontiguousarray(vertices, np.float64)
@@ -215,16 +211,12 @@ def _sdf_query(g: SDFArrays, points: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 def _simplify(vertices: np.ndarray, faces: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """Quadric edge-collapse decimation (libigl qslim) to at most ``n_faces`` faces."""
-    import igl
-
     out = igl.qslim(np.asfortranarray(vertices, np.float64), np.asfortranarray(faces, np.int32), n_faces)
     return np.asarray(out[0], np.float64), np.asarray(out[1], np.int64)
 
 
 def hull_gap(points: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """Euclidean distance (m) of each of ``points`` (N, 3) outside the union of convex ``parts``; 0 inside."""
-    import igl
-
     P = np.ascontiguousarray(points, np.float64)
     gap = np.full(len(P), np.inf)
     for v, f in parts:
@@ -252,7 +244,7 @@ def convex_decomposition(
     Returns:
         list of (vertices (V, 3) float64 m, faces (F, 3) int64), each a closed convex triangle mesh.
     """
-    import coacd
+    import coacd  # loaded only when a decomposition is not cached yet (a native library, slow to load)
 
     if hasattr(coacd, "set_log_level"):
         coacd.set_log_level("error")

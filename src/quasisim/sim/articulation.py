@@ -2,7 +2,7 @@
 
 Generalized coordinates are the hand joints ``q`` (J,) with the root pose given (the quasi-physical
 simulator drives the root kinematically), or, with ``base`` given, the floating base coordinates of
-:mod:`quasisim.kinematics` followed by the joints (6 + J; used to compare with MuJoCo).
+:mod:`quasisim.sim.kinematics` followed by the joints (6 + J; used to compare with MuJoCo).
 
     M(q) = sum_b m_b Jv_b^T Jv_b + Jw_b^T I_b Jw_b + diag(armature)        (Jv at the body's centre of mass)
     bias(q, qd) = C(q, qd) qd + g(q),   C qd = (dM/dt) qd - 1/2 d/dq (qd^T M qd),   g = -sum_b Jv_b^T m_b g_vec
@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from quasisim.assets.hand import HINGE, HandModel
-from quasisim.kinematics import BodyPoses, base_to_root, forward_kinematics_with_joints
 from quasisim.rotations import axis_angle_to_mat, np_quat_to_mat
+from quasisim.sim.kinematics import BodyPoses, base_to_root, forward_kinematics_with_joints
 
 Array = jnp.ndarray
 
@@ -34,10 +34,8 @@ class BodyJacobians(NamedTuple):
 
 
 def ancestor_mask(model: HandModel) -> np.ndarray:
-    """(B, J) bool: joint j moves body b (j sits on b or on one of b's ancestors)."""
-    cached = model.extras.get("_ancestor_mask")
-    if cached is not None:
-        return cached
+    """(B, J) bool: joint j moves body b (j sits on b or on one of b's ancestors). Evaluated when a
+    function is traced, not per step."""
     B, J = model.n_bodies, model.n_joints
     mask = np.zeros((B, J), bool)
     for b in range(B):
@@ -45,7 +43,6 @@ def ancestor_mask(model: HandModel) -> np.ndarray:
         while a >= 0:
             mask[b, model.joint_body == a] = True
             a = int(model.body_parent[a]) if a > 0 else -1
-    model.extras["_ancestor_mask"] = mask
     return mask
 
 

@@ -2,18 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from quasisim.assets.hand import HandModel
-from quasisim.pointset import HandPoints, sample_hand_points
-from quasisim.sim.types import Control, Model, Params
+from quasisim.sim.pointset import HandPoints, sample_hand_points
+from quasisim.sim.types import Model, Params
 
 F32 = jnp.float32
-DEFAULT_DT = 0.0025  # s: see docs/simulator.md and BENCHMARKS.md (step-size study)
 CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
 
 
@@ -28,8 +29,8 @@ class SimOptions:
         point_spacing, point_offset: hand point-set sampling (m); None = the hand config's values.
     """
 
-    dt: float = 0.001
-    substeps: int = 50
+    dt: float
+    substeps: int
     sdf_spacing: float = 0.003
     n_surface: int = 128
     n_candidates: int = 128
@@ -37,12 +38,11 @@ class SimOptions:
     point_offset: float | None = None
 
     @classmethod
-    def for_fps(cls, fps: float, substeps: int | None = None, **kw: Any) -> SimOptions:
-        """Options whose substeps fill one frame exactly; by default ``dt`` is about 2.5 ms (see BENCHMARKS.md:
-        the largest step whose object trajectories stay within 1 mm (median) of the dt = 0.5 ms reference,
-        and within the reference's own sensitivity to its step)."""
-        n = substeps if substeps is not None else max(1, round(1.0 / (fps * DEFAULT_DT)))
-        return cls(dt=1.0 / (fps * n), substeps=n, **kw)
+    def for_fps(cls, fps: float, substeps: int, **kw: Any) -> SimOptions:
+        """Options whose ``substeps`` fill one frame exactly: ``dt = 1 / (fps substeps)`` (the transfer
+        config's budgets choose ``substeps``; 20 at 20 fps, dt 2.5 ms, is the largest step whose object
+        trajectories stay within 1 mm (median) of the dt = 0.5 ms reference, see BENCHMARKS.md)."""
+        return cls(dt=1.0 / (fps * substeps), substeps=substeps, **kw)
 
 
 def build_model(
@@ -87,18 +87,23 @@ def build_model(
     )
 
 
-def default_params(model: Model, obj_mass: float, obj_inertia: np.ndarray, **overrides: Any) -> Params:
-    """Parameters of the stiffest analytical simulator (curriculum sim 9) with the object's own S."""
+CONTACT_KEYS = ("alpha", "d_c", "k_n", "k_f", "k_d", "mu")
+
+
+def default_params(
+    model: Model, obj_mass: float, obj_inertia: np.ndarray, contact: dict[str, float], **overrides: Any
+) -> Params:
+    """The simulator with the curriculum settings ``contact`` (:data:`CONTACT_KEYS`, e.g.
+    :meth:`~quasisim.method.curriculum.Curriculum.contact`), the object's own S and the calibrated table,
+    joint and point constants below; ``overrides`` replace any other leaf."""
+    missing = set(CONTACT_KEYS) - set(contact)
+    if missing:
+        raise KeyError(f"contact settings lack {sorted(missing)}; expected {list(CONTACT_KEYS)}")
     hand = model.hand
     J = hand.n_joints
     pd = hand.config.pd
     values: dict[str, Any] = dict(
-        alpha=0.0,
-        d_c=0.0,
-        k_n=4.0e6,
-        k_f=1.0e7,
-        k_d=1.0e3,
-        mu=10.0,
+        **{k: contact[k] for k in CONTACT_KEYS},
         contact_scale=CONTACT_SCALE,
         table_k_n=2.0e3,
         table_k_d=3.0,
@@ -127,44 +132,11 @@ def default_params(model: Model, obj_mass: float, obj_inertia: np.ndarray, **ove
     return Params(**{k: (v if k == "residual" else jnp.asarray(v, F32)) for k, v in values.items()})
 
 
-def root_velocities(root_pos: np.ndarray, root_rot: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame root linear (T-1, 3) and world angular (T-1, 3) velocities that move the root from
-    frame t to frame t+1 in one frame time."""
-    from scipy.spatial.transform import Rotation
-
-    lin = np.diff(root_pos, axis=0) * fps
-    rel = np.einsum("tij,tkj->tik", root_rot[1:], root_rot[:-1])  # R_{t+1} R_t^T
-    ang = Rotation.from_matrix(rel).as_rotvec() * fps
-    return lin, ang
-
-
-def controls_from_trajectory(
-    model: Model, root_pos: np.ndarray, root_rot: np.ndarray, q: np.ndarray, fps: float
-) -> Control:
-    """Controls (T-1 frames) that replay a kinematic hand trajectory: root velocities from finite
-    differences, joint PD targets at the next frame with the frame-to-frame target velocity, no
-    feed-forward force and no point actuation. ``root_pos`` (T, 3), ``root_rot`` (T, 3, 3), ``q`` (T, J)."""
-    lin, ang = root_velocities(root_pos, root_rot, fps)
-    T1 = len(lin)
-    return Control(
-        root_vel=jnp.asarray(lin, F32),
-        root_angvel=jnp.asarray(ang, F32),
-        tau=jnp.zeros((T1, q.shape[1]), F32),
-        q_target=jnp.asarray(q[1:], F32),
-        qd_target=jnp.asarray(np.diff(q, axis=0) * fps, F32),
-        point_force=jnp.zeros((T1, model.n_points, 3), F32),
-    )
-
-
 def attach_residual(
     model: Model, params: Params, nets: Any, local_on: bool = True, global_on: bool = True
 ) -> tuple[Model, Params]:
-    """Put residual networks (an equinox module, e.g. :class:`quasisim.residual.ResidualNets`) into the
+    """Put residual networks (an equinox module, e.g. :class:`quasisim.sim.residual.ResidualNets`) into the
     simulator: their arrays become Params leaves (trainable), the rest static Model metadata."""
-    import dataclasses
-
-    import equinox as eqx
-
     arrays, static = eqx.partition(nets, eqx.is_array)
     model = dataclasses.replace(model, residual_static=static)
     params = params.replace(residual=arrays, residual_local_on=float(local_on), residual_global_on=float(global_on))

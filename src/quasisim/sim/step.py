@@ -3,7 +3,7 @@
 One substep (``dt``), with the hand's points ``p_i`` attached to their bodies (plus ``alpha * delta_i``):
 
 1. Contacts: hand points against the object's SDF and object surface samples against the table top
-   (:mod:`quasisim.contact`), giving forces ``F_i`` on the object, their stiffness ``K_i`` and damping ``D_i``.
+   (:mod:`quasisim.sim.contact`), giving forces ``F_i`` on the object, their stiffness ``K_i`` and damping ``D_i``.
 2. Object (6 DoF at its centre of mass, generalized velocity ``nu = (v, w)``), linearly implicit Euler:
    ``(M_o + dt D_o + dt^2 K_o) nu+ = (M_o + dt D_o) nu + dt F_o + dt^2 sum_i B_i^T K_i v_i`` where
    ``B_i = [I, -[r_i]x]`` maps ``nu`` to the velocity of the object point under ``p_i``, ``K_o = sum B_i^T K_i B_i``
@@ -25,12 +25,15 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from quasisim.contact import friction, normal_contact, table_sdf
+from quasisim.assets.object import SDFArrays, sdf_query
 from quasisim.rotations import quat_mul, quat_to_mat, skew
 from quasisim.sim.articulation import BodyJacobians, body_jacobians, gravity_bias, mass_matrix
+from quasisim.sim.contact import ContactForces, NormalContact, friction, normal_contact, table_sdf
+from quasisim.sim.residual import ResidualInput, residual_forces
 from quasisim.sim.types import Control, Model, Params, State
 
 Array = jax.Array
@@ -106,8 +109,6 @@ def _twist_at(r: Array, nu: Array) -> Array:
 
 def sdf_lookup(model: Model, pts: Array) -> tuple[Array, Array]:
     """Object-frame signed distance (N,) and outward normal (N, 3) by trilinear interpolation."""
-    from quasisim.assets.object import SDFArrays, sdf_query
-
     return sdf_query(SDFArrays(model.sdf_origin, model.sdf_spacing, model.sdf_values), pts)
 
 
@@ -125,37 +126,39 @@ def hand_points(model: Model, params: Params, state: State, pts: Points) -> tupl
     return pos[pts.body] + r + params.alpha * state.delta, r, bj
 
 
-def substep(
-    model: Model,
-    params: Params,
-    state: State,
-    ctrl: Control,
-    pts: Points,
-    res_wrench: Array | None = None,
-    frac: Array | float = 1.0,
-    res_point: Array | None = None,
-) -> State:
-    """Advance ``state`` by ``model.dt``; the point arrays of ``state``/``ctrl`` are those of ``pts``.
+class Contacts(NamedTuple):
+    """The contacts of one substep: the object frame, both contact sets and their forces (world frame)."""
 
-    ``frac`` in (0, 1] is the position of this substep's end within the frame (for the PD targets).
-    ``res_wrench`` (6,) is an extra force and torque on the object's centre of mass (world); ``res_point``
-    (K, 3) extra forces on the object at the hand points, with their reactions on the hand (residual physics).
-    """
-    dt = model.dt
-    hand = model.hand
-    B = hand.n_bodies
-    p, r, bj = hand_points(model, params, state, pts)
+    origin: Array  # (3,) object frame origin
+    R_o: Array  # (3, 3) object rotation
+    nu: Array  # (6,) object twist (v, w) at the centre of mass
+    rh: Array  # (K, 3) hand points relative to the centre of mass
+    rt: Array  # (M, 3) object surface samples relative to the centre of mass
+    Nh: NormalContact  # hand points against the object's SDF
+    Nt: NormalContact  # object surface samples against the table top
+    C: ContactForces  # forces on the object at the hand points (with friction and residual point forces)
+    Ct: ContactForces  # forces of the table on the object
+
+
+def point_velocities(
+    state: State, ctrl: Control, bj: BodyJacobians, pts: Points, p: Array, r: Array, alpha: Array
+) -> Array:
+    """(K, 3) world velocities of the hand points: joint motion, the root's velocity controls and, while
+    relaxed, the points' own offset velocity."""
     vb = jnp.sum(bj.jv * state.qd, axis=-1)
     wb = jnp.sum(bj.jw * state.qd, axis=-1)
-    v = (
+    return (
         vb[pts.body]
         + jnp.cross(wb[pts.body], r)
         + ctrl.root_vel
         + jnp.cross(ctrl.root_angvel, p - state.root_pos)
-        + params.alpha * state.delta_vel
+        + alpha * state.delta_vel
     )
 
-    # ---- contacts ----
+
+def contacts(model: Model, params: Params, state: State, p: Array, v: Array, res_point: Array | None) -> Contacts:
+    """Hand points (positions ``p``, velocities ``v``) against the object's SDF and object surface samples
+    against the table: spring-damper normal forces and friction (:mod:`quasisim.sim.contact`)."""
     origin, R_o = object_origin(model, state)
     com = state.obj_pos
     nu = jnp.concatenate([state.obj_vel, state.obj_angvel])
@@ -174,17 +177,20 @@ def substep(
         w, sd_t, n_t, _twist_at(rt, nu), state.table_anchor, state.table_contact, jnp.zeros((), w.dtype),
         params.table_k_n, params.table_k_d, linear_damping=True,
     )  # fmt: skip
-
-    # ---- object: linearly implicit step ----
     C = friction(Nh, params.k_f * s, params.mu, v - _twist_at(rh, nu))
     if res_point is not None:
         C = C._replace(force=C.force + res_point)
     Ct = friction(Nt, params.table_k_f, params.table_mu, _twist_at(rt, nu))
-    m = params.obj_mass
-    I_w = R_o @ params.obj_inertia @ R_o.T
+    return Contacts(origin, R_o, nu, rh, rt, Nh, Nt, C, Ct)
+
+
+def object_step(model: Model, params: Params, state: State, c: Contacts, v: Array, res_wrench: Array | None) -> Array:
+    """The object's new twist (6,): ``(M_o + dt D_o + dt^2 K_o) nu+ = (M_o + dt D_o) nu + dt F_o + dt^2 sum_i
+    B_i^T K_i v_i`` (contact stiffness and damping linearised about the current state)."""
+    dt, m, eye3 = model.dt, params.obj_mass, jnp.eye(3, dtype=v.dtype)
+    I_w = c.R_o @ params.obj_inertia @ c.R_o.T
     om, vel = state.obj_angvel, state.obj_vel
-    eye3 = jnp.eye(3, dtype=p.dtype)
-    W = jnp.sum(_wrench(rh, C.force), 0) - jnp.sum(_wrench(rt, Ct.force), 0)
+    W = jnp.sum(_wrench(c.rh, c.C.force), 0) - jnp.sum(_wrench(c.rt, c.Ct.force), 0)
     W = W + jnp.concatenate(
         [
             m * params.gravity - params.obj_lin_damp * m * vel,
@@ -193,23 +199,36 @@ def substep(
     )
     if res_wrench is not None:
         W = W + res_wrench
-    K_o = _sandwich_sum(rh, C.K) + _sandwich_sum(rt, Ct.K)
-    D_o = _sandwich_sum(rh, C.D) + _sandwich_sum(rt, Ct.D)
+    K_o = _sandwich_sum(c.rh, c.C.K) + _sandwich_sum(c.rt, c.Ct.K)
+    D_o = _sandwich_sum(c.rh, c.C.D) + _sandwich_sum(c.rt, c.Ct.D)
     M_o = jax.scipy.linalg.block_diag(m * eye3, I_w)
     D_o = D_o + jax.scipy.linalg.block_diag(params.obj_lin_damp * m * eye3, params.obj_ang_damp * I_w)
-    hand_motion = jnp.sum(_wrench(rh, jnp.einsum("nij,nj->ni", C.K, v)), 0)
+    hand_motion = jnp.sum(_wrench(c.rh, jnp.einsum("nij,nj->ni", c.C.K, v)), 0)
     A = M_o + dt * D_o + dt * dt * K_o
-    nu_new = jnp.linalg.solve(A, (M_o + dt * D_o) @ nu + dt * W + dt * dt * hand_motion)
+    return jnp.linalg.solve(A, (M_o + dt * D_o) @ c.nu + dt * W + dt * dt * hand_motion)
 
-    # ---- hand: joint space, linearly implicit, against the moved object ----
-    du, du_old = _twist_at(rh, nu_new), _twist_at(rh, nu)
-    f_hand = -(C.force - dt * jnp.einsum("nij,nj->ni", C.K, du) - jnp.einsum("nij,nj->ni", C.D, du - du_old))
+
+def hand_reaction(model: Model, c: Contacts, nu_new: Array) -> Array:
+    """(K, 3) contact forces on the hand points against the moved object (reaction, linearised)."""
+    dt = model.dt
+    du, du_old = _twist_at(c.rh, nu_new), _twist_at(c.rh, c.nu)
+    return -(c.C.force - dt * jnp.einsum("nij,nj->ni", c.C.K, du) - jnp.einsum("nij,nj->ni", c.C.D, du - du_old))
+
+
+def joint_step(
+    model: Model, params: Params, state: State, ctrl: Control, bj: BodyJacobians, pts: Points, r: Array,
+    c: Contacts, f_hand: Array, frac: Array | float,
+) -> Array:  # fmt: skip
+    """The joints' new velocities (J,): ``M(q) qdd = u + (1 - alpha) J^T f - g(q) - c qd - k q + f_limit``,
+    linearly implicit with the contact stiffness and damping projected through the body Jacobians."""
+    dt, hand = model.dt, model.hand
+    B = hand.n_bodies
     one_m_a = 1.0 - params.alpha
     Wb = jax.ops.segment_sum(_wrench(r, f_hand), pts.body, num_segments=B)  # (B, 6) about body origins
     J6 = jnp.concatenate([bj.jv, bj.jw], axis=1)  # (B, 6, J)
     tau_c = one_m_a * (J6.reshape(-1, J6.shape[-1]).T @ Wb.reshape(-1))
-    K_h = one_m_a * _project(J6, _sandwich_segments(r, C.K, pts.body, B))
-    D_h = one_m_a * _project(J6, _sandwich_segments(r, C.D, pts.body, B))
+    K_h = one_m_a * _project(J6, _sandwich_segments(r, c.C.K, pts.body, B))
+    D_h = one_m_a * _project(J6, _sandwich_segments(r, c.C.D, pts.body, B))
 
     q, qd = state.q, state.qd
     lo, hi = jnp.asarray(hand.joint_range[:, 0]), jnp.asarray(hand.joint_range[:, 1])
@@ -230,29 +249,58 @@ def substep(
     M = mass_matrix(hand, bj, params.armature)
     D = D_h + jnp.diag(params.joint_damping + params.joint_kv)
     A_h = M + dt * D + dt * dt * (K_h + jnp.diag(k_j + params.joint_kp))
-    qd_new = jnp.linalg.solve(A_h, (M + dt * D) @ qd + dt * (tau_c + tau_j))
+    return jnp.linalg.solve(A_h, (M + dt * D) @ qd + dt * (tau_c + tau_j))
 
-    # ---- relaxed points (alpha > 0) ----
-    a = params.alpha
-    mp = params.point_mass * eye3
-    rhs_p = jnp.einsum("nij,nj->ni", mp + dt * a * C.D, state.delta_vel) + dt * a * (f_hand + ctrl.point_force)
-    dv_new = solve3(mp + dt * a * C.D + dt * dt * a * C.K, rhs_p)
 
+def relaxed_point_step(model: Model, params: Params, state: State, ctrl: Control, c: Contacts, f_hand: Array) -> Array:
+    """The relaxed points' new offset velocities (K, 3): ``m_p delta'' = alpha (f_i + a_i)``, implicit per point."""
+    dt, a = model.dt, params.alpha
+    mp = params.point_mass * jnp.eye(3, dtype=f_hand.dtype)
+    rhs_p = jnp.einsum("nij,nj->ni", mp + dt * a * c.C.D, state.delta_vel) + dt * a * (f_hand + ctrl.point_force)
+    return solve3(mp + dt * a * c.C.D + dt * dt * a * c.C.K, rhs_p)
+
+
+def substep(
+    model: Model,
+    params: Params,
+    state: State,
+    ctrl: Control,
+    pts: Points,
+    res_wrench: Array | None = None,
+    frac: Array | float = 1.0,
+    res_point: Array | None = None,
+) -> State:
+    """Advance ``state`` by ``model.dt``; the point arrays of ``state``/``ctrl`` are those of ``pts``.
+
+    ``frac`` in (0, 1] is the position of this substep's end within the frame (for the PD targets).
+    ``res_wrench`` (6,) is an extra force and torque on the object's centre of mass (world); ``res_point``
+    (K, 3) extra forces on the object at the hand points, with their reactions on the hand (residual physics).
+    Steps 1-4 of the module docstring: contacts, object, joints, relaxed points; positions then follow
+    the new velocities (semi-implicit Euler).
+    """
+    dt = model.dt
+    p, r, bj = hand_points(model, params, state, pts)
+    v = point_velocities(state, ctrl, bj, pts, p, r, params.alpha)
+    c = contacts(model, params, state, p, v, res_point)
+    nu_new = object_step(model, params, state, c, v, res_wrench)
+    f_hand = hand_reaction(model, c, nu_new)
+    qd_new = joint_step(model, params, state, ctrl, bj, pts, r, c, f_hand, frac)
+    dv_new = relaxed_point_step(model, params, state, ctrl, c, f_hand)
     return State(
         root_pos=state.root_pos + dt * ctrl.root_vel,
         root_quat=_integrate_quat(state.root_quat, ctrl.root_angvel, dt),
-        q=q + dt * qd_new,
+        q=state.q + dt * qd_new,
         qd=qd_new,
         delta=state.delta + dt * dv_new,
         delta_vel=dv_new,
-        obj_pos=com + dt * nu_new[:3],
+        obj_pos=state.obj_pos + dt * nu_new[:3],
         obj_quat=_integrate_quat(state.obj_quat, nu_new[3:], dt),
         obj_vel=nu_new[:3],
         obj_angvel=nu_new[3:],
-        anchor=(C.anchor - origin) @ R_o,
-        in_contact=Nh.keep.astype(p.dtype),
-        table_anchor=Ct.anchor,
-        table_contact=Nt.keep.astype(p.dtype),
+        anchor=(c.C.anchor - c.origin) @ c.R_o,
+        in_contact=c.Nh.keep.astype(p.dtype),
+        table_anchor=c.Ct.anchor,
+        table_contact=c.Nt.keep.astype(p.dtype),
     )
 
 
@@ -268,8 +316,6 @@ def select_candidates(model: Model, params: Params, state: State) -> Array:
 
 def residual_terms(model: Model, params: Params, state: State, pts: Points, sub: State) -> tuple[Array, Array]:
     """The residual networks' wrench (6,) on the object and per-point forces (K, 3), world frame."""
-    from quasisim.residual import ResidualInput, residual_forces
-
     p, r, bj = hand_points(model, params, sub, pts)
     vb = jnp.einsum("bij,j->bi", bj.jv, sub.qd)
     wb = jnp.einsum("bij,j->bi", bj.jw, sub.qd)
@@ -290,8 +336,6 @@ def residual_terms(model: Model, params: Params, state: State, pts: Points, sub:
         contact_pt=p_loc - sd[:, None] * n_loc - model.obj_com,
         contact_nrm=n_loc,
     )
-    import equinox as eqx
-
     nets = eqx.combine(params.residual, model.residual_static)
     wrench, local, idx = residual_forces(nets, x)
     wrench_w = jnp.concatenate([R @ wrench[:3], R @ wrench[3:]]) * params.residual_global_on

@@ -204,7 +204,3 @@ class Control:
     q_target: Array
     qd_target: Array
     point_force: Array
-
-
-def stack_controls(controls: list[Control]) -> Control:
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *controls)

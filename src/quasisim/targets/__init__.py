@@ -1,6 +1,6 @@
 """Realistic target simulators (MuJoCo, PyBullet): PD targets per frame in, per-frame states out.
 
-Both targets build the same :class:`~quasisim.targets.scene.Scene` and share :class:`Rollout`.
+Both targets build the same :class:`~quasisim.targets.scene.Scene` and share :class:`TargetRollout`.
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from quasisim.errors import choice_error
-from quasisim.io import save_npz_atomic
+from quasisim.files import save_npz_atomic
 
 TARGETS = ("mujoco", "pybullet")
 
 
 @dataclass(frozen=True, eq=False)
-class Rollout:
+class TargetRollout:
     """What a target simulator produced, sampled at the control frames (T frames).
 
     Attributes:
@@ -71,11 +71,12 @@ class Rollout:
 class Target(Protocol):
     name: str
 
-    def rollout(self, q_targets: np.ndarray) -> Rollout: ...
+    def rollout(self, q_targets: np.ndarray) -> TargetRollout: ...
 
 
 def make_target(name: str, scene: Any) -> Target:
-    """Build target simulator ``name`` (one of :data:`TARGETS`) for ``scene``."""
+    """Build target simulator ``name`` (one of :data:`TARGETS`) for ``scene`` (each target's module, with
+    its simulator, loads only when it is asked for)."""
     if name == "mujoco":
         from quasisim.targets.mujoco_target import MujocoTarget
 

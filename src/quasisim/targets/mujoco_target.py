@@ -18,10 +18,11 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
-from quasisim.targets import Rollout
+from quasisim.targets import TargetRollout
 from quasisim.targets.scene import Scene
 
 HAND_PREFIX = "hand/"
@@ -30,18 +31,15 @@ HAND_CONTYPE, HAND_CONAFFINITY = 2, 1
 WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
 
 
-def _geom_type(mujoco: Any, name: str) -> Any:
+def _geom_type(name: str) -> Any:
     return getattr(mujoco.mjtGeom, f"mjGEOM_{name.upper()}")
 
 
 def build_spec(scene: Scene, visual: bool = True) -> Any:
-    """An ``mujoco.MjSpec`` of the scene (compile with ``.compile()``)."""
-    import mujoco
-
-    hand = scene.hand
-    pd = hand.config.pd
+    """An ``mujoco.MjSpec`` of the scene (compile with ``.compile()``): options, world (floor, table),
+    the hand on its floating base, the object, the PD actuators."""
     spec = mujoco.MjSpec()
-    spec.modelname = f"quasisim_{hand.name}"
+    spec.modelname = f"quasisim_{scene.hand.name}"
     spec.compiler.degree = False
     spec.option.timestep = scene.physics.mujoco_dt
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
@@ -52,7 +50,16 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
     spec.visual.global_.offheight = 960
     spec.visual.quality.shadowsize = 2048
     fr = [scene.physics.friction, 0.005, 0.0001]
+    _add_world(spec, scene, visual, fr)
+    bodies = _add_hand_bodies(spec, scene)
+    _add_hand_geoms(spec, scene, bodies, visual, fr)
+    _add_object(spec, scene, visual, fr)
+    _add_actuators(spec, scene)
+    return spec
 
+
+def _add_world(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
+    """Sky (visual only), light, floor (no collision) and the table box."""
     if visual:
         spec.add_texture(
             name="sky",
@@ -81,7 +88,10 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
         rgba=[0.62, 0.5, 0.38, 1], contype=WORLD_CONTYPE, conaffinity=WORLD_CONAFFINITY, friction=fr,
     )  # fmt: skip
 
-    # ---- hand on its floating base ----
+
+def _add_hand_bodies(spec: Any, scene: Scene) -> list[Any]:
+    """The hand's bodies and joints below a root on 3 slide + 3 hinge base joints; returns the bodies."""
+    hand, pd, wb = scene.hand, scene.hand.config.pd, spec.worldbody
     bodies: list[Any] = []
     for b in range(hand.n_bodies):
         if b == 0:
@@ -120,12 +130,18 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
             body.inertia = np.maximum(hand.body_inertia[b], 1e-9).tolist()
             body.explicitinertial = True
         bodies.append(body)
+    return bodies
+
+
+def _add_hand_geoms(spec: Any, scene: Scene, bodies: list[Any], visual: bool, fr: list[float]) -> None:
+    """Collision geoms (and visual ones when ``visual``) and the keypoint sites of the hand."""
+    hand = scene.hand
     for gi, g in enumerate(hand.geoms):
         if not g.collision and not visual:
             continue
         kw: dict[str, Any] = {
             "name": f"{HAND_PREFIX}{g.name or gi}",
-            "type": _geom_type(mujoco, g.type),
+            "type": _geom_type(g.type),
             "size": g.size.tolist(),
             "pos": g.pos.tolist(),
             "quat": g.quat.tolist(),
@@ -147,7 +163,10 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
             name=f"{HAND_PREFIX}kp/{name}", pos=hand.kp_pos[k].tolist(), size=[0.004, 0, 0], group=4
         )
 
-    # ---- object ----
+
+def _add_object(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
+    """The object as a free body: its inertia, its convex parts for collision, its mesh for the eye."""
+    wb = spec.worldbody
     obj = scene.obj
     ob = wb.add_body(name="object", pos=scene.object_pos0.tolist(), quat=scene.object_quat0.tolist())
     ob.add_freejoint(name="object_free")
@@ -173,7 +192,10 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
             contype=0, conaffinity=0, group=1, rgba=[0.85, 0.35, 0.25, 1], density=0.0,
         )  # fmt: skip
 
-    # ---- actuators: PD position + velocity feed-forward on every hand dof ----
+
+def _add_actuators(spec: Any, scene: Scene) -> None:
+    """PD position + velocity feed-forward actuators on every hand dof."""
+    hand, pd = scene.hand, scene.hand.config.pd
     dof_names = [f"{HAND_PREFIX}base_t{a}" for a in "xyz"] + [f"{HAND_PREFIX}base_r{a}" for a in "xyz"]
     dof_names += [HAND_PREFIX + n for n in hand.joint_names]
     for i, jn in enumerate(dof_names):
@@ -195,15 +217,12 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
             if limit is not None and kind == "pd":
                 act.forcelimited = True
                 act.forcerange = [-limit, limit]
-    return spec
 
 
 class MujocoModel:
     """A compiled scene with index maps for the hand dofs, keypoint sites and the object."""
 
     def __init__(self, scene: Scene, visual: bool = True) -> None:
-        import mujoco
-
         self.scene = scene
         self.model = build_spec(scene, visual=visual).compile()
         m = self.model
@@ -227,8 +246,6 @@ class MujocoModel:
         self.obj_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")
 
     def set_state(self, data: Any, qfull: np.ndarray, obj_pos: np.ndarray, obj_quat: np.ndarray) -> None:
-        import mujoco
-
         data.qpos[self.hand_qpos] = qfull
         data.qpos[self.obj_qpos : self.obj_qpos + 3] = obj_pos
         data.qpos[self.obj_qpos + 3 : self.obj_qpos + 7] = obj_quat
@@ -248,7 +265,7 @@ class MujocoTarget:
     def substeps(self) -> int:
         return max(1, round(1.0 / (self.scene.fps * self.scene.physics.mujoco_dt)))
 
-    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> Rollout:
+    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> TargetRollout:
         """Run the PD targets ``q_targets`` (T, 6 + J) from the demo's initial object pose.
 
         The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``).
@@ -277,8 +294,6 @@ class MujocoSession:
     """One MuJoCo run advanced frame by frame: :meth:`observe` the state, :meth:`advance` one control frame."""
 
     def __init__(self, target: MujocoTarget, q0: np.ndarray, qd0: np.ndarray | None) -> None:
-        import mujoco
-
         self.target = target
         mm = target.mm
         self.data = mujoco.MjData(mm.model)
@@ -306,8 +321,6 @@ class MujocoSession:
 
     def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
         """One control frame: PD targets interpolated from ``qa`` to ``qb`` with their velocity fed forward."""
-        import mujoco
-
         mm, d, m = self.target.mm, self.data, self.target.mm.model
         fps, n = self.target.scene.fps, self.target.substeps
         d.ctrl[mm.ff_act] = (qb - qa) * fps
@@ -318,8 +331,6 @@ class MujocoSession:
 
     def _sync(self) -> None:
         """Positions of bodies and sites for the current ``qpos`` (``mj_step`` leaves them one step behind)."""
-        import mujoco
-
         mujoco.mj_kinematics(self.target.mm.model, self.data)
 
     def record(self) -> None:
@@ -331,10 +342,10 @@ class MujocoSession:
         self._rec["oquat"].append(d.qpos[mm.obj_qpos + 3 : mm.obj_qpos + 7].copy())
         self._rec["kps"].append(d.site_xpos[mm.kp_site].copy())
 
-    def result(self, wall_s: float) -> Rollout:
-        """The recorded frames as a :class:`Rollout`."""
+    def result(self, wall_s: float) -> TargetRollout:
+        """The recorded frames as a :class:`TargetRollout`."""
         hand = self.target.scene.hand
-        return Rollout(
+        return TargetRollout(
             target=self.target.name,
             qpos=np.array(self._rec["qpos"]),
             object_pos=np.array(self._rec["opos"]),

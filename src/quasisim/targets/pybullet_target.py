@@ -50,11 +50,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from quasisim.assets.hand import HINGE, Geom
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
-from quasisim.targets import Rollout
+from quasisim.targets import TargetRollout
 from quasisim.targets.scene import Scene
 
 DUMMY_MASS = 1e-4  # kg
@@ -210,8 +211,6 @@ def _geom_shape(g: Geom, off: np.ndarray) -> _Shape:
         raise QuasisimError(f"pybullet target: geom '{g.name}' of type {g.type} is not supported")
     verts, faces = g.vertices, g.faces
     if g.type == "ellipsoid":  # convex hull of a point cloud on the ellipsoid
-        from scipy.spatial import ConvexHull
-
         n = np.arange(200) + 0.5
         phi, th = np.arccos(1 - 2 * n / 200), np.pi * (1 + 5**0.5) * n
         verts = np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1) * g.size[:3]
@@ -386,7 +385,7 @@ class PybulletTarget:
     def substeps(self) -> int:
         return max(1, round(1.0 / (self.scene.fps * self.scene.physics.pybullet_dt)))
 
-    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> Rollout:
+    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> TargetRollout:
         """Run the PD targets ``q_targets`` (T, 6 + J) from the demo's initial object pose.
 
         The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``); the
@@ -432,7 +431,7 @@ class PybulletTarget:
                 pb.setJointMotorControlArray(self.hand_id, joints, torque, forces=tau.tolist(), **kw)
                 pb.stepSimulation(**kw)
         wall = time.perf_counter() - t0
-        return Rollout(
+        return TargetRollout(
             target=self.name,
             qpos=qpos,
             object_pos=opos,

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from quasisim.assets.hand import HandModel
-from quasisim.demo import Demo
+from quasisim.data.demo import Demo
 from quasisim.rotations import np_quat_to_mat
 
 if TYPE_CHECKING:
@@ -40,6 +40,7 @@ class Table:
         return np.array([(self.xmax - self.xmin) / 2, (self.ymax - self.ymin) / 2, self.top / 2])
 
     def contains_xy(self, xy: np.ndarray, pad: float = 0.0) -> np.ndarray:
+        """(...,) whether points ``xy`` (..., 2) lie over the table top (grown by ``pad`` m)."""
         x, y = xy[..., 0], xy[..., 1]
         return (x > self.xmin - pad) & (x < self.xmax + pad) & (y > self.ymin - pad) & (y < self.ymax + pad)
 
@@ -60,7 +61,7 @@ class Scene:
 
     Attributes:
         hand: parsed hand model.
-        base_rot: (3, 3) fixed frame of the base hinges (see :mod:`quasisim.kinematics`).
+        base_rot: (3, 3) fixed frame of the base hinges (see :mod:`quasisim.sim.kinematics`).
         obj: object asset (mesh, mass, inertia, convex parts).
         table: the support box.
         object_pos0, object_quat0: initial object pose (m; w x y z).
@@ -135,17 +136,6 @@ def size_table(
         k, val = max(options, key=area)
         rect[k] = val
     return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), tuple(notes)
-
-
-def choose_base_rot(root_rot: np.ndarray) -> np.ndarray:
-    """Fixed base frame for a clip: the chordal mean of the root orientations (T, 3, 3).
-
-    Base hinge angles are then measured from the clip's mean orientation, which keeps the middle Euler
-    angle far from +-90 deg (gimbal lock) unless the hand turns by more than ~90 deg from its mean.
-    """
-    from quasisim.rotations import chordal_mean_rotation
-
-    return chordal_mean_rotation(root_rot)
 
 
 def make_scene(

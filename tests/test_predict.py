@@ -11,27 +11,21 @@ import pytest
 @pytest.mark.slow
 def test_prediction_error_against_mujoco(tmp_path: Path) -> None:
     from quasisim.assets.hand import load_hand
-    from quasisim.curriculum import load_curriculum
-    from quasisim.demo import load_demo
-    from quasisim.evaluate import load_object_for, scene_for
-    from quasisim.fit import prediction_error, record_target
-    from quasisim.retarget import retarget
-    from quasisim.rotations import np_mat_to_quat
-    from quasisim.sim.build import SimOptions, build_model, default_params
-    from quasisim.synthetic import write_example
-    from quasisim.targets.scene import size_table
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.eval.predict import prediction_error, record_target
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.problem import make_problem
+    from quasisim.method.retarget import retarget
 
     demo = load_demo(write_example("cube_lift", tmp_path, n_frames=16))
     hand = load_hand("shadow")
     rt = retarget(hand, demo)
-    obj = load_object_for(demo)
-    table, _ = size_table(demo, obj)
-    model = build_model(hand, obj, table, SimOptions.for_fps(demo.fps), demo.object_pos[0])
-    p0 = default_params(model, obj.mass, obj.inertia)
+    prob = make_problem(demo, hand, rt.base_rot, substeps=20, n_candidates=128)
+    model, bq = prob.model, prob.base_quat
     cur = load_curriculum("default")
-    stiff, soft = p0.replace(**cur.params_overrides(8)), p0.replace(**cur.params_overrides(1))
-    bq = np_mat_to_quat(rt.base_rot)
-    obs, ro = record_target(scene_for(demo, hand, rt.base_rot, obj), rt.q, demo.fps)
+    stiff, soft = prob.params(cur.contact(8)), prob.params(cur.contact(1))
+    obs, ro = record_target(prob.scene, rt.q, demo.fps)
     assert len(obs) == demo.n_frames and np.allclose(obs[0]["obj_pos"], ro.object_pos[0])
 
     e = prediction_error(model, {"stiff": stiff, "soft": soft}, bq, demo.fps, rt.q, obs, ro, horizon=3)

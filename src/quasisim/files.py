@@ -6,11 +6,14 @@ import contextlib
 import json
 import os
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from quasisim.errors import InputError
 
 
 @contextlib.contextmanager
@@ -64,3 +67,27 @@ def save_json_atomic(path: str | Path, obj: Any) -> Path:
 
 def save_text_atomic(path: str | Path, text: str) -> Path:
     return write_atomic(path, lambda tmp: tmp.write_text(text))
+
+
+CACHE_ENV = "QUASISIM_CACHE"
+
+
+def cache_dir() -> Path:
+    """``$QUASISIM_CACHE`` or ``~/.cache/quasisim`` (created on demand)."""
+    d = Path(os.environ.get(CACHE_ENV) or Path.home() / ".cache" / "quasisim").expanduser()
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def open_npz(path: Path, fmt: str, what: str) -> np.lib.npyio.NpzFile:
+    """Open ``path`` as a ``.npz`` archive (no pickles); :class:`~quasisim.errors.InputError` naming the file
+    when it is missing (``what``: e.g. "controls .npz file") or not an archive of format ``fmt``."""
+    if not path.is_file():
+        raise InputError(path, None, f"an existing {what}", "no such file")
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
+        raise InputError(path, None, f"a numpy .npz archive in {fmt} format", f"unreadable file ({e})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise InputError(path, None, "a numpy .npz archive (several named arrays)", "a single .npy array")
+    return z

@@ -20,8 +20,9 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from quasisim.demo import BONES, Demo
+from quasisim.data.demo import BONES, Demo
 from quasisim.rotations import quat_angle_deg
 
 THRESHOLDS = (10, 15, 20)
@@ -103,8 +104,6 @@ def human_surface_points(joints: np.ndarray, n_per_bone: int = 60) -> np.ndarray
 
 def chamfer_mm(a: np.ndarray, b: np.ndarray) -> float:
     """Symmetric Chamfer distance between point sets (P, 3) and (Q, 3), in mm."""
-    from scipy.spatial import cKDTree
-
     da, _ = cKDTree(b).query(a)
     db, _ = cKDTree(a).query(b)
     return float(500.0 * (da.mean() + db.mean()))
@@ -114,7 +113,7 @@ def evaluate_rollout(demo: Demo, rollout: Any, robot_surface: np.ndarray | None)
     """Metrics of a target ``rollout`` against ``demo``.
 
     Args:
-        rollout: a :class:`quasisim.targets.Rollout` (object pose, keypoints per frame).
+        rollout: a :class:`quasisim.targets.TargetRollout` (object pose, keypoints per frame).
         robot_surface: (T, P, 3) robot hand surface points per frame for CD, or None (CD = NaN).
     """
     T = demo.n_frames

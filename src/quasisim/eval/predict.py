@@ -1,4 +1,4 @@
-"""Fitting the quasi-physical simulator to the target (stage 3): the measurement it starts from.
+"""How well the quasi-physical simulator predicts the target: the measure of stage 3's fitting.
 
 Stage 3 of the paper fits residual physics and S so that the quasi-physical simulator's multi-step
 predictions match transitions recorded in the target. This module holds what that fitting is judged by,
@@ -12,19 +12,25 @@ the open-loop ``H``-step prediction error (paper appendix, transition prediction
 
 A zero-motion predictor (the object stays where it is at ``t``) is reported beside it, so that an error
 has a scale: a model that predicts worse than "nothing moves" has not learned the contact dynamics.
-The residual networks and their fitting are not implemented yet (see the README status).
+The residual networks are not fitted yet (see the README status).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quasisim.sim.types import Model, Params
+from quasisim.optim.objective import hand_keypoints
+from quasisim.optim.trajectory import Trajectory, observed_state, sim_controls
+from quasisim.rotations import quat_angle_deg
+from quasisim.sim.step import object_pose, rollout
+from quasisim.sim.types import Model, Params, State
+from quasisim.targets import TargetRollout
+from quasisim.targets.mujoco_target import MujocoTarget
+from quasisim.targets.scene import Scene
 
 F32 = jnp.float32
 
@@ -65,16 +71,8 @@ class PredictionError:
         }
 
 
-def rot_err_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
-    """Angle (deg) between unit quaternions (..., 4) w x y z."""
-    d = np.clip(np.abs(np.sum(qa * qb, -1)), 0.0, 1.0)
-    return np.degrees(2.0 * np.arccos(d))
-
-
-def record_target(scene: Any, q_targets: np.ndarray, fps: float) -> tuple[list[dict[str, np.ndarray]], Any]:
+def record_target(scene: Scene, q_targets: np.ndarray, fps: float) -> tuple[list[dict[str, np.ndarray]], TargetRollout]:
     """Replay ``q_targets`` (T, 6 + J) in MuJoCo: every frame's observation and the recorded rollout."""
-    from quasisim.targets.mujoco_target import MujocoTarget
-
     q = np.asarray(q_targets, np.float64)
     sess = MujocoTarget(scene).session(q[0], (q[1] - q[0]) * fps)
     obs = []
@@ -88,23 +86,19 @@ def record_target(scene: Any, q_targets: np.ndarray, fps: float) -> tuple[list[d
 
 def prediction_error(
     model: Model, params: dict[str, Params], base_quat: np.ndarray, fps: float, q_targets: np.ndarray,
-    obs: list[dict], ro: Any, horizon: int = 10,
+    obs: list[dict], ro: TargetRollout, horizon: int = 10,
 ) -> dict[str, PredictionError]:  # fmt: skip
     """Open-loop ``horizon``-frame predictions of the quasi-physical simulator ``model`` under each of the
     named parameter sets ``params`` (S already applied), from the target's recorded states ``obs`` under
     ``q_targets``; ``ro`` is the target's rollout of the same run (see :func:`record_target`). One compiled
     prediction serves every parameter set (they are array leaves)."""
-    from quasisim.mpc import observed_state
-    from quasisim.optimize import Trajectory, hand_keypoints, sim_controls
-    from quasisim.sim.step import object_pose, rollout
-
     T = len(q_targets)
     if T <= horizon:
         raise ValueError(f"a {horizon}-frame prediction needs more than {horizon} frames, the clip has {T}")
     bq = jnp.asarray(base_quat, F32)
 
     @jax.jit
-    def predict(p: Params, s0: Any, win: Trajectory) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def predict(p: Params, s0: State, win: Trajectory) -> tuple[jax.Array, jax.Array, jax.Array]:
         states = rollout(model, p, s0, sim_controls(win, bq, fps))
         pos, quat = object_pose(model, states)
         return pos, quat, hand_keypoints(model, states)
@@ -116,7 +110,7 @@ def prediction_error(
     for t in starts:
         sl = slice(t + 1, t + horizon + 1)
         spos_e.append(np.linalg.norm(ro.object_pos[t] - ro.object_pos[sl], axis=-1) * 100.0)
-        srot_e.append(rot_err_deg(ro.object_quat[t][None], ro.object_quat[sl]))
+        srot_e.append(quat_angle_deg(ro.object_quat[t][None], ro.object_quat[sl]))
     m = lambda x: np.mean(np.stack(x), 0)  # noqa: E731
     out = {}
     mf = lambda x, ok: np.mean(np.stack(x)[ok], 0) if ok.any() else np.full(horizon, np.nan)  # noqa: E731
@@ -126,7 +120,7 @@ def prediction_error(
             pos, quat, kp = (np.asarray(x, np.float64) for x in predict(p, s0, win))
             sl = slice(t + 1, t + horizon + 1)
             pos_e.append(np.linalg.norm(pos - ro.object_pos[sl], axis=-1) * 100.0)
-            rot_e.append(rot_err_deg(quat, ro.object_quat[sl]))
+            rot_e.append(quat_angle_deg(quat, ro.object_quat[sl]))
             kp_e.append(np.linalg.norm(kp - ro.keypoints[sl], axis=-1).mean(-1) * 1000.0)
         ok = np.isfinite(np.stack(pos_e)).all(1) & np.isfinite(np.stack(kp_e)).all(1)
         out[name] = PredictionError(

@@ -12,10 +12,10 @@ middle angle stays far from gimbal lock. A full generalized position is ``qfull 
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -51,8 +51,12 @@ class _Tree:
     jpos: np.ndarray  # (B, M, 3)
 
 
+_TREES: weakref.WeakKeyDictionary[HandModel, _Tree] = weakref.WeakKeyDictionary()
+
+
 def _tree(model: HandModel) -> _Tree:
-    cached = model.extras.get("_fk_tree")
+    """The hand's FK batches, derived once per hand object (a cache that lives and dies with the hand)."""
+    cached = _TREES.get(model)
     if cached is not None:
         return cached
     B = model.n_bodies
@@ -72,7 +76,7 @@ def _tree(model: HandModel) -> _Tree:
             jaxis[b, m] = model.joint_axis[j]
             jpos[b, m] = model.joint_pos[j]
     tree = _Tree(levels, model.body_parent, np_quat_to_mat(model.body_quat), model.body_pos, jidx, jhinge, jaxis, jpos)
-    model.extras["_fk_tree"] = tree
+    _TREES[model] = tree
     return tree
 
 
@@ -142,18 +146,3 @@ def points_world(poses: BodyPoses, body: Array | np.ndarray, local: Array) -> Ar
 def keypoints(model: HandModel, poses: BodyPoses) -> Array:
     """Robot keypoints (K, 3) in the order of the hand config."""
     return points_world(poses, model.kp_body, jnp.asarray(model.kp_pos))
-
-
-def body_com(model: HandModel, poses: BodyPoses) -> Array:
-    """Centres of mass of the bodies (B, 3)."""
-    return points_world(poses, np.arange(model.n_bodies), jnp.asarray(model.body_ipos))
-
-
-def make_keypoint_fn(model: HandModel, base_rot: np.ndarray) -> jax.stages.Wrapped:
-    """jit-compiled ``qfull (..., 6 + J) -> keypoints (..., K, 3)`` for a fixed base frame."""
-    R0 = jnp.asarray(base_rot)
-
-    def f(qfull: Array) -> Array:
-        return keypoints(model, fk_full(model, R0, qfull))
-
-    return jax.jit(jnp.vectorize(f, signature="(n)->(k,d)"))

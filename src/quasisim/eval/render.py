@@ -8,10 +8,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import mujoco
 import numpy as np
+from tqdm import tqdm
 
-from quasisim.demo import BONES, Demo
-from quasisim.rotations import np_quat_to_mat
+from quasisim.data.demo import BONES, Demo
+from quasisim.targets.mujoco_target import MujocoModel
 from quasisim.targets.scene import Scene
 
 SKIN = np.array([0.93, 0.72, 0.6, 1.0], dtype=np.float32)
@@ -66,10 +68,6 @@ class SideBySide:
     def __init__(
         self, scene: Scene, demo: Demo, width: int = 400, height: int = 300, camera: Camera | None = None
     ) -> None:
-        import mujoco
-
-        from quasisim.targets.mujoco_target import MujocoModel
-
         self.mujoco = mujoco
         self.mm = MujocoModel(scene, visual=True)
         self.demo = demo
@@ -127,8 +125,6 @@ def render_side_by_side(
     progress: bool = False,
 ) -> list[np.ndarray]:
     """Side-by-side images [reference | result] (H, 2W, 3) for ``frames`` (default: all)."""
-    from tqdm import tqdm
-
     frames = list(range(demo.n_frames)) if frames is None else frames
     r = SideBySide(scene, demo, width, height)
     try:
@@ -138,10 +134,3 @@ def render_side_by_side(
         return out
     finally:
         r.close()
-
-
-def object_corners(scene: Scene, pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
-    """(8, 3) world corners of the object's bounding box at a pose (for quick plots)."""
-    lo, hi = scene.obj.vertices.min(0), scene.obj.vertices.max(0)
-    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    return c @ np_quat_to_mat(quat).T + pos

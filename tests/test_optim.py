@@ -1,4 +1,4 @@
-"""Control parameterisation, objective pieces, Adam loop and identification of S (quasisim.optimize)."""
+"""Control parameterisation, objective pieces, Adam loop and identification of S (quasisim.optim)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from quasisim.curriculum import load_curriculum
+from helpers import STIFF
 from quasisim.errors import InputError, QuasisimError
-from quasisim.optimize import SysID, Trajectory, adam_steps, quat_log, root_quats, sim_controls
+from quasisim.method.curriculum import load_curriculum
+from quasisim.optim.adam import adam_steps
+from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory, root_quats, sim_controls
+from quasisim.rotations import quat_log
 
 
 def test_quat_log_matches_scipy() -> None:
@@ -91,7 +95,6 @@ def test_identification_recovers_damping(shadow, tmp_path) -> None:
     import trimesh
 
     from quasisim.assets.object import load_object
-    from quasisim.optimize import SysID
     from quasisim.sim.build import SimOptions, build_model, default_params
     from quasisim.sim.step import initial_state, object_pose, rollout
     from quasisim.sim.types import Control
@@ -101,7 +104,7 @@ def test_identification_recovers_damping(shadow, tmp_path) -> None:
     cube = load_object(tmp_path / "cube.obj", density=500.0)
     opts = SimOptions(dt=0.0025, substeps=20, n_candidates=16, point_spacing=0.02)
     model = build_model(shadow, cube, Table(-0.1, 0.1, -0.1, 0.1, -5.0), opts, offset=np.zeros(3))
-    params = default_params(model, cube.mass, cube.inertia)
+    params = default_params(model, cube.mass, cube.inertia, STIFF)
     s0 = initial_state(model, jnp.array([0.0, 0.5, 0.5]), jnp.array([1.0, 0, 0, 0]), shadow.rest_q(),
                        jnp.zeros(3), jnp.array([1.0, 0, 0, 0]))  # fmt: skip
     F, J = 8, shadow.n_joints
@@ -133,7 +136,8 @@ def test_curricula_are_the_papers_tables() -> None:
 
 
 def test_transfer_config_validation(tmp_path) -> None:
-    from quasisim.transfer import TransferConfig, parse_stages
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import parse_stages
 
     cfg = TransferConfig.from_yaml(overrides={"budgets.fast.sim.control_steps": 3})
     assert cfg.budget("fast").sim.control_steps == 3 and cfg.budget("paper").sim.sysid_steps == 1000

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -10,13 +11,16 @@ from typing import Any
 import numpy as np
 
 from quasisim.assets.hand import HandModel, load_hand
-from quasisim.controls import Controls
-from quasisim.demo import Demo
+from quasisim.assets.object import DEFAULT_DENSITY, ObjectAsset, load_object
+from quasisim.data.controls import Controls
+from quasisim.data.demo import Demo
 from quasisim.errors import InputError
-from quasisim.io import save_json_atomic
-from quasisim.metrics import PerFrame, evaluate_rollout
-from quasisim.pointset import HandPoints, sample_hand_points, surface_points_over_time
-from quasisim.targets import Rollout, make_target
+from quasisim.eval.metrics import PerFrame, evaluate_rollout
+from quasisim.eval.render import render_side_by_side
+from quasisim.eval.report import write_report
+from quasisim.files import save_json_atomic
+from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
+from quasisim.targets import TargetRollout, make_target
 from quasisim.targets.scene import PhysicsOptions, Scene, make_scene
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
@@ -26,13 +30,12 @@ CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
 class Evaluation:
     metrics: dict[str, Any]
     per_frame: PerFrame
-    rollout: Rollout
+    rollout: TargetRollout
     scene: Scene
 
 
-def load_object_for(demo: Demo, density: float | None = None, mass: float | None = None) -> Any:
-    from quasisim.assets.object import DEFAULT_DENSITY, load_object
-
+def load_object_for(demo: Demo, density: float | None = None, mass: float | None = None) -> ObjectAsset:
+    """The demo's object mesh as an asset (density by default; or a given mass in kg)."""
     return load_object(demo.object_mesh_path, name=demo.object_name, density=density or DEFAULT_DENSITY, mass=mass)
 
 
@@ -42,14 +45,15 @@ def scene_for(
     return make_scene(demo, hand, base_rot, obj if obj is not None else load_object_for(demo), physics)
 
 
-_CD_POINTS: dict[int, HandPoints] = {}
+# surface samples per hand object; entries live and die with their hand
+_CD_POINTS: weakref.WeakKeyDictionary[HandModel, HandPoints] = weakref.WeakKeyDictionary()
 
 
 def robot_surface(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray) -> np.ndarray:
     """(T, P, 3) robot collision-surface samples per frame (for the Chamfer distance)."""
-    pts = _CD_POINTS.get(id(hand))
+    pts = _CD_POINTS.get(hand)
     if pts is None:
-        pts = _CD_POINTS[id(hand)] = sample_hand_points(hand, CD_SPACING, 0.0, seed=1)
+        pts = _CD_POINTS[hand] = sample_hand_points(hand, CD_SPACING, 0.0, seed=1)
     return surface_points_over_time(hand, base_rot, qpos, pts)
 
 
@@ -101,8 +105,6 @@ def write_outputs(
     extra_images: dict[str, bytes] | None,
     progress: bool,
 ) -> None:
-    from quasisim.report import write_report
-
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json_atomic(out_dir / "metrics.json", ev.metrics)
     ev.rollout.save(out_dir / "rollout.npz")
@@ -111,8 +113,6 @@ def write_outputs(
     if render:
         t0 = time.perf_counter()
         try:
-            from quasisim.render import render_side_by_side
-
             r = ev.rollout
             frames = render_side_by_side(ev.scene, demo, r.qpos, r.object_pos, r.object_quat, progress=progress)
         except Exception as e:  # no GL context on this machine: keep the report, say why

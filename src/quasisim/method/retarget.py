@@ -13,18 +13,20 @@ base frame is the clip's mean root orientation, so base angles stay small.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from tqdm import tqdm
 
 from quasisim.assets.hand import HandModel
-from quasisim.controls import Controls
-from quasisim.demo import Demo
-from quasisim.kinematics import forward_kinematics, keypoints
+from quasisim.data.controls import Controls
+from quasisim.data.demo import Demo
 from quasisim.rotations import chordal_mean_rotation, euler_xyz_to_mat, kabsch, np_mat_to_euler_xyz
+from quasisim.sim.kinematics import forward_kinematics, keypoints
 
 
 @dataclass(frozen=True)
@@ -66,14 +68,15 @@ def rigid_root_fit(hand: HandModel, joints: np.ndarray) -> tuple[np.ndarray, np.
     return np.array(Rs), np.array(ps)
 
 
-_SOLVERS: dict[tuple[int, RetargetOptions], tuple] = {}
+# compiled solvers per hand object and options; entries live and die with their hand
+_SOLVERS: weakref.WeakKeyDictionary[HandModel, dict[RetargetOptions, tuple]] = weakref.WeakKeyDictionary()
 
 
 def _solver(hand: HandModel, opts: RetargetOptions) -> tuple:
     """jit-compiled (per hand and options) single-frame solver and keypoint function."""
-    key = (id(hand), opts)
-    if key in _SOLVERS:
-        return _SOLVERS[key]
+    known = _SOLVERS.setdefault(hand, {})
+    if opts in known:
+        return known[opts]
     kp_human = np.asarray(hand.kp_human)
     w = jnp.asarray(hand.kp_weight, dtype=jnp.float32)
     lo = np.concatenate([np.full(6, -np.inf), np.where(hand.joint_limited, hand.joint_range[:, 0], -np.inf)])
@@ -102,7 +105,7 @@ def _solver(hand: HandModel, opts: RetargetOptions) -> tuple:
         return q
 
     out = (solve, jax.jit(jax.vmap(kp_fn, in_axes=(0, None))))
-    _SOLVERS[key] = out
+    known[opts] = out
     return out
 
 
@@ -123,8 +126,6 @@ def retarget(
     for _ in range(4):  # the first frame has no warm start: give it more iterations
         q = solve(q, q, targets[0], R0)
     qs = [q]
-    from tqdm import tqdm
-
     for t in tqdm(range(1, len(J)), desc="retarget", unit="frame", disable=not progress, leave=False):
         # warm start: previous solution with the root moved by the rigid fit
         q0 = qs[-1].at[:6].set(jnp.asarray(base_init[t], dtype=jnp.float32))

@@ -9,10 +9,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import imageio.v3 as iio
 import numpy as np
+from matplotlib.figure import Figure
 
-from quasisim.io import save_text_atomic
-from quasisim.metrics import STRICT_CM, STRICT_DEG, PerFrame
+from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, PerFrame
+from quasisim.files import save_text_atomic
 
 
 def _b64(data: bytes) -> str:
@@ -20,16 +22,12 @@ def _b64(data: bytes) -> str:
 
 
 def gif_bytes(frames: Sequence[np.ndarray], fps: float) -> bytes:
-    import imageio.v3 as iio
-
     buf = io.BytesIO()
     iio.imwrite(buf, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
     return buf.getvalue()
 
 
 def png_bytes(img: np.ndarray) -> bytes:
-    import imageio.v3 as iio
-
     buf = io.BytesIO()
     iio.imwrite(buf, img, extension=".png")
     return buf.getvalue()
@@ -43,13 +41,9 @@ def frame_strip(frames: Sequence[np.ndarray], n: int = 6) -> np.ndarray:
 
 def error_plots(pf: PerFrame, fps: float, title: str = "") -> bytes:
     """PNG with per-frame object rotation/translation error, MPJPE and Chamfer distance."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     t = np.arange(len(pf.rot_deg)) / fps
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.2), constrained_layout=True)
+    fig = Figure(figsize=(16, 3.2), layout="constrained")
+    axes = fig.subplots(1, 4)
     specs = [
         (pf.rot_deg, "object rotation error (deg)", STRICT_DEG),
         (pf.trans_cm, "object translation error (cm)", STRICT_CM),
@@ -68,18 +62,13 @@ def error_plots(pf: PerFrame, fps: float, title: str = "") -> bytes:
         fig.suptitle(title, fontsize=11)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
     return buf.getvalue()
 
 
 def loss_plot(curves: dict[str, Sequence[float]], title: str = "optimisation loss") -> bytes:
     """PNG of named loss curves (one line per stage/simulator), log-scaled."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 3.5), constrained_layout=True)
+    fig = Figure(figsize=(9, 3.5), layout="constrained")
+    ax = fig.subplots()
     offset = 0
     for name, ys in curves.items():
         ys = np.asarray(ys, dtype=float)
@@ -95,7 +84,6 @@ def loss_plot(curves: dict[str, Sequence[float]], title: str = "optimisation los
         ax.legend(fontsize=7, ncol=4)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
     return buf.getvalue()
 
 

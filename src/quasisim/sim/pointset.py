@@ -5,13 +5,19 @@ Used for the quasi-physical point set (contacts), for the Chamfer-distance metri
 
 from __future__ import annotations
 
+import contextlib
+import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import trimesh
 
 from quasisim.assets.hand import Geom, HandModel
 from quasisim.rotations import np_quat_to_mat
+from quasisim.sim.kinematics import fk_full, points_world
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,10 +33,8 @@ class HandPoints:
         return len(self.body)
 
 
-def geom_mesh(g: Geom):  # noqa: ANN201 - trimesh.Trimesh
+def geom_mesh(g: Geom) -> trimesh.Trimesh:
     """A trimesh of one geom in its body's frame."""
-    import trimesh
-
     s = g.size
     if g.type == "box":
         m = trimesh.creation.box(extents=2 * s)
@@ -59,11 +63,23 @@ def sample_hand_points(hand: HandModel, spacing: float, offset: float, seed: int
 
     Points that fall inside another collision geom of the same body are dropped (overlapping boxes).
     """
-    import logging
+    with _quiet_trimesh():
+        return _sample(hand, spacing, offset, seed)
 
-    import trimesh
 
-    logging.getLogger("trimesh").setLevel(logging.ERROR)  # "only got n/m samples" notices
+@contextlib.contextmanager
+def _quiet_trimesh() -> Iterator[None]:
+    """Silence trimesh's "only got n/m samples" notices while sampling (restored afterwards)."""
+    log = logging.getLogger("trimesh")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
+def _sample(hand: HandModel, spacing: float, offset: float, seed: int) -> HandPoints:
     rng = np.random.default_rng(seed)
     geoms = hand.collision_geoms()
     meshes = [geom_mesh(g) for g in geoms]
@@ -87,10 +103,6 @@ def sample_hand_points(hand: HandModel, spacing: float, offset: float, seed: int
 
 def surface_points_over_time(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray, pts: HandPoints) -> np.ndarray:
     """(T, N, 3) world positions of ``pts`` for hand configurations ``qpos`` (T, 6 + J)."""
-    import jax
-
-    from quasisim.kinematics import fk_full, points_world
-
     R0 = jnp.asarray(base_rot, dtype=jnp.float32)
 
     @jax.jit

@@ -20,14 +20,13 @@ key                shape       unit  meaning
 from __future__ import annotations
 
 import itertools
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from quasisim.errors import InputError
-from quasisim.io import save_npz_atomic
+from quasisim.files import open_npz, save_npz_atomic
 
 FORMAT = "quasisim-demo-v1"
 N_KEYPOINTS = 21
@@ -181,15 +180,7 @@ def load_demo(path: str | Path) -> Demo:
         InputError: on any problem, naming the file, the field and what was expected.
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(path, None, "an existing .npz file", "no such file")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
-        raise InputError(path, None, f"a numpy .npz archive in {FORMAT} format", f"unreadable file ({e})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise InputError(path, None, "a numpy .npz archive (several named arrays)", "a single .npy array")
-    with z:
+    with open_npz(path, FORMAT, ".npz file") as z:
         missing = [k for k in REQUIRED_KEYS if k not in z.files]
         if "format" in missing:
             raise InputError(path, "format", f"the key 'format' = '{FORMAT}'", "no such key")

@@ -27,17 +27,12 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from quasisim.assets.hand import HandConfig, HandModel, KeypointSpec, load_hand
-from quasisim.demo import KEYPOINT_NAMES, Demo
-from quasisim.io import save_text_atomic
-from quasisim.runtime import cache_dir
-
-if TYPE_CHECKING:  # the retargeting module imports JAX; load it only when a trajectory is asked for
-    from quasisim.retarget import RetargetOptions, RetargetResult
+from quasisim.data.demo import KEYPOINT_NAMES
+from quasisim.files import cache_dir, save_text_atomic
 
 # name: (keypoint chain base..tip, capsule radii per bone (m), flex range (rad), abd range (rad))
 FINGERS: dict[str, tuple[tuple[int, int, int, int], tuple[float, float, float], float, float]] = {
@@ -51,7 +46,7 @@ PALM_RADIUS = 0.011  # m
 DENSITY = 1000.0  # kg/m^3
 METRIC_KEYPOINTS = (0, 4, 5, 8, 12, 16, 17, 20)  # the paper's 5 tips + 3 wrist/palm points
 PALM_KEYPOINTS = (1, 5, 9, 13, 17)
-# IK settings (RetargetOptions fields) tuned for a tight fit: the human hand can reach every demo pose,
+# IK settings (quasisim.method.retarget.RetargetOptions fields) tuned for a tight fit: the human hand can reach every demo pose,
 # so the regularisers are tiny
 RETARGET_SETTINGS: dict[str, int | float] = {"iters": 250, "lr": 0.02, "smooth": 1e-7, "rest": 1e-9}
 
@@ -73,7 +68,7 @@ def hand_shape(joints: np.ndarray) -> tuple[dict[int, np.ndarray], dict[tuple[in
     Returns:
         ``(palm, lengths)``: palm-frame positions (3,) m of keypoints 1, 5, 9, 13, 17 (their distance
         from the wrist is the median bone length) and the median length (m) of every finger bone
-        ``(parent, child)`` (keypoint indices, as in :data:`quasisim.demo.BONES`).
+        ``(parent, child)`` (keypoint indices, as in :data:`quasisim.data.demo.BONES`).
     """
     J = np.asarray(joints, dtype=np.float64)
     if J.ndim != 3 or J.shape[1:] != (21, 3) or len(J) == 0:
@@ -187,16 +182,3 @@ def build_human_hand(joints: np.ndarray, name: str = "human") -> HandModel:
     )
     config.validate()
     return load_hand(config)
-
-
-def human_hand_trajectory(
-    hand: HandModel, demo: Demo, opts: RetargetOptions | None = None, progress: bool = False
-) -> RetargetResult:
-    """Per-frame keypoint IK of the human hand to ``demo``'s right-hand keypoints.
-
-    Returns the :class:`~quasisim.retarget.RetargetResult`: ``q`` (T, 6 + J) base coordinates (m, rad)
-    and joint angles (rad), the fixed base frame, and per-keypoint errors (T, 21) m.
-    """
-    from quasisim.retarget import RetargetOptions, retarget
-
-    return retarget(hand, demo, opts or RetargetOptions(**RETARGET_SETTINGS), progress)

@@ -16,7 +16,6 @@ key            shape        meaning
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.errors import InputError
-from quasisim.io import save_npz_atomic
+from quasisim.files import open_npz, save_npz_atomic
 
 FORMAT = "quasisim-controls-v1"
 BASE_NAMES = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
@@ -65,15 +64,7 @@ class Controls:
 def load_controls(path: str | Path) -> Controls:
     """Read and validate a controls file; raise :class:`InputError` naming the field on problems."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, None, "an existing controls .npz file", "no such file")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
-        raise InputError(path, None, f"a numpy .npz archive in {FORMAT} format", f"unreadable file ({e})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise InputError(path, None, "a numpy .npz archive", "a single .npy array")
-    with z:
+    with open_npz(path, FORMAT, "controls .npz file") as z:
         for key in ("format", "hand", "fps", "base_rot", "q_targets", "joint_names"):
             if key not in z.files:
                 raise InputError(path, key, "a key present in every controls file", "missing")

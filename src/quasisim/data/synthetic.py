@@ -1,7 +1,7 @@
 """Synthetic example demonstrations: a kinematic right hand grasps, lifts (and turns) a primitive object.
 
 The examples need no data folder and are written in the ``quasisim-demo-v1`` format (see
-:mod:`quasisim.demo`): metres, world z up, object pose ``R(q) @ v + pos`` with ``q`` = w, x, y, z.
+:mod:`quasisim.data.demo`): metres, world z up, object pose ``R(q) @ v + pos`` with ``q`` = w, x, y, z.
 
 Each clip follows the structure of the real GRAB clips (60 frames at 20 fps by default): the hand
 approaches from ~19 cm away (first third), closes its fingers around the resting object (until half
@@ -24,9 +24,9 @@ import trimesh
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from quasisim.demo import Demo, save_demo
+from quasisim.data.demo import Demo, save_demo
 from quasisim.errors import choice_error
-from quasisim.io import atomic_path
+from quasisim.files import atomic_path
 
 EXAMPLES = ("cube_lift", "cylinder_lift_turn")
 SUPPORT_HEIGHT = 0.8  # m, table-top height
@@ -300,7 +300,7 @@ def make_example(name: str, n_frames: int = 60, fps: float = 20.0, seed: int = 0
         object_pos=obj_pos,
         object_quat=quat,
         support_height=SUPPORT_HEIGHT,
-        source=f"quasisim.synthetic:{name} seed={seed}",
+        source=f"quasisim.data.synthetic:{name} seed={seed}",
     )
     return demo, mesh
 

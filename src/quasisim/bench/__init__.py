@@ -1,0 +1,1 @@
+"""Benchmarks whose markdown output goes into BENCHMARKS.md (``quasisim bench ...``)."""

@@ -1,0 +1,86 @@
+"""``quasisim bench predict``: open-loop prediction error of the quasi-physical simulators against MuJoCo."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from quasisim.assets.hand import load_hand
+from quasisim.bench.tables import clips, header, publish
+from quasisim.data.demo import load_demo
+from quasisim.errors import QuasisimError
+from quasisim.eval.predict import prediction_error, record_target
+from quasisim.method.config import TransferConfig
+from quasisim.method.curriculum import Curriculum, load_curriculum
+from quasisim.method.problem import make_problem
+from quasisim.method.retarget import retarget
+
+
+def _simulators(cur: Curriculum, sims: tuple[int, ...], mus: tuple[float, ...]) -> list[tuple[int, float]]:
+    """(curriculum index, friction coefficient) pairs to compare; errors name the valid choices."""
+    rigid = cur.rigid
+    if sims:
+        bad = [n for n in sims if n - 1 not in rigid]
+        if bad:
+            valid = ", ".join(str(i + 1) for i in rigid)
+            raise QuasisimError(f"--sim {bad[0]}: not a rigid simulator of curriculum {cur.name!r}; valid: {valid}")
+        rigid = [n - 1 for n in sims]
+    if any(not (np.isfinite(m) and m > 0) for m in mus):
+        raise QuasisimError(f"--mu: friction coefficients must be positive numbers, got {list(mus)}")
+    return [(i, m) for i in rigid for m in (mus or (cur.mu,))]
+
+
+def run_predict_bench(
+    data_dir: Path, clip_names: tuple[str, ...], pattern: str, horizon: int, curriculum: str, hand_name: str,
+    out: Path, sims: tuple[int, ...] = (), mus: tuple[float, ...] = (),
+) -> str:  # fmt: skip
+    """Open-loop ``horizon``-frame prediction error of the quasi-physical simulator against MuJoCo (no
+    residual physics, nominal S) under the kinematic retarget's PD targets, for each rigid simulator of
+    ``curriculum`` (or those numbered in ``sims``, 1-based), beside the zero-motion predictor; with ``mus``,
+    each simulator once per friction coefficient instead of the curriculum's. See :mod:`quasisim.eval.predict`."""
+    cur = load_curriculum(curriculum)
+    pairs = _simulators(cur, sims, mus)
+    paths = clips(data_dir, pattern, clip_names)
+    bud = TransferConfig.from_yaml().budget("fast")
+    hand = load_hand(hand_name)
+    rows: list[dict[str, Any]] = []
+    for p in tqdm(paths, desc="clips", unit="clip"):
+        demo = load_demo(p)
+        rt = retarget(hand, demo)
+        prob = make_problem(demo, hand, rt.base_rot, bud.substeps, bud.n_candidates)
+        params = {
+            f"sim {i + 1} (d_c {100 * cur.stages[i].d_c:g} cm{f', mu {m:g}' if mus else ''})": prob.params(
+                {**cur.contact(i), "mu": m}
+            )
+            for i, m in pairs
+        }
+        t0 = time.perf_counter()
+        obs, ro = record_target(prob.scene, rt.q, demo.fps)
+        errs = prediction_error(prob.model, params, prob.base_quat, demo.fps, rt.q, obs, ro, horizon)
+        wall = time.perf_counter() - t0
+        rows += [{"clip": p.stem, "simulator": name, **e.summary(), "wall_s": wall} for name, e in errs.items()]
+    return publish(out, "predict", rows, _markdown(rows, horizon, hand_name))
+
+
+def _markdown(rows: list[dict[str, Any]], horizon: int, hand: str) -> list[str]:
+    lines = [
+        header(f"{horizon}-frame prediction error against MuJoCo ({hand}, kinematic retarget's PD targets)"),
+        f"Mean over clips and start frames, after {horizon} frames; zero-motion: the object stays where it was; "
+        "diverged: windows whose prediction became non-finite (left out of the means).",
+        "",
+        "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) | diverged |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for sim in dict.fromkeys(r["simulator"] for r in rows):
+        rs = [r for r in rows if r["simulator"] == sim]
+        mean = lambda k, rs=rs: float(np.nanmean([r[k] for r in rs]))  # noqa: E731
+        lines.append(
+            f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
+            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} | "
+            f"{sum(r['n_diverged'] for r in rs)} of {sum(r['n_windows'] for r in rs)} |"
+        )
+    return lines

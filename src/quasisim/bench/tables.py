@@ -1,0 +1,112 @@
+"""Shared pieces of the benchmarks: the header (date, machine, command), clip lists, markdown tables, output."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import platform
+import resource
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.data.demo import Demo
+from quasisim.errors import QuasisimError
+from quasisim.eval.metrics import SUCCESS_KEYS
+from quasisim.files import save_json_atomic, save_text_atomic
+from quasisim.targets import TargetRollout
+
+
+def machine_line() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.system()} {platform.machine()}, {cpu}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}"
+
+
+def header(title: str) -> str:
+    now = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    cmd = (
+        "quasisim " + " ".join(sys.argv[1:])
+        if sys.argv and "quasisim" in Path(sys.argv[0]).name
+        else " ".join(sys.argv)
+    )
+    return f"### {title}\n\n- date: {now}\n- machine: {machine_line()}\n- command: `{cmd}`\n"
+
+
+def clips(data_dir: Path, pattern: str, names: tuple[str, ...] = ()) -> list[Path]:
+    """The clips ``names`` of ``data_dir`` or, without names, every clip matching ``pattern`` (``*_long``
+    clips only when the pattern asks for them); an error names clips that are missing."""
+    if names:
+        paths = [data_dir / f"{c}.npz" for c in names]
+        missing = [str(p) for p in paths if not p.is_file()]
+        if missing:
+            raise QuasisimError(f"clips not found: {', '.join(missing)}")
+        return paths
+    paths = sorted(data_dir.glob(pattern))
+    if "_long" not in pattern:
+        paths = [p for p in paths if not p.stem.endswith("_long")]
+    return paths
+
+
+def summary_rows(rows: list[dict[str, Any]], group: str) -> list[str]:
+    out = []
+    for g in sorted({r[group] for r in rows}):
+        rs = [r for r in rows if r[group] == g]
+        m = {k: np.mean([r[k] for r in rs]) for k in ("R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm")}
+        s = {k: 100.0 * np.mean([r["success"][k] for r in rs]) for k in SUCCESS_KEYS}
+        out.append(
+            f"| {g} | {len(rs)} | {m['R_err_deg']:.1f} | {m['T_err_cm']:.2f} | {m['MPJPE_mm']:.1f} | {m['CD_mm']:.1f} | "
+            + " | ".join(f"{s[k]:.0f}" for k in SUCCESS_KEYS)
+            + f" | {np.mean([r['wall_s'] for r in rs]):.2f} |"
+        )
+    return out
+
+
+SUMMARY_HEAD = (
+    "| {g} | clips | R_err (deg) | T_err (cm) | MPJPE (mm) | CD (mm) | succ 10 (%) | succ 15 (%) | succ 20 (%) | strict (%) | wall s/clip |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|"
+)
+CLIP_HEAD = (
+    "| clip | {g} | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | lifted | wall s |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def clip_row(r: dict[str, Any], group: str) -> str:
+    s = r["success"]
+    yn = lambda b: "y" if b else "-"  # noqa: E731
+    return (
+        f"| {r['clip']} | {r[group]} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | {r['CD_mm']:.1f} | "
+        + " | ".join(yn(s[k]) for k in SUCCESS_KEYS)
+        + f" | {yn(r['lifted'])} | {r['wall_s']:.2f} |"
+    )
+
+
+def lifted(demo: Demo, rollout: TargetRollout, min_lift: float = 0.03) -> bool:
+    """Did the simulated object rise >= 3 cm (or half the demo's lift, if smaller) above its start?"""
+    demo_lift = float(demo.object_pos[:, 2].max() - demo.object_pos[0, 2])
+    need = min(min_lift, 0.5 * demo_lift)
+    return bool(rollout.object_pos[:, 2].max() - rollout.object_pos[0, 2] >= need) and demo_lift > 0.01
+
+
+def publish(out: Path, name: str, rows: list[dict[str, Any]], lines: list[str]) -> str:
+    """Write ``out/name.json`` (rows) and ``out/name.md`` (the markdown), print the markdown."""
+    text = "\n".join(lines) + "\n"
+    out.mkdir(parents=True, exist_ok=True)
+    save_json_atomic(out / f"{name}.json", rows)
+    save_text_atomic(out / f"{name}.md", text)
+    print(text)
+    return text
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

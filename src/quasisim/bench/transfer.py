@@ -1,0 +1,150 @@
+"""``quasisim bench transfer``: transfer runs (curricula, ``+mpc``, MPC baselines) on clips beside the
+kinematic replay, resumable; optionally judged open loop in the other target."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from quasisim.bench.tables import SUMMARY_HEAD, clips, header, publish, summary_rows
+from quasisim.data.controls import load_controls
+from quasisim.data.demo import load_demo
+from quasisim.errors import QuasisimError
+from quasisim.eval.evaluate import evaluate_controls
+from quasisim.eval.metrics import SUCCESS_KEYS
+from quasisim.files import save_json_atomic
+from quasisim.method.curriculum import load_curriculum
+from quasisim.method.pipeline import TransferSpec, run_transfer
+
+RUN_KINDS = "CURRICULUM (stages 1,2), CURRICULUM+mpc (stages 1,2,mpc), mpc-base, mpc-soften"
+
+
+def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferSpec:
+    """A benchmark run name (``default``, ``none+mpc``, ``mpc-base`` ...) as the transfer it stands for."""
+    if run in ("mpc-base", "mpc-soften"):
+        return dataclasses.replace(base, method=run, curriculum="none", stages=("mpc",))
+    cur, _, extra = run.partition("+")
+    if extra not in ("", "mpc"):
+        raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
+    load_curriculum(cur)
+    return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, "mpc") if extra else stages)
+
+
+def _run_once(demo_path: Path, run_dir: Path, spec: TransferSpec, base_checkpoints: Path | None) -> None:
+    """One transfer into ``run_dir``, resumed from its checkpoints; a ``+mpc`` run starts from the stage-1/2
+    checkpoints of its curriculum's run (copied; the run writes its own ``run.json``). Its wall time goes to
+    ``bench.json`` beside the run's own outputs."""
+    for stale in run_dir.glob("metrics_*.json"):  # judgements of an earlier, unfinished or redone run
+        stale.unlink()
+    ck = run_dir / "checkpoints"
+    if base_checkpoints is not None and base_checkpoints.is_dir() and not ck.is_dir():
+        ck.mkdir(parents=True)
+        for f in base_checkpoints.glob("*.npz"):
+            shutil.copy2(f, ck / f.name)
+    t0 = time.perf_counter()
+    run_transfer(demo_path, run_dir, spec, resume=ck.is_dir())
+    save_json_atomic(run_dir / "bench.json", {"wall_s": time.perf_counter() - t0})
+
+
+def _rows(demo_path: Path, run: str, run_dir: Path, judge: str | None, target: str) -> list[dict[str, Any]]:
+    """The run's row and the kinematic replay's (both from the run's summary, or judged in ``judge``)."""
+    s = json.loads((run_dir / "summary.json").read_text())
+    if judge and judge != target:
+        s["metrics"], s["kinematic_metrics"] = _judged(demo_path, run_dir, judge)
+    k, m = s["kinematic_metrics"], s["metrics"]
+    bench_json = run_dir / "bench.json"
+    wall = json.loads(bench_json.read_text())["wall_s"] if bench_json.is_file() else sum(s["seconds"].values())
+    better = bool(m["T_err_cm"] < k["T_err_cm"] and m["R_err_deg"] < k["R_err_deg"])
+    return [
+        {"clip": demo_path.stem, "method": "kinematic", **k, "wall_s": float(s["seconds"].get("retarget", 0.0)), "seconds": {}},
+        {"clip": demo_path.stem, "method": run, **m, "seconds": s["seconds"], "wall_s": float(wall), "better": better},
+    ]  # fmt: skip
+
+
+def run_transfer_bench(
+    data_dir: Path, clip_names: tuple[str, ...], pattern: str, runs: tuple[str, ...], stages: tuple[str, ...],
+    budget: str, target: str, hand_name: str, out: Path, report_only: bool = False, judge: str | None = None,
+) -> str:  # fmt: skip
+    """Each run of ``runs`` on each clip into ``out/<clip>/<run>`` (resumed; finished runs are read back;
+    ``report_only``: nothing is run), beside the kinematic replay in the same target; with ``judge``
+    (another simulator) every run's controls and the kinematic retarget are judged open loop there instead
+    (cached as ``metrics_<judge>.json`` beside each run). Prints and writes the markdown tables."""
+    base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=True)
+    specs = {r: run_spec(r, stages, base) for r in runs}
+    rows: list[dict[str, Any]] = []
+    for p in tqdm(clips(data_dir, pattern, clip_names), desc="clips", unit="clip"):
+        for run, spec in specs.items():
+            d = out / p.stem / run
+            if not (d / "summary.json").is_file():
+                if report_only:
+                    continue
+                base_ck = out / p.stem / spec.curriculum / "checkpoints" if "+" in run else None
+                _run_once(p, d, spec, base_ck)
+            kin, row = _rows(p, run, d, judge, target)
+            if not any(r["clip"] == p.stem and r["method"] == "kinematic" for r in rows):
+                rows.append(kin)
+            rows.append(row)
+    for r in rows:
+        r["lifted"] = False  # not recomputed here (see the baseline benchmark)
+    return publish(
+        out,
+        "transfer" if (judge or target) == target else f"transfer_{judge}",
+        rows,
+        _markdown(rows, runs, hand_name, target, judge or target, budget),
+    )
+
+
+def _markdown(
+    rows: list[dict[str, Any]], runs: tuple[str, ...], hand: str, target: str, judged_in: str, budget: str
+) -> list[str]:
+    lines = [
+        header(f"Transfer ({hand}, optimised for {target}, judged in {judged_in}, budget {budget})"),
+        SUMMARY_HEAD.format(g="method"),
+        *summary_rows(rows, "method"),
+        "",
+    ]
+    for run in runs:
+        rs = [r for r in rows if r["method"] == run]
+        st = [r["seconds"] for r in rs]
+        per_stage = {k: np.mean([s.get(k, 0.0) for s in st]) for k in sorted({k for s in st for k in s})}
+        lines.append(
+            f"- {run}: lower T_err and lower R_err than the kinematic replay on {sum(r['better'] for r in rs)} of "
+            f"{len(rs)} clips; mean seconds per stage: " + ", ".join(f"{k} {v:.0f}" for k, v in per_stage.items())
+        )
+    lines += [
+        "",
+        "| clip | method | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | wall s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    yn = lambda b: "y" if b else "-"  # noqa: E731
+    for r in rows:
+        s = r["success"]
+        lines.append(
+            f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
+            f"{r['CD_mm']:.1f} | " + " | ".join(yn(s[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} |"
+        )
+    return lines
+
+
+def _judged(demo_path: Path, run_dir: Path, judge: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Metrics of a finished run's controls and of its kinematic retarget, replayed open loop in ``judge``."""
+    cache = run_dir / f"metrics_{judge}.json"
+    if cache.is_file():
+        d = json.loads(cache.read_text())
+        return d["metrics"], d["kinematic_metrics"]
+    demo = load_demo(demo_path)
+    c = load_controls(run_dir / "controls.npz")
+    kin = dataclasses.replace(c, q_targets=np.asarray(c.extras["kinematic_q"]), method="kinematic")
+    d = {
+        "metrics": evaluate_controls(demo, c, judge, None, render=False).metrics,
+        "kinematic_metrics": evaluate_controls(demo, kin, judge, None, render=False).metrics,
+    }
+    save_json_atomic(cache, d)
+    return d["metrics"], d["kinematic_metrics"]

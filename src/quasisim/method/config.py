@@ -1,0 +1,80 @@
+"""Settings of ``quasisim transfer``: objective weights, step budgets and MPC, from ``configs/transfer.yaml``.
+
+The shipped YAML is the only source of default values: the dataclasses below have no defaults of their
+own, so a key missing from a user's YAML is an error naming it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.errors import InputError, choice_error
+from quasisim.method.mpc import MPCOptions
+from quasisim.optim.adam import StepBudget
+from quasisim.optim.objective import Weights
+
+CONFIG_PATH = Path(__file__).parents[1] / "configs" / "transfer.yaml"
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Optimisation budget: simulator discretisation and the steps of each optimisation.
+
+    Attributes:
+        substeps: simulator substeps per frame (dt = 1 / (fps substeps)).
+        n_candidates: hand points examined for contact per frame (broad phase).
+        human, robot_points, sim: steps of stage 1b, stage 1d and of each stage-2 simulator.
+    """
+
+    substeps: int
+    n_candidates: int
+    human: StepBudget
+    robot_points: StepBudget
+    sim: StepBudget
+
+
+@dataclass(frozen=True)
+class TransferConfig:
+    """Objective weights, named budgets and closed-loop MPC settings (``configs/transfer.yaml``)."""
+
+    weights: Weights
+    budgets: dict[str, Budget]
+    mpc: MPCOptions
+    soften_samples: int
+    path: str = ""
+
+    @classmethod
+    def from_yaml(cls, path: str | Path = CONFIG_PATH, overrides: dict[str, Any] | None = None) -> TransferConfig:
+        """Load and validate; ``overrides`` are dotted keys (``{"budgets.fast.sim.control_steps": 20}``)."""
+        path = Path(path)
+        data = apply_overrides(read_yaml(path), overrides)
+        data["path"] = str(path)
+        cfg = build(cls, data, path)
+        for name, b in cfg.budgets.items():
+            if b.substeps < 1 or b.n_candidates < 1:
+                raise InputError(path, f"budgets.{name}", "positive substeps and n_candidates", str(b))
+            for part in ("human", "robot_points", "sim"):
+                sb: StepBudget = getattr(b, part)
+                if min(sb.control_steps, sb.sysid_steps, sb.patience) < 0 or sb.control_lr < 0 or sb.sysid_lr < 0:
+                    raise InputError(path, f"budgets.{name}.{part}", "non-negative steps and learning rates", str(sb))
+        if cfg.mpc.horizon < 1 or cfg.mpc.steps < 0 or cfg.soften_samples < 1:
+            raise InputError(path, "mpc", "horizon >= 1, steps >= 0 and soften_samples >= 1", str(cfg.mpc))
+        return cfg
+
+    def budget(self, name: str) -> Budget:
+        """The budget ``name``; an error lists the valid names."""
+        if name not in self.budgets:
+            raise choice_error("budget", name, list(self.budgets))
+        return self.budgets[name]
+
+    def identity(self, budget: str) -> dict[str, Any]:
+        """The settings that determine a run's results (recorded in its checkpoints)."""
+        return {
+            "mpc": dataclasses.asdict(self.mpc),
+            "budget_settings": dataclasses.asdict(self.budget(budget)),
+            "weights": dataclasses.asdict(self.weights),
+        }

@@ -1,0 +1,144 @@
+"""Closed-loop model-predictive control in the target simulator with the quasi-physical simulator as model.
+
+At every frame ``t`` (paper appendix "Tracking via closed-loop MPC"):
+
+1. observe the target's state (hand joints and velocities, object pose and twist);
+2. put it into the quasi-physical simulator and optimise the PD targets of frames ``t+1 .. t+H`` of the plan
+   (a few Adam steps on ``w_o f_O + w_h f_H`` over the window, from the plan's current values);
+3. apply the first frame (targets ``t -> t+1``) in the target and keep the rest of the window as the plan.
+
+Methods built on it (``--method``): ``mpc-base`` (the stiffest analytical simulator, the object's nominal S,
+planning from the kinematic retarget), ``mpc-soften`` (the same with each gradient averaged over contact
+stiffnesses drawn within +-10 %, randomized smoothing as in Bundled Gradients) and ``ours`` (planning from
+the stage-2 trajectory with the identified S). Only MuJoCo offers a step-by-step session here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from quasisim.data.demo import Demo
+from quasisim.optim.adam import adam_steps
+from quasisim.optim.objective import Weights, make_window_objective
+from quasisim.optim.trajectory import Trajectory, observed_state
+from quasisim.rotations import np_mat_to_quat
+from quasisim.sim.types import Model, Params, State
+from quasisim.targets import TargetRollout
+from quasisim.targets.mujoco_target import MujocoTarget
+from quasisim.targets.scene import Scene
+
+Array = jax.Array
+F32 = jnp.float32
+
+
+@dataclass(frozen=True)
+class MPCOptions:
+    """Closed-loop MPC settings (values: ``configs/transfer.yaml``).
+
+    Attributes:
+        horizon: frames optimised at each step (H; the paper's q).  steps: Adam steps per frame.  lr: Adam step size.
+        soften: number of stiffness samples per gradient (0: plain gradient; mpc-soften uses 4).
+        soften_range: relative half-width of the stiffness samples (0.1 = +-10 %).  seed: sampling seed.
+    """
+
+    horizon: int
+    steps: int
+    lr: float
+    soften: int
+    soften_range: float
+    seed: int
+
+
+@dataclass(frozen=True, eq=False)
+class MPCResult:
+    q_targets: np.ndarray  # (T, 6 + J) the PD targets applied in the target
+    rollout: TargetRollout  # the closed-loop run in the target
+    window_loss: np.ndarray  # (T - 1,) best window loss per frame
+    window_loss_start: np.ndarray  # (T - 1,) loss of the plan's window before the frame's Adam steps
+    wall_s: float
+
+
+def _gradient_fn(f: Any, w: dict[str, Array], opts: MPCOptions) -> Any:
+    """jit-compiled value and gradient of the window objective ``f``; with ``opts.soften`` the mean over
+    contact stiffnesses scaled by ``scales`` (S, 3): k_n, k_f, k_d."""
+
+    def vg_plain(win: Trajectory, s0: State, p: Params, *ref: Array) -> Any:
+        return jax.value_and_grad(f, has_aux=True)(win, s0, p, *ref, w)
+
+    if opts.soften == 0:
+        return jax.jit(vg_plain)
+
+    def vg_soft(win: Trajectory, s0: State, p: Params, scales: Array, *ref: Array) -> Any:
+        def one(sc: Array) -> Any:
+            ps = dataclasses.replace(p, k_n=p.k_n * sc[0], k_f=p.k_f * sc[1], k_d=p.k_d * sc[2])
+            return vg_plain(win, s0, ps, *ref)
+
+        (loss, terms), g = jax.vmap(one)(scales)
+        mean = lambda x: jnp.mean(x, axis=0)  # noqa: E731
+        return (mean(loss), jax.tree_util.tree_map(mean, terms)), jax.tree_util.tree_map(mean, g)
+
+    return jax.jit(vg_soft)
+
+
+def _mask_first_frame(g: Trajectory) -> Trajectory:
+    """Frame 0 of a window is the target the step starts from: it is not optimised."""
+    return dataclasses.replace(g, base=g.base.at[0].set(0.0), joints=g.joints.at[0].set(0.0))
+
+
+def padded(x: np.ndarray, horizon: int) -> np.ndarray:
+    """``x`` (T, ...) followed by ``horizon`` copies of its last frame (windows past the clip's end)."""
+    return np.concatenate([x, np.repeat(x[-1:], horizon, 0)])
+
+
+def run_mpc(
+    demo: Demo, scene: Scene, model: Model, params: Params, plan: np.ndarray, opts: MPCOptions, weights: Weights,
+    progress: bool = True,
+) -> MPCResult:  # fmt: skip
+    """Closed-loop MPC in MuJoCo from the PD-target plan ``plan`` (T, 6 + J); ``params`` is the model
+    (with S already applied). See the module docstring."""
+    T, H = len(plan), opts.horizon
+    kp_index = np.flatnonzero(model.hand.kp_metric)
+    bq = jnp.asarray(np_mat_to_quat(scene.base_rot), F32)
+    vg = _gradient_fn(make_window_objective(model, bq, demo.fps, kp_index), weights.arrays(), opts)
+    rng = np.random.default_rng(opts.seed)
+    refs = [
+        padded(x, H) for x in (demo.object_pos, demo.object_quat, demo.right_joints[:, model.hand.kp_human[kp_index]])
+    ]
+    plan = padded(np.asarray(plan, np.float64), H)
+    applied = plan.copy()
+    target = MujocoTarget(scene)
+    sess = target.session(plan[0], (plan[1] - plan[0]) * demo.fps)
+    losses = []
+    t0 = time.perf_counter()
+    for t in tqdm(range(T), desc="mpc", unit="frame", disable=not progress, leave=False):
+        sess.record()
+        if t == T - 1:
+            break
+        s0 = observed_state(model, sess.observe(), bq)
+        fw = (np.arange(t + 1, t + H + 1) < T).astype(np.float32)
+        ref = (*(jnp.asarray(x[t + 1 : t + H + 1], F32) for x in refs), jnp.asarray(fw))
+        if opts.soften > 0:
+            scales = jnp.asarray(1.0 + rng.uniform(-opts.soften_range, opts.soften_range, (opts.soften, 3)), F32)
+            fn = lambda x, s0=s0, ref=ref, scales=scales: vg(x, s0, params, scales, *ref)  # noqa: E731
+        else:
+            fn = lambda x, s0=s0, ref=ref: vg(x, s0, params, *ref)  # noqa: E731
+        win0 = Trajectory.from_q(plan[t : t + H + 1], model.n_points)
+        win, log = adam_steps(fn, win0, opts.steps, opts.lr, opts.steps + 1, 0.0, mask=_mask_first_frame)
+        losses.append((log.best, log.losses[0] if log.losses else np.nan))
+        plan[t : t + H + 1] = win.q_targets
+        applied[t + 1] = plan[t + 1]
+        if t == 0:  # start over with the hand velocity of the applied targets, as a replay of them does
+            sess = target.session(applied[0], (applied[1] - applied[0]) * demo.fps)
+            sess.record()
+        sess.advance(applied[t], applied[t + 1])
+    wall = time.perf_counter() - t0
+    best, start = np.asarray(losses).reshape(-1, 2).T
+    return MPCResult(applied[:T], sess.result(wall), best, start, wall)

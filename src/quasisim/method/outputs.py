@@ -1,0 +1,86 @@
+"""What a transfer run leaves behind: ``controls.npz``, ``metrics.json``, ``rollout.npz``, ``report.html``
+(judged in the target) and ``summary.json`` (settings, seconds and losses per stage, S, both judgements)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from quasisim.data.controls import Controls
+from quasisim.eval.evaluate import evaluate_controls
+from quasisim.eval.report import loss_plot
+from quasisim.files import save_json_atomic
+from quasisim.method.problem import Problem
+from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory
+from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
+from quasisim.sim.types import Params
+
+
+@dataclass
+class RunRecord:
+    """What the stages report as they go: seconds per stage, loss curves, one row per stage-2 simulator."""
+
+    seconds: dict[str, float] = field(default_factory=dict)
+    curves: dict[str, list[float]] = field(default_factory=dict)
+    simulators: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass
+class TransferResult:
+    """What :func:`~quasisim.method.pipeline.run_transfer` produced."""
+
+    controls: Controls
+    metrics: dict[str, Any]
+    kinematic_metrics: dict[str, Any]
+    record: RunRecord
+    out: Path
+
+
+def sim_qpos(prob: Problem, params: Params, traj: Trajectory) -> np.ndarray:
+    """(T, 6 + J) the hand trajectory of ``traj``'s quasi-physical rollout in base coordinates."""
+    states = jax.jit(prob.simulate)(params, traj)
+    root = np.asarray(prob.model.to_world(states.root_pos), np.float64)
+    R = np_quat_to_mat(np.asarray(states.root_quat))
+    eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("ji,tjk->tik", prob.base_rot, R)), axis=0)
+    q = np.concatenate([root, eul, np.asarray(states.q, np.float64)], axis=1)
+    return np.concatenate([np.asarray(traj.q_targets[:1]), q], axis=0)
+
+
+def write_outputs(
+    prob: Problem, controls: Controls, kinematic_q: np.ndarray, record: RunRecord, sysid: SysID, settings: dict[str, Any],
+    target: str, out: Path, render: bool, progress: bool,
+) -> TransferResult:  # fmt: skip
+    """Save ``controls``, judge them and the kinematic retarget in ``target``, write the report and summary."""
+    demo, scene = prob.demo, prob.scene
+    controls.save(out / "controls.npz")
+    kin = dataclasses.replace(controls, q_targets=np.asarray(kinematic_q), method="kinematic")
+    km = evaluate_controls(demo, kin, target, None, render=False, scene=scene).metrics
+    s_desc = sysid.describe(prob.obj.mass)
+    images = {"optimisation loss per simulator of the curriculum": loss_plot(record.curves)} if record.curves else {}
+    ev = evaluate_controls(
+        demo, controls, target, out, render=render, scene=scene,
+        title=f"{demo.name}: {settings['label']} ({settings['curriculum']} curriculum, stages "
+        f"{','.join(settings['stages']) or 'none'}) in {target}",
+        extra_info={
+            "kinematic replay in the same target": f"R_err {km['R_err_deg']:.1f} deg, T_err {km['T_err_cm']:.2f} cm, "
+            f"MPJPE {km['MPJPE_mm']:.1f} mm, success {km['success']}",
+            "budget": f"{settings['budget']} (simulator dt {prob.model.dt * 1e3:g} ms)",
+            "seconds per stage": ", ".join(f"{k} {v:.0f}" for k, v in record.seconds.items()),
+            "identified S": ", ".join(f"{k} {v:.4g}" for k, v in s_desc.items()),
+        },
+        extra_images=images, progress=progress,
+    )  # fmt: skip
+    summary = {
+        "demo": demo.name, "hand": prob.hand.name, "target": target, "curriculum": settings["curriculum"],
+        "stages": list(settings["stages"]), "budget": settings["budget"], "method": settings["method"],
+        "seconds": record.seconds, "simulators": record.simulators, "kinematic_metrics": km, "sysid": s_desc,
+        "metrics": ev.metrics,
+    }  # fmt: skip
+    save_json_atomic(out / "summary.json", summary)
+    return TransferResult(controls, ev.metrics, km, record, out)

@@ -1,0 +1,224 @@
+"""The method, end to end (paper section "Method" and appendix "Evaluation process").
+
+:func:`run_transfer` reads like the method: kinematic retargeting gives the first trajectory; stage 1
+transfers the demo through point dynamics in the curriculum's relaxed simulator; stage 2 follows the
+contact curriculum from soft to stiff; closed-loop MPC then tracks the result in the target. Every
+finished piece is checkpointed (``OUT/checkpoints``) and ``resume=True`` continues after the last one.
+The result's PD targets are the optimised trajectory itself (the quasi-physical hand is driven by the
+same PD targets as the target simulators).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from quasisim.assets.hand import load_hand
+from quasisim.data.controls import Controls
+from quasisim.data.demo import load_demo
+from quasisim.method import stage1, stage2
+from quasisim.method.checkpoints import Checkpoints, trajectory_arrays, trajectory_from
+from quasisim.method.config import TransferConfig
+from quasisim.method.curriculum import Curriculum, load_curriculum
+from quasisim.method.mpc import run_mpc
+from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_outputs
+from quasisim.method.problem import Problem, make_problem
+from quasisim.method.retarget import retarget
+from quasisim.method.spec import TransferSpec
+from quasisim.optim.adam import Progress
+from quasisim.optim.objective import Objective
+from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory
+from quasisim.sim.types import Params
+
+
+@dataclass
+class Plan:
+    """The current solution: the trajectory and the identified S."""
+
+    traj: Trajectory
+    sysid: SysID
+
+
+def run_transfer(
+    demo_path: str | Path, out: str | Path, spec: TransferSpec | None = None, config: TransferConfig | None = None,
+    resume: bool = False,
+) -> TransferResult:  # fmt: skip
+    """Transfer one demonstration (see the module docstring); writes ``OUT/controls.npz``,
+    ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``."""
+    spec = (spec or TransferSpec()).checked()
+    cfg = config or TransferConfig.from_yaml()
+    bud, cur, out = cfg.budget(spec.budget), load_curriculum(spec.curriculum), Path(out)
+    demo, hand = load_demo(demo_path), load_hand(spec.hand)
+    ck = Checkpoints(out / "checkpoints", _identity(demo_path, demo.name, spec, cur, cfg), resume)
+    progress, record = Progress(spec.progress), RunRecord()
+
+    kin = _timed(ck, "kinematic", lambda: _kinematic(hand, demo, progress))
+    record.seconds["retarget"] = float(kin["wall_s"])
+    prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates)
+    plan = Plan(Trajectory.from_q(kin["q"], prob.model.n_points), SysID.init())
+    objective = prob.objective(prob.reference())
+    if "1" in spec.stages and cur.relaxed:
+        plan, objective = _stage1(prob, cur, cfg, spec, ck, plan, kin["q"], progress, record)
+    if "2" in spec.stages:
+        plan = _stage2(prob, cur, cfg, spec, ck, plan, objective, kin["q"], progress, record)
+    model_params = plan.sysid.apply(prob.params(cur.contact(cur.stiffest)), prob.obj.mass, prob.obj.inertia)
+    q_out, extras = plan.traj.q_targets, {"kinematic_q": np.asarray(kin["q"])}
+    if "mpc" in spec.stages:
+        extras["plan_q"] = q_out
+        q_out = _closed_loop(prob, cfg, spec, ck, plan.traj, model_params, progress, record)
+    if spec.stages:
+        extras["sim_qpos"] = sim_qpos(prob, model_params, plan.traj)
+    label = {"ours": "transfer"}.get(spec.method, spec.method)
+    controls = Controls(
+        hand=spec.hand, demo=demo.name, method=f"{label}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
+        fps=demo.fps, base_rot=prob.base_rot, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
+    )  # fmt: skip
+    settings = {
+        "label": label,
+        "curriculum": cur.name,
+        "stages": spec.stages,
+        "budget": spec.budget,
+        "method": spec.method,
+    }
+    return write_outputs(
+        prob, controls, kin["q"], record, plan.sysid, settings, spec.target, out, spec.render, spec.progress
+    )
+
+
+def _stage1(
+    prob: Problem, cur: Curriculum, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, plan: Plan,
+    kinematic_q: np.ndarray, progress: Progress, record: RunRecord,
+) -> tuple[Plan, Objective]:  # fmt: skip
+    """Stage 1 (point dynamics) in the curriculum's first relaxed simulator: the human point set, then the
+    robot point set tracking it. Returns the plan and the objective whose reference holds the human points."""
+    bud, i1 = cfg.budget(spec.budget), cur.relaxed[0]
+    contact, label = cur.contact(i1), f"sim {i1 + 1}"
+    hp = ck.get(
+        "stage1_human",
+        lambda: stage1.human_point_set(
+            prob.demo, prob.obj, bud.substeps, bud.n_candidates, contact, cfg.weights, bud.human, progress, label
+        ),
+    )
+    human_points = np.asarray(hp["points"], np.float32)
+    record.curves["1b human point set"] = list(hp.get("losses", []))
+    point_index = stage1.correspondences(prob, kinematic_q, human_points)
+    objective = prob.objective(prob.reference(human_points, point_index))
+    vg = jax.jit(jax.value_and_grad(objective, argnums=(0, 1), has_aux=True))
+    p1 = prob.params(contact)
+
+    def robot() -> dict[str, Any]:
+        traj, log = stage1.robot_point_set(
+            vg, plan.traj, plan.sysid, p1, cfg.weights, bud.robot_points, progress, label
+        )
+        return trajectory_arrays(traj, plan.sysid, log, log.wall_s)
+
+    rp = ck.get("stage1_robot", robot)
+    traj, sysid = trajectory_from(rp)
+    record.curves[f"1d robot point set ({label})"] = list(rp.get("losses", []))
+    record.seconds["stage1_human"], record.seconds["stage1_robot"] = float(hp["wall_s"]), float(rp["wall_s"])
+    record.seconds["stage1"] = record.seconds["stage1_human"] + record.seconds["stage1_robot"]
+    progress.write(f"stage 1 done: human {float(hp['wall_s']):.0f} s, robot point set {float(rp['wall_s']):.0f} s")
+    return Plan(traj, sysid), objective
+
+
+def _stage2(
+    prob: Problem, cur: Curriculum, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, plan: Plan,
+    objective: Objective, kinematic_q: np.ndarray, progress: Progress, record: RunRecord,
+) -> Plan:  # fmt: skip
+    """Stage 2: each rigid simulator of the curriculum, soft to stiff (:mod:`quasisim.method.stage2`)."""
+    vg = jax.jit(jax.value_and_grad(objective, argnums=(0, 1), has_aux=True))
+    w2, sb = cfg.weights.arrays(points=0.0), cfg.budget(spec.budget).sim
+    start, kin_traj = plan.traj, Trajectory.from_q(kinematic_q, prob.model.n_points)
+    record.seconds["stage2"] = 0.0
+    for n, i in enumerate(cur.rigid):
+        p = prob.params(cur.contact(i))
+        label = f"stage 2 sim {i + 1} ({n + 1}/{len(cur.rigid)})"
+        alternatives = {"stage_start": start, "kinematic": kin_traj} if n > 0 else None
+        d = ck.get(
+            f"stage2_sim{i + 1:02d}",
+            lambda p=p, label=label, alt=alternatives, start=plan: stage2.run_simulator(
+                vg, start.traj, start.sysid, p, w2, sb, progress, label, alt
+            ),
+        )
+        plan = Plan(*trajectory_from(d))
+        _record_simulator(record, cur, i, d, plan.sysid.describe(prob.obj.mass), progress)
+    return plan
+
+
+def _record_simulator(
+    record: RunRecord, cur: Curriculum, i: int, d: dict[str, Any], s_desc: dict[str, float], progress: Progress
+) -> None:
+    """One row of the summary's ``simulators`` table and its loss curve."""
+    losses = [float(x) for x in d["losses"]]
+    record.curves[f"sim {i + 1}"] = losses
+    record.seconds["stage2"] += float(d["wall_s"])
+    record.simulators.append(
+        {"sim": i + 1, **{k: float(v) for k, v in cur.contact(i).items()}, "steps": len(losses),
+         "loss_first": losses[0] if losses else None, "loss_best": min(losses) if losses else None,
+         "wall_s": float(d["wall_s"]), **s_desc,
+         "start_losses": _json(d["start_losses"]) if "start_losses" in d else None}
+    )  # fmt: skip
+    progress.write(
+        f"sim {i + 1}: loss {losses[0]:.5f} -> {min(losses):.5f} in {len(losses)} steps, "
+        f"{float(d['wall_s']):.0f} s; mass {s_desc['mass_kg'] * 1e3:.0f} g"
+    )
+
+
+def _closed_loop(
+    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, traj: Trajectory, params: Params,
+    progress: Progress, record: RunRecord,
+) -> np.ndarray:  # fmt: skip
+    """Closed-loop MPC in MuJoCo from ``traj``, with the simulator ``params`` (S applied) as the model."""
+
+    def mpc() -> dict[str, Any]:
+        opts = dataclasses.replace(cfg.mpc, soften=cfg.soften_samples if spec.method == "mpc-soften" else 0)
+        r = run_mpc(prob.demo, prob.scene, prob.model, params, traj.q_targets, opts, cfg.weights, spec.progress)
+        return {"q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s)}
+
+    d = ck.get("mpc", mpc)
+    record.seconds["mpc"] = float(d["wall_s"])
+    record.curves["mpc window loss per frame"] = [float(x) for x in d["window_loss"]]
+    progress.write(f"mpc done in {record.seconds['mpc']:.0f} s")
+    return np.asarray(d["q_targets"], np.float64)
+
+
+def _kinematic(hand: Any, demo: Any, progress: Progress) -> dict[str, Any]:
+    """Stage 1c, the kinematic retarget: the first trajectory of every later stage."""
+    rt = retarget(hand, demo, progress=progress.enabled)
+    return {"q": rt.q, "base_rot": rt.base_rot}
+
+
+def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """``ck.get(name, fn)`` recording ``fn``'s wall time as ``wall_s``."""
+
+    def run() -> dict[str, Any]:
+        t0 = time.perf_counter()
+        d = fn()
+        return {**d, "wall_s": np.array(time.perf_counter() - t0)}
+
+    return ck.get(name, run)
+
+
+def _identity(
+    demo_path: str | Path, demo_name: str, spec: TransferSpec, cur: Curriculum, cfg: TransferConfig
+) -> dict[str, Any]:
+    """What made the run (recorded in ``checkpoints/run.json``; a resumed run must match it)."""
+    return {
+        "demo": demo_name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
+        "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
+        "method": spec.method, **cfg.identity(spec.budget),
+    }  # fmt: skip
+
+
+def _json(x: np.ndarray) -> Any:
+    return json.loads(str(x))

@@ -1,0 +1,90 @@
+"""A demonstration set up for transfer: the target's scene and the quasi-physical simulator of the same scene.
+
+This is the one place that builds the simulator for a demo (:func:`make_problem`); the stages, MPC, the
+prediction benchmark and the tests all start from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from quasisim.assets.hand import HandModel
+from quasisim.assets.object import ObjectAsset
+from quasisim.data.demo import Demo
+from quasisim.eval.evaluate import load_object_for
+from quasisim.optim.objective import Objective, Reference, make_objective
+from quasisim.optim.trajectory import Trajectory, simulate
+from quasisim.rotations import np_mat_to_quat
+from quasisim.sim.build import SimOptions, build_model, default_params
+from quasisim.sim.kinematics import fk_full, points_world
+from quasisim.sim.types import Model, Params, State
+from quasisim.targets.scene import Scene, make_scene
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """``demo`` to be transferred to ``scene.hand``; ``model`` is the quasi-physical simulator of ``scene``."""
+
+    demo: Demo
+    scene: Scene
+    model: Model
+
+    @property
+    def hand(self) -> HandModel:
+        return self.scene.hand
+
+    @property
+    def obj(self) -> ObjectAsset:
+        return self.scene.obj
+
+    @property
+    def base_rot(self) -> np.ndarray:
+        """(3, 3) the fixed frame of the floating base's angles."""
+        return self.scene.base_rot
+
+    @property
+    def base_quat(self) -> np.ndarray:
+        return np_mat_to_quat(self.scene.base_rot)
+
+    @property
+    def obj0(self) -> tuple[np.ndarray, np.ndarray]:
+        """The demo's first object pose (position (3,), quaternion (4,) w x y z)."""
+        return self.demo.object_pos[0], self.demo.object_quat[0]
+
+    def params(self, contact: dict[str, float]) -> Params:
+        """The simulator with contact settings ``contact`` (a curriculum stage) and the object's nominal S."""
+        return default_params(self.model, self.obj.mass, self.obj.inertia, contact)
+
+    def reference(self, points: np.ndarray | None = None, point_index: np.ndarray | None = None) -> Reference:
+        """The demo as the objective's reference: the hand's metric keypoints, the object, optional points."""
+        metric = np.flatnonzero(self.hand.kp_metric)
+        return Reference.from_demo(self.demo, self.hand.kp_human, metric, points, point_index)
+
+    def objective(self, ref: Reference) -> Objective:
+        """:func:`~quasisim.optim.objective.make_objective` for this problem."""
+        return make_objective(
+            self.model, ref, self.base_quat, self.demo.fps, self.obj0, self.obj.mass, self.obj.inertia
+        )
+
+    def simulate(self, params: Params, traj: Trajectory) -> State:
+        """The states (T - 1 frames) of ``traj`` rolled out from the demo's first frame."""
+        return simulate(self.model, params, traj, self.base_quat, self.demo.fps, self.obj0)
+
+    def points_at(self, q: np.ndarray) -> np.ndarray:
+        """(N, 3) world positions of the simulator's hand points at generalized position ``q`` (6 + J)."""
+        poses = fk_full(self.hand, jnp.asarray(self.base_rot, jnp.float32), jnp.asarray(q, jnp.float32))
+        return np.asarray(points_world(poses, self.model.point_body, self.model.point_local))
+
+
+def make_problem(
+    demo: Demo, hand: HandModel, base_rot: np.ndarray, substeps: int, n_candidates: int, obj: ObjectAsset | None = None
+) -> Problem:
+    """The scene (table sized from the demo) and the simulator (``substeps`` per frame, origin at the
+    object's first position) for ``demo`` and ``hand`` with base frame ``base_rot``."""
+    obj = obj if obj is not None else load_object_for(demo)
+    scene = make_scene(demo, hand, base_rot, obj)
+    opts = SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates)
+    return Problem(demo, scene, build_model(hand, obj, scene.table, opts, demo.object_pos[0]))

@@ -1,0 +1,63 @@
+"""What a transfer run is asked to do (light: no JAX or MuJoCo, so the CLI can use it for its defaults)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from quasisim.errors import QuasisimError, choice_error
+from quasisim.targets import TARGETS
+
+STAGES = ("1", "2", "mpc")
+METHODS = ("ours", "mpc-base", "mpc-soften", "kinematic")
+
+
+@dataclass(frozen=True)
+class TransferSpec:
+    """What to run (the CLI's options of ``quasisim transfer``; their defaults are these).
+
+    Attributes:
+        hand: built-in hand name or hand YAML path.  target: simulator that judges the result.
+        curriculum: built-in curriculum name or YAML path.  stages: of :data:`~quasisim.method.config.STAGES`.
+        budget: a budget of the transfer config.  method: of :data:`~quasisim.method.config.METHODS`
+            (``mpc-base``/``mpc-soften`` run only the MPC stage, ``kinematic`` no stage).
+        render: render the report's video.  progress: show progress bars.
+    """
+
+    hand: str = "shadow"
+    target: str = "mujoco"
+    curriculum: str = "default"
+    stages: tuple[str, ...] = ("1", "2")
+    budget: str = "fast"
+    method: str = "ours"
+    render: bool = True
+    progress: bool = True
+
+    def checked(self) -> TransferSpec:
+        """Validated, with the stages that ``method`` implies."""
+        if self.target not in TARGETS:
+            raise choice_error("target", self.target, TARGETS)
+        if self.method not in METHODS:
+            raise choice_error("method", self.method, METHODS)
+        stages = {"kinematic": (), "mpc-base": ("mpc",), "mpc-soften": ("mpc",)}.get(self.method, self.stages)
+        bad = [s for s in stages if s not in STAGES]
+        if bad:
+            raise choice_error("stage", bad[0], STAGES)
+        if "mpc" in stages and self.target != "mujoco":
+            raise QuasisimError(
+                f"closed-loop MPC runs in MuJoCo only (target {self.target!r}); use --target mujoco or leave out "
+                "the mpc stage"
+            )
+        return dataclasses.replace(self, stages=tuple(s for s in STAGES if s in stages))
+
+
+def parse_stages(text: str) -> tuple[str, ...]:
+    """``"1,2"`` -> ("1", "2"); only the stages this package implements are accepted."""
+    stages = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [s for s in stages if s not in STAGES]
+    if bad or not stages:
+        raise QuasisimError(
+            f"unknown stage(s) {', '.join(bad) or '(none given)'}; valid stages: {', '.join(STAGES)} "
+            "(stage 3, fitting residual physics to the target, is not implemented yet)"
+        )
+    return tuple(s for s in STAGES if s in stages)

@@ -1,0 +1,116 @@
+"""Stage 1: transfer via point dynamics (paper appendix "Evaluation process", stage 1).
+
+a. a dynamic human hand built from the demo's own keypoints (:mod:`quasisim.assets.human_hand`) is fitted
+   to the demo kinematically;
+b. its point-set controls are optimised in the curriculum's first (relaxed, alpha > 0) simulator so that
+   the object follows the demo: :func:`human_point_set`;
+c. the robot hand is retargeted kinematically (:mod:`quasisim.method.retarget`, run by the pipeline);
+d. the robot point set's controls are optimised to track the human point set (nearest-neighbour
+   correspondences from human to robot points at the object's motion onset) and the object:
+   :func:`robot_point_set`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from quasisim.assets.hand import HandModel
+from quasisim.assets.human_hand import RETARGET_SETTINGS, build_human_hand
+from quasisim.assets.object import ObjectAsset
+from quasisim.data.demo import Demo
+from quasisim.method.problem import Problem, make_problem
+from quasisim.method.retarget import RetargetOptions, RetargetResult, retarget
+from quasisim.optim.adam import Progress, StepBudget, StepLog, minimise
+from quasisim.optim.objective import Reference, Weights, hand_point_positions
+from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory
+from quasisim.rotations import quat_angle_deg
+from quasisim.sim.kinematics import fk_full, points_world
+from quasisim.sim.types import Params
+
+
+def motion_onset(demo: Demo, pos_tol: float = 0.005, deg_tol: float = 5.0) -> int:
+    """First frame at which the object is ``pos_tol`` m or ``deg_tol`` deg away from its first pose
+    (the middle frame when it never moves)."""
+    d = np.linalg.norm(demo.object_pos - demo.object_pos[0], axis=1)
+    a = quat_angle_deg(np.broadcast_to(demo.object_quat[0], demo.object_quat.shape), demo.object_quat)
+    moved = np.flatnonzero((d >= pos_tol) | (a >= deg_tol))
+    return int(moved[0]) if len(moved) else demo.n_frames // 2
+
+
+def fit_human_hand(human: HandModel, demo: Demo) -> RetargetResult:
+    """Stage 1a: per-frame keypoint IK of the dynamic human hand to the demo's keypoints (tight settings:
+    the human hand can reach every demo pose). ``q`` (T, 6 + J), the base frame and the errors."""
+    return retarget(human, demo, RetargetOptions(**RETARGET_SETTINGS))
+
+
+def human_point_set(
+    demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, contact: dict[str, float], weights: Weights,
+    sb: StepBudget, progress: Progress, label: str,
+) -> dict[str, Any]:  # fmt: skip
+    """Stages 1a and 1b. Returns ``points``: the human point set per frame (T, P, 3) m, ``losses``, the
+    human hand's kinematic fit error and the wall time."""
+    t0 = time.perf_counter()
+    human = build_human_hand(demo.right_joints)
+    fit = fit_human_hand(human, demo)
+    prob = make_problem(demo, human, fit.base_rot, substeps, n_candidates, obj)
+    params = prob.params(contact)
+    ref = Reference.from_demo(demo, human.kp_human, np.arange(len(human.kp_human)))
+    vg = jax.jit(jax.value_and_grad(prob.objective(ref), argnums=0, has_aux=True))
+    sysid, w = SysID.init(), weights.arrays(points=0.0)
+    traj, log = minimise(
+        lambda x: vg(x, sysid, params, w), Trajectory.from_q(fit.q, prob.model.n_points), sb.control_steps,
+        sb.control_lr, sb, progress, f"stage 1b human point set ({label})",
+    )  # fmt: skip
+    return {
+        "points": np.asarray(_point_set_over_time(prob, params)(traj), np.float32),
+        "losses": np.asarray(log.losses, np.float64),
+        "human_fit_error_mm": np.array(float(fit.mean_metric_error_mm)),
+        "wall_s": np.array(time.perf_counter() - t0),
+    }
+
+
+def _point_set_over_time(prob: Problem, params: Params) -> Any:
+    """jit-compiled ``traj -> (T, P, 3)``: all hand points at frame 0 and along the rollout of ``traj``."""
+    model = prob.model
+
+    @jax.jit
+    def points_of(traj: Trajectory) -> jax.Array:
+        p = hand_point_positions(model, params, prob.simulate(params, traj), np.arange(model.n_points))
+        q0 = jnp.concatenate([traj.base[0], traj.joints[0]])
+        poses = fk_full(prob.hand, jnp.asarray(prob.base_rot, jnp.float32), q0)
+        return jnp.concatenate([points_world(poses, model.point_body, model.point_local)[None], p], axis=0)
+
+    return points_of
+
+
+def correspondences(prob: Problem, kinematic_q: np.ndarray, human_points: np.ndarray) -> np.ndarray:
+    """(P,) for each human point the nearest robot point, both at the object's motion onset."""
+    onset = motion_onset(prob.demo)
+    _, index = cKDTree(prob.points_at(kinematic_q[onset])).query(human_points[onset])
+    return index
+
+
+def robot_point_set(
+    vg: Any, traj: Trajectory, sysid: SysID, params: Params, weights: Weights, sb: StepBudget, progress: Progress,
+    label: str,
+) -> tuple[Trajectory, StepLog]:  # fmt: skip
+    """Stage 1d: optimise the robot's controls in the relaxed simulator ``params``; ``vg`` is the jitted
+    value and gradient (w.r.t. trajectory and S) of an objective whose reference holds the human points."""
+    w = weights.arrays()
+    return minimise(
+        lambda x: pick_grad(vg(x, sysid, params, w), 0), traj, sb.control_steps, sb.control_lr, sb, progress,
+        f"stage 1d robot point set ({label})",
+    )  # fmt: skip
+
+
+def pick_grad(res: tuple[tuple[Any, Any], tuple[Any, Any]], i: int) -> tuple[tuple[Any, Any], Any]:
+    """``((loss, terms), grads)`` -> ``((loss, terms), grads[i])`` (one compiled program, two uses)."""
+    (loss, terms), grads = res
+    return (loss, terms), grads[i]

@@ -1,0 +1,74 @@
+"""Stage 2: the contact curriculum (alpha = 0), soft to stiff.
+
+In each rigid simulator of the curriculum: a restart guard picks the starting trajectory, then S (object
+mass, inertia scale, velocity damping) is identified with the controls fixed, then the controls are
+optimised with S fixed (paper appendix "Evaluation process", stage 2).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from quasisim.method.checkpoints import trajectory_arrays
+from quasisim.method.stage1 import pick_grad
+from quasisim.optim.adam import Progress, StepBudget, StepLog, minimise
+from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory
+from quasisim.sim.types import Params
+
+
+def restart_guard(
+    vg: Any, candidates: dict[str, Trajectory], sysid: SysID, params: Params, w: dict[str, Any]
+) -> tuple[str, dict[str, float]]:
+    """The candidate start with the lowest loss in the simulator ``params`` and every candidate's loss.
+
+    A trajectory found in a softer simulator can score worse in the next one than the stage's start or the
+    kinematic retarget (grasps held from a distance collapse when contact requires touching)."""
+    losses = {k: float(vg(t, sysid, params, w)[0][0]) for k, t in candidates.items()}
+    return min(losses, key=losses.__getitem__), losses
+
+
+def one_simulator(
+    vg: Any, traj: Trajectory, sysid: SysID, params: Params, w: dict[str, Any], sb: StepBudget, progress: Progress,
+    label: str,
+) -> tuple[Trajectory, SysID, StepLog, StepLog]:  # fmt: skip
+    """Identify S with the controls fixed, then optimise the controls with S fixed."""
+    log_s = StepLog()
+    if sb.sysid_steps > 0:
+        sysid, log_s = minimise(
+            lambda s: pick_grad(vg(traj, s, params, w), 1), sysid, sb.sysid_steps, sb.sysid_lr, sb, progress,
+            f"{label} identify S",
+        )  # fmt: skip
+    traj, log_c = minimise(
+        lambda x: pick_grad(vg(x, sysid, params, w), 0), traj, sb.control_steps, sb.control_lr, sb, progress,
+        f"{label} controls",
+    )  # fmt: skip
+    return traj, sysid, log_s, log_c
+
+
+def run_simulator(
+    vg: Any, traj: Trajectory, sysid: SysID, params: Params, w: dict[str, Any], sb: StepBudget, progress: Progress,
+    label: str, restart_from: dict[str, Trajectory] | None,
+) -> dict[str, Any]:  # fmt: skip
+    """One simulator of stage 2 as checkpoint arrays: the restart guard (when ``restart_from`` names
+    alternatives to ``traj``), identification, control optimisation, losses and wall time."""
+    t0 = time.perf_counter()
+    start_losses: dict[str, float] = {}
+    if restart_from:
+        best, start_losses = restart_guard(vg, {"previous": traj, **restart_from}, sysid, params, w)
+        if best != "previous":
+            progress.write(
+                f"{label}: restarting from {best} ({start_losses[best]:.5f} < previous {start_losses['previous']:.5f})"
+            )
+            traj = restart_from[best]
+    traj, sysid, log_s, log_c = one_simulator(vg, traj, sysid, params, w, sb, progress, label)
+    d = trajectory_arrays(traj, sysid, None, time.perf_counter() - t0)
+    d["losses"] = np.asarray(log_s.losses + log_c.losses, np.float64)
+    d["n_sysid"] = np.array(len(log_s.losses))
+    d["terms"] = np.array(json.dumps(log_c.terms[-1] if log_c.terms else {}))
+    d["start_losses"] = np.array(json.dumps(start_losses))
+    return d

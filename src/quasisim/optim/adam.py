@@ -1,0 +1,126 @@
+"""The optimisation loop: Adam (optax) with early termination, keeping the best iterate; progress bars."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import numpy as np
+import optax
+from tqdm import tqdm
+
+Array = jax.Array
+ValueAndGrad = Callable[[Any], tuple[tuple[Array, dict[str, Array]], Any]]
+OnStep = Callable[[int, float], None]
+
+
+@dataclass(frozen=True)
+class StepBudget:
+    """Adam steps for one optimisation (values: ``configs/transfer.yaml``; paper: 100 control and 1000
+    identification steps per simulator).
+
+    Attributes:
+        control_steps, sysid_steps: maximum steps.  control_lr, sysid_lr: Adam step sizes.
+        patience: stop after this many steps without a relative improvement of ``min_rel_improvement``.
+    """
+
+    control_steps: int
+    sysid_steps: int
+    control_lr: float
+    sysid_lr: float
+    patience: int
+    min_rel_improvement: float
+
+
+@dataclass
+class StepLog:
+    """Loss history of one optimisation run."""
+
+    losses: list[float] = dataclasses.field(default_factory=list)
+    terms: list[dict[str, float]] = dataclasses.field(default_factory=list)
+    best: float = float("inf")
+    wall_s: float = 0.0
+    stopped_early: bool = False
+
+
+def adam_steps(
+    value_and_grad: ValueAndGrad,
+    x0: Any,
+    steps: int,
+    lr: float,
+    patience: int,
+    min_rel_improvement: float,
+    mask: Callable[[Any], Any] | None = None,
+    on_step: OnStep | None = None,
+) -> tuple[Any, StepLog]:
+    """Minimise with Adam; return the best iterate (the loss is evaluated before each update, so the
+    returned point is one whose loss was measured) and the loss history. ``mask`` zeroes gradient
+    leaves that must stay fixed. Stops early after ``patience`` steps without a relative improvement."""
+    tx = optax.adam(lr)
+    x, st = x0, tx.init(x0)
+    log = StepLog()
+    best_x, since = x0, 0
+    t0 = time.perf_counter()
+    for k in range(steps + 1):
+        (loss, terms), g = value_and_grad(x)
+        lv = float(loss)
+        if not np.isfinite(lv):
+            log.stopped_early = True
+            break
+        log.losses.append(lv)
+        log.terms.append({n: float(v) for n, v in terms.items()})
+        since = 0 if (lv < log.best * (1.0 - min_rel_improvement) or k == 0) else since + 1
+        if lv < log.best:
+            log.best, best_x = lv, x
+        if on_step is not None:
+            on_step(k, lv)
+        if k == steps or since >= patience:
+            log.stopped_early = k < steps
+            break
+        if mask is not None:
+            g = mask(g)
+        upd, st = tx.update(g, st, x)
+        x = optax.apply_updates(x, upd)
+    log.wall_s = time.perf_counter() - t0
+    return best_x, log
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Progress output of a long run: a tqdm bar per optimisation and one-line messages (or nothing)."""
+
+    enabled: bool = True
+
+    @contextmanager
+    def steps(self, desc: str, total: int) -> Iterator[OnStep | None]:
+        """A bar over ``total + 1`` loss evaluations; yields the ``on_step`` callback of :func:`adam_steps`."""
+        if not self.enabled:
+            yield None
+            return
+        bar = tqdm(total=total + 1, desc=desc, unit="step", leave=False, dynamic_ncols=True)
+
+        def on_step(k: int, loss: float) -> None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.5f}")
+
+        try:
+            yield on_step
+        finally:
+            bar.close()
+
+    def write(self, text: str) -> None:
+        if self.enabled:
+            tqdm.write(text)
+
+
+def minimise(
+    value_and_grad: ValueAndGrad, x0: Any, steps: int, lr: float, budget: StepBudget, progress: Progress, desc: str
+) -> tuple[Any, StepLog]:
+    """:func:`adam_steps` with ``budget``'s early termination and a progress bar named ``desc``."""
+    with progress.steps(desc, steps) as on_step:
+        return adam_steps(value_and_grad, x0, steps, lr, budget.patience, budget.min_rel_improvement, on_step=on_step)

@@ -1,0 +1,195 @@
+"""The tracking objective (paper appendix "Optimization objective"), one implementation for every stage.
+
+``loss = w_o f_O + w_h f_H`` plus small regularisers, with
+
+* ``f_O``: object translation ``|t - t_ref|`` (m) and rotation ``1 - |q . q_ref|`` (dimensionless), means
+  over frames;
+* ``f_H``: the mean distance (m) of the robot's metric keypoints to the human keypoints;
+* ``points`` (stage 1d): the mean distance of hand points to their targets (the human point set);
+* ``smooth``: squared second differences of the PD targets; ``point_force``: squared free point forces.
+
+:func:`make_objective` scores a whole clip from its first frame (stages 1-2, S identification);
+:func:`make_window_objective` a few frames from an observed state (MPC). Both call :func:`tracking_terms`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from quasisim.data.demo import Demo
+from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory, sim_controls, simulate
+from quasisim.rotations import quat_to_mat
+from quasisim.sim.kinematics import forward_kinematics, keypoints, points_world
+from quasisim.sim.step import object_pose, rollout
+from quasisim.sim.types import Model, Params, State
+
+Array = jax.Array
+F32 = jnp.float32
+Objective = Callable[[Trajectory, SysID, Params, dict[str, Array]], tuple[Array, dict[str, Array]]]
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Weights of the objective terms (values: ``configs/transfer.yaml``; paper: w_o = w_h = 1).
+
+    Attributes:
+        obj_pos: object translation term (per m).  obj_rot: ``1 - |q . q_ref|``.
+        hand: mean keypoint distance f_H (per m).  points: mean distance of corresponding hand points (per m).
+        smooth: squared second differences of the base and joint targets (per (m or rad)^2).
+        point_force: squared free point forces (per N^2), keeps the relaxed points near their bodies.
+    """
+
+    obj_pos: float
+    obj_rot: float
+    hand: float
+    points: float
+    smooth: float
+    point_force: float
+
+    def arrays(self, **override: float) -> dict[str, Array]:
+        """The weights as JAX scalars (the objective's ``weights`` argument; changing them never recompiles)."""
+        d = {**dataclasses.asdict(self), **override}
+        return {k: jnp.asarray(v, F32) for k, v in d.items()}
+
+
+@dataclass(frozen=True, eq=False)
+class Reference:
+    """What the hand and object should do (world frame, frames 1..T-1 after the rollout's start).
+
+    Attributes:
+        obj_pos: (F, 3) object frame origin.  obj_quat: (F, 4) w x y z.
+        keypoints: (F, K, 3) human keypoints for the robot keypoints ``kp_index`` (K,).
+        points: (F, P, 3) target positions of hand points (stage 1: the human point set) or None.
+        point_index: (P,) the hand point that should follow each target point.
+    """
+
+    obj_pos: np.ndarray
+    obj_quat: np.ndarray
+    keypoints: np.ndarray
+    kp_index: np.ndarray
+    points: np.ndarray | None = None
+    point_index: np.ndarray | None = None
+
+    @staticmethod
+    def from_demo(
+        demo: Demo, kp_human: np.ndarray, kp_index: np.ndarray, points: np.ndarray | None = None,
+        point_index: np.ndarray | None = None,
+    ) -> Reference:  # fmt: skip
+        """The demo's frames 1..T-1; robot keypoint ``kp_index[k]`` follows human keypoint ``kp_human[kp_index[k]]``;
+        ``points`` (T, P, 3) per frame, when given."""
+        return Reference(
+            obj_pos=demo.object_pos[1:], obj_quat=demo.object_quat[1:],
+            keypoints=demo.right_joints[1:, kp_human[kp_index]], kp_index=kp_index,
+            points=None if points is None else points[1:], point_index=point_index,
+        )  # fmt: skip
+
+
+def hand_keypoints(model: Model, states: State) -> Array:
+    """(F, K, 3) world positions of all robot keypoints along a rollout."""
+
+    def one(s: State) -> Array:
+        poses = forward_kinematics(model.hand, s.root_pos, quat_to_mat(s.root_quat), s.q)
+        return model.to_world(keypoints(model.hand, poses))
+
+    return jax.vmap(one)(states)
+
+
+def hand_point_positions(model: Model, params: Params, states: State, index: np.ndarray) -> Array:
+    """(F, P, 3) world positions of hand points ``index`` (including the relaxed offsets)."""
+    body = jnp.asarray(model.point_body[index])
+    local = model.point_local[index]
+
+    def one(s: State) -> Array:
+        poses = forward_kinematics(model.hand, s.root_pos, quat_to_mat(s.root_quat), s.q)
+        return model.to_world(points_world(poses, body, local) + params.alpha * s.delta[index])
+
+    return jax.vmap(one)(states)
+
+
+def _norm(x: Array) -> Array:
+    return jnp.sqrt(jnp.sum(x * x, axis=-1) + 1e-12)
+
+
+def frame_mean(err: Array, frame_w: Array | None) -> Array:
+    """Mean of per-frame errors ``err`` (F, ...): over everything when ``frame_w`` is None, else the
+    ``frame_w`` (F,)-weighted mean over frames of each frame's mean (frames of weight 0 drop out)."""
+    if frame_w is None:
+        return jnp.mean(err)
+    per_frame = jnp.mean(err, axis=tuple(range(1, err.ndim))) if err.ndim > 1 else err
+    return jnp.sum(frame_w * per_frame) / jnp.maximum(jnp.sum(frame_w), 1.0)
+
+
+def tracking_terms(
+    model: Model, params: Params, states: State, ref: Reference, frame_w: Array | None = None
+) -> dict[str, Array]:
+    """The tracking terms of a rollout ``states`` (F frames) against ``ref`` (each a scalar mean over frames)."""
+    pos, quat = object_pose(model, states)
+    kp = hand_keypoints(model, states)[:, ref.kp_index]
+    terms = {
+        "obj_pos": frame_mean(_norm(pos - jnp.asarray(ref.obj_pos, F32)), frame_w),
+        "obj_rot": frame_mean(1.0 - jnp.abs(jnp.sum(quat * jnp.asarray(ref.obj_quat, F32), axis=-1)), frame_w),
+        "hand": frame_mean(_norm(kp - jnp.asarray(ref.keypoints, F32)), frame_w),
+    }
+    if ref.points is not None:
+        hp = hand_point_positions(model, params, states, np.asarray(ref.point_index))
+        terms["points"] = frame_mean(_norm(hp - jnp.asarray(ref.points, F32)), frame_w)
+    return terms
+
+
+def smoothness(traj: Trajectory) -> Array:
+    """Mean squared second differences of the base and joint PD targets."""
+    return jnp.mean(jnp.diff(traj.base, 2, axis=0) ** 2) + jnp.mean(jnp.diff(traj.joints, 2, axis=0) ** 2)
+
+
+def weighted_sum(terms: dict[str, Array], weights: dict[str, Array]) -> Array:
+    """``sum_k weights[k] * terms[k]``."""
+    return sum(weights[k] * v for k, v in terms.items())  # type: ignore[return-value]
+
+
+def make_objective(
+    model: Model, ref: Reference, base_quat: np.ndarray, fps: float, obj0: tuple[np.ndarray, np.ndarray],
+    mass0: float, inertia0: np.ndarray,
+) -> Objective:  # fmt: skip
+    """``objective(traj, sysid, params, weights) -> (loss, terms)``: roll ``traj`` out from the demo's first
+    object pose ``obj0`` in the simulator ``params`` (with S from ``sysid``) and score it against ``ref``.
+    One differentiable function serves control optimisation and identification (one compiled program)."""
+    bq = jnp.asarray(base_quat, F32)
+
+    def objective(
+        traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
+    ) -> tuple[Array, dict[str, Array]]:
+        p = sysid.apply(params, mass0, inertia0)
+        states = simulate(model, p, traj, bq, fps, obj0)
+        terms = tracking_terms(model, p, states, ref)
+        terms["smooth"] = smoothness(traj)
+        terms["point_force"] = jnp.mean(jnp.sum(traj.point_force**2, -1)) * p.alpha
+        return weighted_sum(terms, weights), terms
+
+    return objective
+
+
+def make_window_objective(model: Model, base_quat: np.ndarray, fps: float, kp_index: np.ndarray) -> Any:
+    """``f(win, s0, params, ref_pos, ref_quat, ref_kp, frame_w, weights) -> (loss, terms)`` over one MPC window:
+    ``win`` (q + 1 frames of PD targets, the first being the targets the step starts from) rolled out from
+    the observed state ``s0``; references (q, ...) for the window's frames; ``frame_w`` (q,) masks frames
+    past the clip's end."""
+    bq = jnp.asarray(base_quat, F32)
+
+    def f(
+        win: Trajectory, s0: State, params: Params, ref_pos: Array, ref_quat: Array, ref_kp: Array, frame_w: Array,
+        weights: dict[str, Array],
+    ) -> tuple[Array, dict[str, Array]]:  # fmt: skip
+        states = rollout(model, params, s0, sim_controls(win, bq, fps))
+        terms = tracking_terms(model, params, states, Reference(ref_pos, ref_quat, ref_kp, kp_index), frame_w)
+        terms["smooth"] = smoothness(win)
+        return weighted_sum(terms, weights), terms
+
+    return f
