@@ -1,0 +1,1 @@
+"""Control methods that turn a demonstration into PD-target trajectories for the target simulators."""
