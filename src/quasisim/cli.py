@@ -138,14 +138,16 @@ _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
     "--stages",
     default=",".join(_SPEC.stages),
     show_default=True,
-    help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo).",
+    help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo with the "
+    "quasi-physical model, sample: sampling MPC in the target).",
 )
 @click.option(
     "--method",
     type=click.Choice(METHODS),
     default=_SPEC.method,
     show_default=True,
-    help="ours: the curriculum stages; mpc-base / mpc-soften: MPC baselines without the curriculum; "
+    help="ours: the stages given; mpc-base / mpc-soften: gradient MPC baselines without the curriculum; "
+    "sample-target: sampling MPC with the target itself as the model, from the kinematic retarget; "
     "kinematic: the kinematic retarget only.",
 )
 @click.option("--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper.")

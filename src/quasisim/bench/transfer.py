@@ -23,18 +23,21 @@ from quasisim.files import save_json_atomic
 from quasisim.method.curriculum import load_curriculum
 from quasisim.method.pipeline import TransferSpec, run_transfer
 
-RUN_KINDS = "CURRICULUM (stages 1,2), CURRICULUM+mpc (stages 1,2,mpc), mpc-base, mpc-soften"
+RUN_KINDS = (
+    "CURRICULUM (stages 1,2), CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+mpc+sample (those stages after 1,2), "
+    "mpc-base, mpc-soften, sample-target"
+)
 
 
 def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferSpec:
     """A benchmark run name (``default``, ``none+mpc``, ``mpc-base`` ...) as the transfer it stands for."""
-    if run in ("mpc-base", "mpc-soften"):
-        return dataclasses.replace(base, method=run, curriculum="none", stages=("mpc",))
-    cur, _, extra = run.partition("+")
-    if extra not in ("", "mpc"):
+    if run in ("mpc-base", "mpc-soften", "sample-target"):
+        return dataclasses.replace(base, method=run, curriculum="none").checked()
+    cur, *extra = run.split("+")
+    if not set(extra) <= {"mpc", "sample"} or len(set(extra)) < len(extra):
         raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
     load_curriculum(cur)
-    return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, "mpc") if extra else stages)
+    return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, *extra)).checked()
 
 
 def _run_once(demo_path: Path, run_dir: Path, spec: TransferSpec, base_checkpoints: Path | None) -> None:

@@ -14,6 +14,7 @@ from typing import Any
 from quasisim.config import apply_overrides, build, read_yaml
 from quasisim.errors import InputError, choice_error
 from quasisim.method.mpc import MPCOptions
+from quasisim.method.sample_target import SamplingOptions
 from quasisim.optim.adam import StepBudget
 from quasisim.optim.objective import Weights
 
@@ -39,12 +40,13 @@ class Budget:
 
 @dataclass(frozen=True)
 class TransferConfig:
-    """Objective weights, named budgets and closed-loop MPC settings (``configs/transfer.yaml``)."""
+    """Objective weights, named budgets, closed-loop MPC and sampling settings (``configs/transfer.yaml``)."""
 
     weights: Weights
     budgets: dict[str, Budget]
     mpc: MPCOptions
     soften_samples: int
+    sample_target: SamplingOptions
     path: str = ""
 
     @classmethod
@@ -75,6 +77,7 @@ class TransferConfig:
         """The settings that determine a run's results (recorded in its checkpoints)."""
         return {
             "mpc": dataclasses.asdict(self.mpc),
+            "sample_target": dataclasses.asdict(self.sample_target),
             "budget_settings": dataclasses.asdict(self.budget(budget)),
             "weights": dataclasses.asdict(self.weights),
         }

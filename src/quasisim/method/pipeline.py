@@ -2,7 +2,8 @@
 
 :func:`run_transfer` reads like the method: kinematic retargeting gives the first trajectory; stage 1
 transfers the demo through point dynamics in the curriculum's relaxed simulator; stage 2 follows the
-contact curriculum from soft to stiff; closed-loop MPC then tracks the result in the target. Every
+contact curriculum from soft to stiff; closed-loop MPC then tracks the result in the target, with the
+quasi-physical simulator as its model (``mpc``) or the target itself (``sample``). Every
 finished piece is checkpointed (``OUT/checkpoints``) and ``resume=True`` continues after the last one.
 The result's PD targets are the optimised trajectory itself (the quasi-physical hand is driven by the
 same PD targets as the target simulators).
@@ -33,6 +34,7 @@ from quasisim.method.mpc import run_mpc
 from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_outputs
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget
+from quasisim.method.sample_target import run_sample_target
 from quasisim.method.spec import TransferSpec
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import Objective
@@ -76,7 +78,10 @@ def run_transfer(
     if "mpc" in spec.stages:
         extras["plan_q"] = q_out
         q_out = _closed_loop(prob, cfg, spec, ck, plan.traj, model_params, progress, record)
-    if spec.stages:
+    if "sample" in spec.stages:
+        extras["sample_nominal_q"] = q_out
+        q_out = _sample_in_target(prob, cfg, spec, ck, q_out, progress, record)
+    if {"1", "2", "mpc"} & set(spec.stages):
         extras["sim_qpos"] = sim_qpos(prob, model_params, plan.traj)
     label = {"ours": "transfer"}.get(spec.method, spec.method)
     controls = Controls(
@@ -189,6 +194,29 @@ def _closed_loop(
     record.seconds["mpc"] = float(d["wall_s"])
     record.curves["mpc window loss per frame"] = [float(x) for x in d["window_loss"]]
     progress.write(f"mpc done in {record.seconds['mpc']:.0f} s")
+    return np.asarray(d["q_targets"], np.float64)
+
+
+def _sample_in_target(
+    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, nominal: np.ndarray, progress: Progress,
+    record: RunRecord,
+) -> np.ndarray:  # fmt: skip
+    """Sampling MPC in the target itself around the ``nominal`` PD targets (the result of the stages before
+    it; the kinematic retarget for the ``sample-target`` baseline)."""
+
+    def sample() -> dict[str, Any]:
+        r = run_sample_target(
+            prob.demo, prob.scene, nominal, cfg.sample_target, cfg.weights, spec.target, spec.progress
+        )
+        return {
+            "q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s),
+            "n_physics_steps": np.array(r.n_physics_steps),
+        }  # fmt: skip
+
+    d = ck.get("sample", sample)
+    record.seconds["sample"] = float(d["wall_s"])
+    record.curves["sampling window loss per frame"] = [float(x) for x in d["window_loss"]]
+    progress.write(f"sampling in {spec.target} done in {record.seconds['sample']:.0f} s")
     return np.asarray(d["q_targets"], np.float64)
 
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.targets import TARGETS
 
-STAGES = ("1", "2", "mpc")
-METHODS = ("ours", "mpc-base", "mpc-soften", "kinematic")
+STAGES = ("1", "2", "mpc", "sample")
+METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
 
 
 @dataclass(frozen=True)
@@ -20,7 +20,8 @@ class TransferSpec:
         hand: built-in hand name or hand YAML path.  target: simulator that judges the result.
         curriculum: built-in curriculum name or YAML path.  stages: of :data:`~quasisim.method.config.STAGES`.
         budget: a budget of the transfer config.  method: of :data:`~quasisim.method.config.METHODS`
-            (``mpc-base``/``mpc-soften`` run only the MPC stage, ``kinematic`` no stage).
+            (``mpc-base``/``mpc-soften`` run only the MPC stage, ``sample-target`` only the sampling stage,
+            ``kinematic`` no stage).
         render: render the report's video.  progress: show progress bars.
     """
 
@@ -39,7 +40,8 @@ class TransferSpec:
             raise choice_error("target", self.target, TARGETS)
         if self.method not in METHODS:
             raise choice_error("method", self.method, METHODS)
-        stages = {"kinematic": (), "mpc-base": ("mpc",), "mpc-soften": ("mpc",)}.get(self.method, self.stages)
+        implied = {"kinematic": (), "mpc-base": ("mpc",), "mpc-soften": ("mpc",), "sample-target": ("sample",)}
+        stages = implied.get(self.method, self.stages)
         bad = [s for s in stages if s not in STAGES]
         if bad:
             raise choice_error("stage", bad[0], STAGES)

@@ -9,7 +9,8 @@
 * ``smooth``: squared second differences of the PD targets; ``point_force``: squared free point forces.
 
 :func:`make_objective` scores a whole clip from its first frame (stages 1-2, S identification);
-:func:`make_window_objective` a few frames from an observed state (MPC). Both call :func:`tracking_terms`.
+:func:`make_window_objective` a few frames from an observed state (MPC); :func:`window_costs` candidate
+windows measured in a target (sampling MPC). All three call :func:`tracking_errors`.
 """
 
 from __future__ import annotations
@@ -127,26 +128,36 @@ def frame_mean(err: Array, frame_w: Array | None) -> Array:
     return jnp.sum(frame_w * per_frame) / jnp.maximum(jnp.sum(frame_w), 1.0)
 
 
+def tracking_errors(
+    pos: Array, quat: Array, kp: Array, ref_pos: Array, ref_quat: Array, ref_kp: Array, frame_w: Array | None = None
+) -> dict[str, Array]:
+    """The object and hand terms from an object trajectory ``pos`` (F, 3), ``quat`` (F, 4) and keypoints
+    ``kp`` (F, K, 3) against their references (any simulator's: the quasi-physical one or a target's)."""
+    return {
+        "obj_pos": frame_mean(_norm(pos - jnp.asarray(ref_pos, F32)), frame_w),
+        "obj_rot": frame_mean(1.0 - jnp.abs(jnp.sum(quat * jnp.asarray(ref_quat, F32), axis=-1)), frame_w),
+        "hand": frame_mean(_norm(kp - jnp.asarray(ref_kp, F32)), frame_w),
+    }
+
+
 def tracking_terms(
     model: Model, params: Params, states: State, ref: Reference, frame_w: Array | None = None
 ) -> dict[str, Array]:
     """The tracking terms of a rollout ``states`` (F frames) against ``ref`` (each a scalar mean over frames)."""
     pos, quat = object_pose(model, states)
     kp = hand_keypoints(model, states)[:, ref.kp_index]
-    terms = {
-        "obj_pos": frame_mean(_norm(pos - jnp.asarray(ref.obj_pos, F32)), frame_w),
-        "obj_rot": frame_mean(1.0 - jnp.abs(jnp.sum(quat * jnp.asarray(ref.obj_quat, F32), axis=-1)), frame_w),
-        "hand": frame_mean(_norm(kp - jnp.asarray(ref.keypoints, F32)), frame_w),
-    }
+    terms = tracking_errors(pos, quat, kp, ref.obj_pos, ref.obj_quat, ref.keypoints, frame_w)
     if ref.points is not None:
         hp = hand_point_positions(model, params, states, np.asarray(ref.point_index))
         terms["points"] = frame_mean(_norm(hp - jnp.asarray(ref.points, F32)), frame_w)
     return terms
 
 
-def smoothness(traj: Trajectory) -> Array:
-    """Mean squared second differences of the base and joint PD targets."""
-    return jnp.mean(jnp.diff(traj.base, 2, axis=0) ** 2) + jnp.mean(jnp.diff(traj.joints, 2, axis=0) ** 2)
+def smoothness(base: Array, joints: Array) -> Array:
+    """Mean squared second differences of the base (T, 6) and joint (T, J) PD targets (0 for T < 3)."""
+    if base.shape[0] < 3:
+        return jnp.zeros((), F32)
+    return jnp.mean(jnp.diff(base, 2, axis=0) ** 2) + jnp.mean(jnp.diff(joints, 2, axis=0) ** 2)
 
 
 def weighted_sum(terms: dict[str, Array], weights: dict[str, Array]) -> Array:
@@ -169,7 +180,7 @@ def make_objective(
         p = sysid.apply(params, mass0, inertia0)
         states = simulate(model, p, traj, bq, fps, obj0)
         terms = tracking_terms(model, p, states, ref)
-        terms["smooth"] = smoothness(traj)
+        terms["smooth"] = smoothness(traj.base, traj.joints)
         terms["point_force"] = jnp.mean(jnp.sum(traj.point_force**2, -1)) * p.alpha
         return weighted_sum(terms, weights), terms
 
@@ -189,7 +200,24 @@ def make_window_objective(model: Model, base_quat: np.ndarray, fps: float, kp_in
     ) -> tuple[Array, dict[str, Array]]:  # fmt: skip
         states = rollout(model, params, s0, sim_controls(win, bq, fps))
         terms = tracking_terms(model, params, states, Reference(ref_pos, ref_quat, ref_kp, kp_index), frame_w)
-        terms["smooth"] = smoothness(win)
+        terms["smooth"] = smoothness(win.base, win.joints)
         return weighted_sum(terms, weights), terms
 
     return f
+
+
+@jax.jit
+def window_costs(
+    pos: Array, quat: Array, kp: Array, wins: Array, ref_pos: Array, ref_quat: Array, ref_kp: Array,
+    frame_w: Array, weights: dict[str, Array],
+) -> Array:  # fmt: skip
+    """(N,) the MPC window objective of N candidate windows measured in a target: object trajectories
+    ``pos`` (N, H, 3), ``quat`` (N, H, 4), keypoints ``kp`` (N, H, K, 3), the windows' PD targets ``wins``
+    (N, H + 1, 6 + J); references (H, ...) and ``frame_w`` (H,) as in :func:`make_window_objective`."""
+
+    def one(p: Array, q: Array, k: Array, w: Array) -> Array:
+        terms = tracking_errors(p, q, k, ref_pos, ref_quat, ref_kp, frame_w)
+        terms["smooth"] = smoothness(w[:, :6], w[:, 6:])
+        return weighted_sum(terms, weights)
+
+    return jax.vmap(one)(pos, quat, kp, wins)

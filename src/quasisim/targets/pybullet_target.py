@@ -391,57 +391,84 @@ class PybulletTarget:
         The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``); the
         world is rebuilt first when a previous rollout used it, so rollouts are reproducible.
         """
-        pb, kw = self.pb, self._kw()
         q_targets = np.asarray(q_targets, dtype=np.float64)
         hand = self.scene.hand
         if q_targets.ndim != 2 or q_targets.shape[1] != 6 + hand.n_joints:
             raise ValueError(f"q_targets must have shape (T, {6 + hand.n_joints}), got {q_targets.shape}")
-        if not self._fresh:
-            self._build()
-        self._fresh = False
-        T, fps, n, dt = len(q_targets), self.scene.fps, self.substeps, self.scene.physics.pybullet_dt
-        pd = hand.config.pd
-        kp = np.array([pd.base_pos.kp] * 3 + [pd.base_rot.kp] * 3 + [pd.joint.kp] * hand.n_joints)
-        kv = np.array([pd.base_pos.kv] * 3 + [pd.base_rot.kv] * 3 + [pd.joint.kv] * hand.n_joints)
-        lim = np.r_[np.full(6, np.inf), np.full(hand.n_joints, pd.joint_force_limit)]
-        damp = np.r_[np.zeros(6), np.full(hand.n_joints, pd.joint_damping)]
-        D = dt * np.diag(kv + damp)
-        self.set_state(q_targets[0], (q_targets[1] - q_targets[0]) * fps if init_qvel and T > 1 else None)
-        self.set_object_pose(self.scene.object_pos0, self.scene.object_quat0)
-        joints, torque = self.dof_joint.tolist(), pb.TORQUE_CONTROL
+        T, fps = len(q_targets), self.scene.fps
+        self.reset(q_targets[0], (q_targets[1] - q_targets[0]) * fps if init_qvel and T > 1 else None)
         qpos = np.zeros((T, 6 + hand.n_joints))
         opos, oquat = np.zeros((T, 3)), np.zeros((T, 4))
         kps = np.zeros((T, len(hand.kp_names), 3))
         t0 = time.perf_counter()
         for t in range(T):
-            qpos[t] = self.joint_states()[0]
-            opos[t], oquat[t] = self.object_pose()
-            kps[t] = self.keypoints()
+            qpos[t], opos[t], oquat[t], kps[t] = self.frame_state()
             if t == T - 1:
                 break
-            qa, qb = q_targets[t], q_targets[t + 1]
-            ff = kv * (qb - qa) * fps  # kv qd*
-            for k in range(n):
-                s = (k + 1) / n
-                q, qd = self.joint_states()
-                M = self.mass_matrix(q)
-                e = kp * ((1 - s) * qa + s * qb - q)
-                v = np.linalg.solve(M + D, M @ qd + dt * (e + ff))  # end-of-step velocity
-                tau = np.clip(e - kv * v, -lim, lim) + ff - damp * v
-                pb.setJointMotorControlArray(self.hand_id, joints, torque, forces=tau.tolist(), **kw)
-                pb.stepSimulation(**kw)
-        wall = time.perf_counter() - t0
+            self.advance(q_targets[t], q_targets[t + 1])
+        return self.make_rollout(qpos, opos, oquat, kps, time.perf_counter() - t0)
+
+    def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> None:
+        """Start a run: rebuild the world when a previous run used it, put the hand at ``q0`` (6 + J) with
+        velocity ``qd0`` (default 0) and the object at the demo's initial pose, at rest."""
+        if not self._fresh:
+            self._build()
+        self._fresh = False
+        self.set_state(np.asarray(q0, dtype=np.float64), qd0)
+        self.set_object_pose(self.scene.object_pos0, self.scene.object_quat0)
+
+    def frame_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a rollout records per frame: hand ``qpos`` (6 + J), object position (3,) m and quaternion
+        (4,) w x y z, all keypoints (K, 3) m."""
+        qpos = self.joint_states()[0]
+        opos, oquat = self.object_pose()
+        return qpos, opos, oquat, self.keypoints()
+
+    def _pd_law(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per-dof ``kp``, ``kv``, PD torque limit and joint damping (6 + J each) of the PD law."""
+        hand = self.scene.hand
+        pd = hand.config.pd
+        kp = np.array([pd.base_pos.kp] * 3 + [pd.base_rot.kp] * 3 + [pd.joint.kp] * hand.n_joints)
+        kv = np.array([pd.base_pos.kv] * 3 + [pd.base_rot.kv] * 3 + [pd.joint.kv] * hand.n_joints)
+        lim = np.r_[np.full(6, np.inf), np.full(hand.n_joints, pd.joint_force_limit)]
+        damp = np.r_[np.zeros(6), np.full(hand.n_joints, pd.joint_damping)]
+        return kp, kv, lim, damp
+
+    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
+        """One control frame (``substeps`` physics steps): PD targets interpolated linearly from ``qa`` to
+        ``qb`` (6 + J each) with their velocity fed forward; the PD law of the module docstring."""
+        pb, kw = self.pb, self._kw()
+        fps, n, dt = self.scene.fps, self.substeps, self.scene.physics.pybullet_dt
+        kp, kv, lim, damp = self._pd_law()
+        D = dt * np.diag(kv + damp)
+        joints, torque = self.dof_joint.tolist(), pb.TORQUE_CONTROL
+        ff = kv * (qb - qa) * fps  # kv qd*
+        for k in range(n):
+            s = (k + 1) / n
+            q, qd = self.joint_states()
+            M = self.mass_matrix(q)
+            e = kp * ((1 - s) * qa + s * qb - q)
+            v = np.linalg.solve(M + D, M @ qd + dt * (e + ff))  # end-of-step velocity
+            tau = np.clip(e - kv * v, -lim, lim) + ff - damp * v
+            pb.setJointMotorControlArray(self.hand_id, joints, torque, forces=tau.tolist(), **kw)
+            pb.stepSimulation(**kw)
+
+    def make_rollout(
+        self, qpos: np.ndarray, opos: np.ndarray, oquat: np.ndarray, kps: np.ndarray, wall_s: float
+    ) -> TargetRollout:
+        """A :class:`TargetRollout` of recorded frames (the arrays of :meth:`frame_state`, stacked over T)."""
+        hand = self.scene.hand
         return TargetRollout(
             target=self.name,
-            qpos=qpos,
-            object_pos=opos,
-            object_quat=sign_continuous(oquat),
-            keypoints=kps,
+            qpos=np.asarray(qpos),
+            object_pos=np.asarray(opos),
+            object_quat=sign_continuous(np.asarray(oquat)),
+            keypoints=np.asarray(kps),
             kp_human=hand.kp_human.copy(),
             kp_metric=hand.kp_metric.copy(),
             dt=float(self.scene.physics.pybullet_dt),
-            substeps=n,
-            wall_s=wall,
+            substeps=self.substeps,
+            wall_s=wall_s,
         )
 
     # ---- lifetime --------------------------------------------------------------------------------

@@ -1,0 +1,498 @@
+"""Baseline ``sample-target``: predictive-sampling MPC with the target simulator itself as the model.
+
+At every control frame ``t`` of a clip with ``T`` frames:
+
+1. take the exact current state of the target (MuJoCo: ``mj_getState(..., mjSTATE_FULLPHYSICS)`` plus
+   ``qacc_warmstart``; PyBullet: ``saveState``);
+2. build ``samples`` candidate windows of the PD targets of frames ``t+1 .. t+horizon``: the nominal plan's
+   window and ``samples - 1`` perturbations. The noise is Gaussian on ``knots`` knots spread evenly over
+   the window and interpolated linearly to its frames; its std is ``noise_base_pos`` (m) on the base
+   position, ``noise_base_rot`` (rad) on the base angles and ``noise_joints`` on the joints, times a
+   per-candidate multiplier cycling through ``noise_scales``. Perturbed joint targets are clipped to the
+   hand's joint limits (widened to the nominal's own value where the nominal is outside them, so that a
+   zero perturbation is the nominal);
+3. roll every candidate out in the target from that state, with the per-physics-step controls of
+   :meth:`~quasisim.targets.mujoco_target.MujocoSession.advance` (MuJoCo: ``mujoco.rollout`` on a copy of
+   the scene with ``framepos`` sensors on the metric keypoint sites; PyBullet: one candidate after the
+   other from ``restoreState``);
+4. score each window with the MPC window objective (:func:`quasisim.optim.objective.window_costs`),
+   evaluated on the target's states: mean over the window's frames of ``obj_pos |p - p_ref|`` (m),
+   ``obj_rot (1 - |q . q_ref|)`` and ``hand`` x mean metric-keypoint distance (m), plus ``smooth`` x the
+   mean squared second differences of the window's base and joint targets (the window includes frame
+   ``t``). Frames past the clip's end reuse the last reference frame and are masked out of the means;
+5. ``predictive``: keep the cheapest window as the plan; ``mppi``: the plan becomes the
+   ``softmax(-cost / temperature)``-weighted mean of the windows. Apply the plan's first frame
+   (``t -> t+1``) in the target, record the frame, shift the window by one and repeat.
+
+The run starts from ``plan[0]``; the hand's initial velocity is that of the applied targets
+(``(q[1] - q[0]) fps``, per candidate at ``t = 0``), so the recorded run equals a plain replay of the applied
+targets (:meth:`~quasisim.targets.mujoco_target.MujocoTarget.rollout`).
+
+Suggested settings (all required; load with ``quasisim.config.build(SamplingOptions, data, path)``)::
+
+    sample_target:
+      samples: 24              # candidate windows per frame (the nominal + 23 perturbations)
+      horizon: 6               # frames per window
+      knots: 3                 # noise knots per window, linear in between
+      noise_base_pos: 0.004    # m
+      noise_base_rot: 0.04     # rad
+      noise_joints: 0.08       # rad (m for slide joints)
+      noise_scales: [0.5, 1.0, 2.0]  # per-candidate multipliers of the noise std, cycled
+      mode: predictive         # predictive | mppi
+      temperature: 0.003       # mppi only: softmax temperature, in cost units
+      seed: 0
+      threads: 2               # MuJoCo rollout threads
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from tqdm import tqdm
+
+from quasisim.data.demo import Demo
+from quasisim.errors import QuasisimError, choice_error
+from quasisim.optim import objective
+from quasisim.optim.objective import Weights
+from quasisim.targets import TARGETS, TargetRollout
+from quasisim.targets.scene import Scene
+
+MODES = ("predictive", "mppi")
+
+
+@dataclass(frozen=True)
+class SamplingOptions:
+    """Predictive-sampling settings (see the module docstring; no defaults, they come from YAML).
+
+    Attributes:
+        samples: candidate windows per frame, the nominal included.  horizon: frames per window.
+        knots: noise knots per window.  noise_base_pos (m), noise_base_rot (rad), noise_joints (rad or m):
+            noise std per dof group.  noise_scales: per-candidate std multipliers, cycled.
+        mode: ``"predictive"`` (take the best window) or ``"mppi"`` (softmax-weighted mean).
+        temperature: MPPI softmax temperature (cost units).  seed: noise seed.  threads: rollout threads.
+    """
+
+    samples: int
+    horizon: int
+    knots: int
+    noise_base_pos: float
+    noise_base_rot: float
+    noise_joints: float
+    noise_scales: tuple[float, ...]
+    mode: str
+    temperature: float
+    seed: int
+    threads: int
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`QuasisimError` naming the first bad setting."""
+        for name in ("samples", "horizon", "knots", "threads"):
+            v = getattr(self, name)
+            if not _is_int(v) or v < 1:
+                raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
+        if not _is_int(self.seed):
+            raise QuasisimError(f"sampling option 'seed' must be an integer, got {self.seed!r}")
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints"):
+            v = getattr(self, name)
+            if not (_is_number(v) and v >= 0):
+                raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
+        sc = self.noise_scales
+        if not isinstance(sc, tuple) or not sc or not all(_is_number(s) and s >= 0 for s in sc):
+            raise QuasisimError(f"sampling option 'noise_scales' must be a non-empty tuple of numbers >= 0, got {sc!r}")
+        if self.mode not in MODES:
+            raise choice_error("sampling mode", self.mode, MODES)
+        if not (_is_number(self.temperature) and self.temperature > 0):
+            raise QuasisimError(f"sampling option 'temperature' must be a finite number > 0, got {self.temperature!r}")
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, int | float | np.number) and not isinstance(v, bool) and math.isfinite(float(v))
+
+
+@dataclass(frozen=True, eq=False)
+class SampleResult:
+    """Outcome of :func:`run_sample_target`.
+
+    Attributes:
+        q_targets: (T, 6 + J) the PD targets applied in the target.
+        rollout: the target's recorded run (a replay of ``q_targets``).
+        window_loss: (T - 1,) lowest candidate window cost per frame.
+        wall_s: wall time of the control loop (s).
+        n_physics_steps: physics steps simulated, candidates and the applied frames together.
+        prediction_error: (T - 1,) after each applied frame, the largest difference between the chosen
+            candidate's predicted and the measured hand qpos / object position (m, rad); 0 when the target
+            is deterministic and its state is copied exactly; NaN in ``mppi`` mode (no candidate applied).
+    """
+
+    q_targets: np.ndarray
+    rollout: TargetRollout
+    window_loss: np.ndarray
+    wall_s: float
+    n_physics_steps: int
+    prediction_error: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """Candidate rollouts sampled at the window's frames ``t+1 .. t+H`` (N candidates).
+
+    Attributes:
+        qpos: (N, H, 6 + J) hand.  obj_pos: (N, H, 3) m.  obj_quat: (N, H, 4) w x y z.
+        keypoints: (N, H, K_metric, 3) metric keypoints (m).  n_steps: physics steps simulated.
+    """
+
+    qpos: np.ndarray
+    obj_pos: np.ndarray
+    obj_quat: np.ndarray
+    keypoints: np.ndarray
+    n_steps: int
+
+
+# ---- sampling and scoring -------------------------------------------------------------
+
+
+def knot_basis(horizon: int, knots: int) -> np.ndarray:
+    """(H, K) linear-interpolation weights from ``knots`` knots spread evenly over ``horizon`` frames."""
+    x = np.arange(horizon, dtype=np.float64)
+    at = np.linspace(0.0, horizon - 1.0, knots) if knots > 1 else np.zeros(1)
+    return np.stack([np.interp(x, at, np.eye(knots)[k]) for k in range(knots)], axis=1)
+
+
+def noise_std(opts: SamplingOptions, n_joints: int) -> np.ndarray:
+    """(6 + J,) noise std per dof: base position (m), base angles (rad), joints."""
+    return np.r_[np.full(3, opts.noise_base_pos), np.full(3, opts.noise_base_rot), np.full(n_joints, opts.noise_joints)]
+
+
+def sample_windows(
+    rng: np.random.Generator, nominal: np.ndarray, opts: SamplingOptions, joint_lo: np.ndarray, joint_hi: np.ndarray
+) -> np.ndarray:
+    """Candidate windows (N, H + 1, 6 + J): row 0 the ``nominal`` window (H + 1, 6 + J), rows 1.. perturbed.
+
+    Frame 0 of every window (the targets the step starts from) is never perturbed. ``joint_lo/hi`` (J,)
+    bound the perturbed joints (-inf/inf for unlimited joints); a bound the nominal already crosses is
+    widened to the nominal's value.
+    """
+    N, H, D = opts.samples, len(nominal) - 1, nominal.shape[1]
+    basis = knot_basis(H, opts.knots)
+    scales = np.asarray(opts.noise_scales, dtype=np.float64)[np.arange(N - 1) % len(opts.noise_scales)]
+    knots = rng.standard_normal((N - 1, opts.knots, D)) * noise_std(opts, D - 6) * scales[:, None, None]
+    wins = np.repeat(nominal[None].astype(np.float64), N, axis=0)
+    wins[1:, 1:] += np.einsum("hk,nkd->nhd", basis, knots)
+    lo = np.minimum(joint_lo, nominal[1:, 6:])
+    hi = np.maximum(joint_hi, nominal[1:, 6:])
+    wins[1:, 1:, 6:] = np.clip(wins[1:, 1:, 6:], lo, hi)
+    return wins
+
+
+def window_costs(
+    wins: np.ndarray,
+    pred: Prediction,
+    ref_pos: np.ndarray,
+    ref_quat: np.ndarray,
+    ref_kp: np.ndarray,
+    frame_w: np.ndarray,
+    weights: Weights,
+) -> np.ndarray:
+    """(N,) the MPC window objective of every candidate, measured in the target
+    (:func:`quasisim.optim.objective.window_costs`, the objective of the gradient-based MPC).
+
+    Args:
+        wins: (N, H + 1, 6 + J) candidate windows.  pred: their rollouts at frames 1..H of the window.
+        ref_pos: (H, 3) m, ref_quat: (H, 4), ref_kp: (H, K_metric, 3) m: references of those frames.
+        frame_w: (H,) 1 for frames inside the clip, 0 past its end.  weights: objective weights.
+    """
+    costs = objective.window_costs(
+        pred.obj_pos, pred.obj_quat, pred.keypoints, wins, ref_pos, ref_quat, ref_kp, frame_w, weights.arrays()
+    )
+    return np.asarray(costs, np.float64)
+
+
+def choose(wins: np.ndarray, costs: np.ndarray, opts: SamplingOptions) -> tuple[np.ndarray, int | None]:
+    """The new plan window (H + 1, 6 + J) and the index of the applied candidate (None for ``mppi``)."""
+    if opts.mode == "predictive":
+        best = int(np.argmin(costs))
+        return wins[best].copy(), best
+    w = np.exp(-(costs - costs.min()) / opts.temperature)
+    return np.einsum("n,nhd->hd", w / w.sum(), wins), None
+
+
+def frame_controls(wins: np.ndarray, substeps: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-physics-step controls of the windows (N, H + 1, D), as ``MujocoSession.advance`` applies them.
+
+    Returns:
+        pd: (N, H * substeps, D) PD targets, ``(1 - s) qa + s qb`` with ``s = (k + 1) / substeps``;
+        ff: (N, H * substeps, D) target velocities ``(qb - qa) fps`` (m/s, rad/s).
+    """
+    qa, qb = wins[:, :-1, None, :], wins[:, 1:, None, :]
+    s = ((np.arange(substeps) + 1) / substeps)[:, None]
+    pd = (1 - s) * qa + s * qb
+    ff = np.broadcast_to((qb - qa) * fps, pd.shape)
+    N, H, _, D = pd.shape
+    return pd.reshape(N, H * substeps, D), ff.reshape(N, H * substeps, D)
+
+
+# ---- targets ---------------------------------------------------------------------------------------
+
+
+class Runner(Protocol):
+    """One target run, advanced frame by frame, that can also roll candidate windows out from its state."""
+
+    substeps: int
+
+    def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None: ...
+
+    def predict(self, wins: np.ndarray, qd0: np.ndarray | None) -> Prediction: ...
+
+    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None: ...
+
+    def record(self) -> None: ...
+
+    def measured(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def result(self, wall_s: float) -> TargetRollout: ...
+
+    def close(self) -> None: ...
+
+
+def _state_offset(mujoco: Any, model: Any, spec: int, component: int) -> int:
+    """Offset of state ``component`` (one ``mjtState`` bit) inside a state vector of ``spec``."""
+    off, bit = 0, 1
+    while bit < component:
+        if spec & bit:
+            off += mujoco.mj_stateSize(model, bit)
+        bit <<= 1
+    return off
+
+
+class MujocoRunner:
+    """A :class:`~quasisim.targets.mujoco_target.MujocoSession` plus ``mujoco.rollout`` of candidates."""
+
+    def __init__(self, scene: Scene, threads: int) -> None:
+        import mujoco
+        from mujoco import rollout
+
+        from quasisim.targets.mujoco_target import HAND_PREFIX, MujocoTarget, build_spec
+
+        self.target = MujocoTarget(scene)
+        self.substeps = self.target.substeps
+        hand = scene.hand
+        spec = build_spec(scene, visual=False)
+        for k in np.flatnonzero(hand.kp_metric):
+            spec.add_sensor(
+                name=f"kp_metric/{hand.kp_names[k]}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
+                objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{HAND_PREFIX}kp/{hand.kp_names[k]}",
+            )  # fmt: skip
+        self.model = spec.compile()
+        m0 = self.target.mm.model
+        if (self.model.nq, self.model.nv, self.model.nu) != (m0.nq, m0.nv, m0.nu):
+            raise QuasisimError("sample-target: the sensor model's layout differs from the target's")
+        self.spec = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        self.nstate = mujoco.mj_stateSize(self.model, self.spec)
+        self.qpos_off = _state_offset(mujoco, self.model, self.spec, int(mujoco.mjtState.mjSTATE_QPOS))
+        self.qvel_off = _state_offset(mujoco, self.model, self.spec, int(mujoco.mjtState.mjSTATE_QVEL))
+        self.datas = [mujoco.MjData(self.model) for _ in range(threads)]
+        self.pool = rollout.Rollout(nthread=threads if threads > 1 else 0)
+        self._mujoco = mujoco
+        self.sess: Any = None
+
+    def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None:
+        """Start the run at hand ``q0`` with velocity ``qd0`` (6 + J each), the object at rest."""
+        self.sess = self.target.session(q0, qd0)
+
+    def predict(self, wins: np.ndarray, qd0: np.ndarray | None) -> Prediction:
+        """Roll the windows (N, H + 1, 6 + J) out from the run's current state; ``qd0`` (N, 6 + J)
+        replaces each candidate's initial hand velocity."""
+        mj, mm, d = self._mujoco, self.target.mm, self.sess.data
+        N, H, n = len(wins), wins.shape[1] - 1, self.substeps
+        state = np.zeros(self.nstate)
+        mj.mj_getState(self.target.mm.model, d, state, self.spec)
+        state = np.repeat(state[None], N, axis=0)
+        if qd0 is not None:
+            state[:, self.qvel_off + mm.hand_dof] = qd0
+        pd, ff = frame_controls(wins, n, self.target.scene.fps)
+        ctrl = np.zeros((N, H * n + 1, self.model.nu))  # one more step: sensors lag one step behind qpos
+        ctrl[:, :-1, mm.pd_act], ctrl[:, :-1, mm.ff_act] = pd, ff
+        ctrl[:, -1] = ctrl[:, -2]
+        warm = np.repeat(d.qacc_warmstart[None], N, axis=0)
+        states, sens = self.pool.rollout(self.model, self.datas, state, ctrl, initial_warmstart=warm)
+        ends = np.arange(1, H + 1) * n  # the state after frame f is step f n - 1; its sensors are step f n
+        qpos = states[:, ends - 1, self.qpos_off : self.qpos_off + self.model.nq]
+        o = mm.obj_qpos
+        return Prediction(
+            qpos=qpos[..., mm.hand_qpos], obj_pos=qpos[..., o : o + 3], obj_quat=qpos[..., o + 3 : o + 7],
+            keypoints=sens[:, ends].reshape(N, H, -1, 3), n_steps=N * (H * n + 1),
+        )  # fmt: skip
+
+    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
+        self.sess.advance(qa, qb)
+
+    def record(self) -> None:
+        self.sess.record()
+
+    def measured(self) -> tuple[np.ndarray, np.ndarray]:
+        """Hand qpos (6 + J) and object position (3,) of the run now."""
+        mm, q = self.target.mm, self.sess.data.qpos
+        return q[mm.hand_qpos].copy(), q[mm.obj_qpos : mm.obj_qpos + 3].copy()
+
+    def result(self, wall_s: float) -> TargetRollout:
+        return self.sess.result(wall_s)
+
+    def close(self) -> None:
+        self.pool.close()
+
+
+class PybulletRunner:
+    """A :class:`~quasisim.targets.pybullet_target.PybulletTarget` run; candidates one after the other
+    from ``saveState`` / ``restoreState``."""
+
+    def __init__(self, scene: Scene) -> None:
+        from quasisim.targets.pybullet_target import PybulletTarget
+
+        self.target = PybulletTarget(scene)
+        self.substeps = self.target.substeps
+        self.metric = np.flatnonzero(scene.hand.kp_metric)
+        self._rec: list[tuple[np.ndarray, ...]] = []
+
+    def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None:
+        """Start the run (the world rebuilt, as :meth:`PybulletTarget.rollout` does)."""
+        self.target.reset(q0, qd0)
+        self._rec = []
+
+    def predict(self, wins: np.ndarray, qd0: np.ndarray | None) -> Prediction:
+        """As :meth:`MujocoRunner.predict`."""
+        tg = self.target
+        pb, kw = tg.pb, {"physicsClientId": tg.client}
+        N, H = len(wins), wins.shape[1] - 1
+        out = [np.zeros((N, H, *s)) for s in ((wins.shape[2],), (3,), (4,), (len(self.metric), 3))]
+        sid = pb.saveState(**kw)
+        for i in range(N):
+            pb.restoreState(stateId=sid, **kw)
+            if qd0 is not None:
+                tg.set_state(wins[i, 0], qd0[i])
+            for f in range(H):
+                tg.advance(wins[i, f], wins[i, f + 1])
+                qpos, opos, oquat, kps = tg.frame_state()
+                out[0][i, f], out[1][i, f], out[2][i, f], out[3][i, f] = qpos, opos, oquat, kps[self.metric]
+        pb.restoreState(stateId=sid, **kw)
+        pb.removeState(sid, **kw)
+        return Prediction(*out, n_steps=N * H * self.substeps)
+
+    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
+        self.target.advance(qa, qb)
+
+    def record(self) -> None:
+        self._rec.append(self.target.frame_state())
+
+    def measured(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.target.joint_states()[0], self.target.object_pose()[0]
+
+    def result(self, wall_s: float) -> TargetRollout:
+        qpos, opos, oquat, kps = (np.array(x) for x in zip(*self._rec, strict=True))
+        return self.target.make_rollout(qpos, opos, oquat, kps, wall_s)
+
+    def close(self) -> None:
+        self.target.close()
+
+
+def make_runner(target: str, scene: Scene, opts: SamplingOptions) -> Runner:
+    """The runner of target simulator ``target`` (one of :data:`quasisim.targets.TARGETS`)."""
+    if target == "mujoco":
+        return MujocoRunner(scene, opts.threads)
+    if target == "pybullet":
+        return PybulletRunner(scene)
+    raise choice_error("target", target, TARGETS)
+
+
+# ---- the control loop ------------------------------------------------------------------------------
+
+
+def _references(demo: Demo, scene: Scene, horizon: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Object positions (T + H, 3), quaternions (T + H, 4) and metric keypoints (T + H, K_metric, 3) of the
+    demo, the last frame repeated ``horizon`` times."""
+    hand = scene.hand
+    kp = demo.right_joints[:, hand.kp_human[np.flatnonzero(hand.kp_metric)]]
+
+    def pad(x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        return np.concatenate([x, np.repeat(x[-1:], horizon, axis=0)])
+
+    return pad(demo.object_pos), pad(demo.object_quat), pad(kp)
+
+
+def _check_plan(demo: Demo, scene: Scene, plan: np.ndarray) -> np.ndarray:
+    plan = np.asarray(plan, dtype=np.float64)
+    D = 6 + scene.hand.n_joints
+    if plan.ndim != 2 or plan.shape != (demo.n_frames, D) or demo.n_frames < 2:
+        raise QuasisimError(
+            f"sample-target: plan must have shape ({demo.n_frames}, {D}) with >= 2 frames, got {plan.shape}"
+        )
+    if not np.isfinite(plan).all():
+        raise QuasisimError("sample-target: plan has NaN or inf values")
+    return plan
+
+
+def run_sample_target(
+    demo: Demo,
+    scene: Scene,
+    plan: np.ndarray,
+    opts: SamplingOptions,
+    weights: Weights,
+    target: str = "mujoco",
+    progress: bool = True,
+) -> SampleResult:
+    """Predictive-sampling MPC of ``demo`` in ``target`` from the nominal PD-target ``plan`` (T, 6 + J),
+    e.g. the kinematic retarget; ``weights`` (:class:`~quasisim.optim.objective.Weights`) gives ``obj_pos``,
+    ``obj_rot``, ``hand`` and ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring."""
+    plan = _check_plan(demo, scene, plan)
+    runner = make_runner(target, scene, opts)
+    try:
+        return _control_loop(demo, scene, plan, opts, weights, runner, progress)
+    finally:
+        runner.close()
+
+
+def _control_loop(
+    demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, runner: Runner, progress: bool
+) -> SampleResult:
+    T, H, fps, hand = len(plan), opts.horizon, float(demo.fps), scene.hand
+    ref_pos, ref_quat, ref_kp = _references(demo, scene, H)
+    lo = np.where(hand.joint_limited, hand.joint_range[:, 0], -np.inf)
+    hi = np.where(hand.joint_limited, hand.joint_range[:, 1], np.inf)
+    work = np.concatenate([plan, np.repeat(plan[-1:], H, axis=0)])  # the plan, shifted as we go
+    applied = plan.copy()
+    rng = np.random.default_rng(opts.seed)
+    losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0
+    runner.begin(plan[0], None)
+    t0 = time.perf_counter()
+    for t in tqdm(range(T - 1), desc="sample-target", unit="frame", disable=not progress, leave=False):
+        wins = sample_windows(rng, work[t : t + H + 1], opts, lo, hi)
+        pred = runner.predict(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
+        w = slice(t + 1, t + H + 1)
+        frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
+        costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights)
+        win, best = choose(wins, costs, opts)
+        work[t : t + H + 1] = win
+        applied[t + 1] = win[1]
+        if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
+            runner.begin(applied[0], (applied[1] - applied[0]) * fps)
+            runner.record()
+        runner.advance(applied[t], applied[t + 1])
+        runner.record()
+        losses[t] = costs.min()
+        steps += pred.n_steps + runner.substeps
+        if best is not None:
+            q_now, p_now = runner.measured()
+            pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
+    wall = time.perf_counter() - t0
+    return SampleResult(applied, runner.result(wall), losses, wall, steps, pred_err)

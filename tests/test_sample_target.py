@@ -1,0 +1,269 @@
+"""Baseline sample-target: predictive sampling in the target simulator with the target as its model."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from quasisim.errors import QuasisimError
+from quasisim.method.config import TransferConfig
+from quasisim.method.sample_target import (
+    MODES,
+    Prediction,
+    SamplingOptions,
+    frame_controls,
+    knot_basis,
+    run_sample_target,
+    sample_windows,
+    window_costs,
+)
+
+W = TransferConfig.from_yaml().weights  # the shipped objective weights
+
+OPTS = SamplingOptions(
+    samples=8, horizon=4, knots=3, noise_base_pos=0.004, noise_base_rot=0.04, noise_joints=0.08,
+    noise_scales=(0.5, 1.0, 2.0), mode="predictive", temperature=0.003, seed=0, threads=2,
+)  # fmt: skip
+ZERO = dataclasses.replace(OPTS, noise_base_pos=0.0, noise_base_rot=0.0, noise_joints=0.0)
+
+
+def _inputs(demo):
+    from quasisim.assets.hand import load_hand
+    from quasisim.eval.evaluate import load_object_for, scene_for
+    from quasisim.method.retarget import retarget
+
+    hand = load_hand("shadow")
+    rt = retarget(hand, demo)
+    return demo, rt.q, scene_for(demo, hand, rt.base_rot, load_object_for(demo))
+
+
+@pytest.fixture(scope="module")
+def real(data_dir: Path):
+    """12 frames of a real clip from the lift-off (clip frame 30), where replaying the plan loses the cube."""
+    from quasisim.data.demo import load_demo
+
+    return _inputs(load_demo(data_dir / "grab_s1_cubesmall_lift.npz").slice(30, 42))
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory: pytest.TempPathFactory):
+    """The synthetic cube lift (no ../shared needed), 12 frames."""
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+
+    return _inputs(load_demo(write_example("cube_lift", tmp_path_factory.mktemp("st"), n_frames=12)))
+
+
+def _replay(scene, q):
+    from quasisim.targets.mujoco_target import MujocoTarget
+
+    return MujocoTarget(scene).rollout(q)
+
+
+# ---- options -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("samples", 0, "samples"),
+        ("horizon", -1, "horizon"),
+        ("knots", 1.5, "knots"),
+        ("threads", True, "threads"),
+        ("noise_joints", -0.1, "noise_joints"),
+        ("noise_scales", (), "noise_scales"),
+        ("noise_scales", (1.0, float("nan")), "noise_scales"),
+        ("noise_scales", (1.0, "2"), "noise_scales"),
+        ("temperature", 0.0, "temperature"),
+        ("temperature", float("inf"), "temperature"),
+        ("seed", None, "seed"),
+        ("mode", "cem", "valid options: mppi, predictive"),
+    ],
+)
+def test_bad_options_raise(field: str, value: object, match: str) -> None:
+    with pytest.raises(QuasisimError, match=match):
+        dataclasses.replace(OPTS, **{field: value})
+
+
+def test_docstring_yaml_builds_the_options() -> None:
+    """The suggested YAML block in the module docstring is complete and valid (every field is required)."""
+    import quasisim.method.sample_target as st
+    from quasisim.config import build
+
+    block = st.__doc__.split("::", 1)[1]
+    opts = build(SamplingOptions, yaml.safe_load(block)["sample_target"], None)
+    assert opts.samples == 24 and opts.horizon == 6 and opts.knots == 3 and opts.mode in MODES
+    assert opts.noise_scales == (0.5, 1.0, 2.0)
+    with pytest.raises(QuasisimError, match="seed"):
+        build(SamplingOptions, {k: v for k, v in yaml.safe_load(block)["sample_target"].items() if k != "seed"}, None)
+
+
+def test_bad_target_and_plan_raise(synth) -> None:
+    demo, plan, scene = synth
+    with pytest.raises(QuasisimError, match="valid options: mujoco, pybullet"):
+        run_sample_target(demo, scene, plan, OPTS, W, target="isaac", progress=False)
+    with pytest.raises(QuasisimError, match="plan must have shape"):
+        run_sample_target(demo, scene, plan[:-1], OPTS, W, progress=False)
+
+
+# ---- sampling and scoring ------------------------------------------------------------------------------
+
+
+def test_knots_noise_and_limits() -> None:
+    B = knot_basis(6, 3)
+    np.testing.assert_allclose(B.sum(1), 1.0)
+    np.testing.assert_allclose(B[[0, -1]], [[1, 0, 0], [0, 0, 1]])
+    np.testing.assert_allclose(knot_basis(4, 1), np.ones((4, 1)))
+    J = 3
+    nominal = np.zeros((5, 6 + J))
+    nominal[:, 6] = 0.95  # near the upper limit of joint 0
+    nominal[2, 7] = -1.2  # the nominal itself below the lower limit of joint 1
+    lo, hi = np.full(J, -1.0), np.array([1.0, 1.0, np.inf])
+    opts = dataclasses.replace(OPTS, samples=200, horizon=4, noise_joints=0.5)
+    w = sample_windows(np.random.default_rng(0), nominal, opts, lo, hi)
+    assert w.shape == (200, 5, 6 + J)
+    np.testing.assert_array_equal(w[0], nominal)
+    np.testing.assert_array_equal(w[:, 0], np.broadcast_to(nominal[0], (200, 6 + J)))  # frame t is fixed
+    assert w[:, :, 6].max() == 1.0 and w[:, [1, 3, 4], 7].min() == -1.0  # clipped to the limits
+    assert w[:, 2, 7].min() == -1.2 and w[:, :, 8].max() > 1.0  # widened to the nominal; unlimited
+    # the std of the base position noise at a knot frame is noise_base_pos x the cycled multiplier
+    d = w[1:, 1, 0] - nominal[1, 0]
+    sc = np.asarray(opts.noise_scales)[np.arange(199) % 3]
+    assert 0.8 < np.std(d / sc) / opts.noise_base_pos < 1.2
+
+
+def test_frame_controls_match_the_session_law() -> None:
+    rng = np.random.default_rng(1)
+    wins = rng.normal(size=(3, 4, 5))
+    pd, ff = frame_controls(wins, 7, 20.0)
+    for i in range(3):
+        for f in range(3):
+            qa, qb = wins[i, f], wins[i, f + 1]
+            for k in range(7):
+                s = (k + 1) / 7
+                assert np.array_equal(pd[i, f * 7 + k], (1 - s) * qa + s * qb)
+                assert np.array_equal(ff[i, f * 7 + k], (qb - qa) * 20.0)
+
+
+def test_window_costs_terms_and_mask() -> None:
+    N, H, K = 2, 3, 4
+    wins = np.zeros((N, H + 1, 8))
+    wins[1, 2, 0] = 0.1  # second differences 0.1, -0.2 of one of 6 base columns
+    q = np.tile([1.0, 0, 0, 0], (N, H, 1))
+    pred = Prediction(np.zeros((N, H, 8)), np.zeros((N, H, 3)), q, np.zeros((N, H, K, 3)), 0)
+    ref_pos = np.array([[0.01, 0, 0], [0.02, 0, 0], [9.0, 0, 0]])  # frame 2 masked out
+    ref_kp = np.zeros((H, K, 3))
+    ref_kp[:, :, 2] = 0.003
+    ref_quat = np.tile([np.cos(0.1), np.sin(0.1), 0, 0], (H, 1))
+    c = window_costs(
+        wins, pred, ref_pos, ref_quat, ref_kp, np.array([1.0, 1.0, 0.0]), dataclasses.replace(W, smooth=2.0)
+    )
+    base = 0.015 + (1 - np.cos(0.1)) + 0.003
+    # float32, the objective of the gradient-based MPC (quasisim.optim.objective)
+    np.testing.assert_allclose(c, [base, base + 2.0 * (0.01 + 0.04) / 12], rtol=2e-6)
+
+
+# ---- the control loop in MuJoCo ------------------------------------------------------------------------
+
+
+def test_zero_noise_is_a_replay_of_the_plan(real) -> None:
+    """Zero noise: every candidate is the nominal, so the run is a plain replay of the plan; the candidate
+    rollouts (state copy, per-step controls, sensor timing) predict the replay's frames exactly."""
+    from quasisim.method.sample_target import MujocoRunner
+
+    demo, plan, scene = real
+    res = run_sample_target(demo, scene, plan, ZERO, W, progress=False)
+    rep = _replay(scene, plan)
+    np.testing.assert_array_equal(res.q_targets, plan)
+    np.testing.assert_allclose(res.rollout.qpos, rep.qpos, atol=1e-9)
+    np.testing.assert_allclose(res.rollout.object_pos, rep.object_pos, atol=1e-9)
+    np.testing.assert_allclose(res.rollout.keypoints, rep.keypoints, atol=1e-9)
+    assert res.prediction_error.max() <= 1e-9
+    assert res.q_targets.shape == plan.shape and res.window_loss.shape == (demo.n_frames - 1,)
+    assert res.n_physics_steps == (demo.n_frames - 1) * (8 * (4 * 25 + 1) + 25)
+
+    runner = MujocoRunner(scene, threads=2)  # a whole window, from the start state
+    try:
+        runner.begin(plan[0], None)
+        win = plan[None, :5]
+        pred = runner.predict(win, (win[:, 1] - win[:, 0]) * demo.fps)
+    finally:
+        runner.close()
+    np.testing.assert_allclose(pred.qpos[0], rep.qpos[1:5], atol=1e-9)
+    np.testing.assert_allclose(pred.obj_pos[0], rep.object_pos[1:5], atol=1e-9)
+    np.testing.assert_allclose(pred.keypoints[0], rep.keypoints[1:5][:, scene.hand.kp_metric], atol=1e-9)
+
+
+def test_best_candidate_lowers_the_first_window_cost(real) -> None:
+    """At frame 0 the chosen window is cheaper than the nominal, whose cost (scored from a plain replay of
+    the plan) the loop's own candidate 0 reproduces; the applied run is a replay of the applied targets."""
+    from quasisim.method.sample_target import _references
+
+    demo, plan, scene = real
+    res = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
+    rep = _replay(scene, plan)
+    H, km = OPTS.horizon, scene.hand.kp_metric
+    ref_pos, ref_quat, ref_kp = (x[1 : H + 1] for x in _references(demo, scene, H))
+    pred = Prediction(rep.qpos[None, 1 : H + 1], rep.object_pos[None, 1 : H + 1], rep.object_quat[None, 1 : H + 1],
+                      rep.keypoints[None, 1 : H + 1][:, :, km], 0)  # fmt: skip
+    nominal = window_costs(plan[None, : H + 1], pred, ref_pos, ref_quat, ref_kp, np.ones(H), W)[0]
+    zero = run_sample_target(demo, scene, plan, dataclasses.replace(ZERO, samples=1), W, progress=False)
+    np.testing.assert_allclose(zero.window_loss[0], nominal, rtol=1e-9)
+    assert res.window_loss[0] < nominal - 0.005  # seeds 0-3: 0.015-0.058 lower (nominal 0.099)
+    assert res.prediction_error.max() <= 1e-9
+    assert np.abs(res.q_targets - plan).max() > 1e-4
+    np.testing.assert_array_equal(res.q_targets[0], plan[0])
+    again = _replay(scene, res.q_targets)
+    np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-9)
+    np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-9)
+
+
+def test_deterministic_for_a_seed(real) -> None:
+    demo, plan, scene = real
+    a = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
+    b = run_sample_target(demo, scene, plan, dataclasses.replace(OPTS, threads=1), W, progress=False)
+    c = run_sample_target(demo, scene, plan, dataclasses.replace(OPTS, seed=1), W, progress=False)
+    np.testing.assert_array_equal(a.q_targets, b.q_targets)
+    np.testing.assert_array_equal(a.window_loss, b.window_loss)
+    np.testing.assert_array_equal(a.rollout.object_pos, b.rollout.object_pos)
+    assert not np.array_equal(a.q_targets, c.q_targets)
+
+
+def test_mppi_applies_the_weighted_mean(synth) -> None:
+    demo, plan, scene = synth
+    opts = dataclasses.replace(OPTS, mode="mppi")
+    res = run_sample_target(demo, scene, plan, opts, W, progress=False)
+    assert res.q_targets.shape == plan.shape and np.isnan(res.prediction_error).all()
+    assert np.isfinite(res.window_loss).all() and np.abs(res.q_targets - plan).max() > 1e-5
+    np.testing.assert_allclose(_replay(scene, res.q_targets).qpos, res.rollout.qpos, atol=1e-9)
+    cold = run_sample_target(demo, scene, plan, dataclasses.replace(opts, temperature=1e-9), W, progress=False)
+    best = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
+    np.testing.assert_allclose(cold.q_targets, best.q_targets, atol=1e-12)  # T -> 0: the best candidate
+
+
+# ---- PyBullet ------------------------------------------------------------------------------------------
+
+
+def test_pybullet_variant_runs(synth) -> None:
+    pytest.importorskip("pybullet")
+    from quasisim.targets.pybullet_target import PybulletTarget
+
+    demo, plan, scene = synth
+    demo, plan = demo.slice(0, 4), plan[:4]
+    opts = dataclasses.replace(OPTS, samples=3, horizon=2)
+    res = run_sample_target(demo, scene, plan, opts, W, target="pybullet", progress=False)
+    J = scene.hand.n_joints
+    r = res.rollout
+    assert res.q_targets.shape == (4, 6 + J) and res.window_loss.shape == (3,)
+    assert r.target == "pybullet" and r.qpos.shape == (4, 6 + J) and r.object_quat.shape == (4, 4)
+    assert r.keypoints.shape == (4, len(scene.hand.kp_names), 3)
+    assert res.n_physics_steps == 3 * (3 * 2 * 100 + 100)
+    assert res.prediction_error.max() < 1e-9  # restoreState gives the exact state back
+    with PybulletTarget(scene) as tgt:
+        again = tgt.rollout(res.q_targets)
+    np.testing.assert_allclose(again.qpos, r.qpos, atol=1e-9)
+    np.testing.assert_allclose(again.object_pos, r.object_pos, atol=1e-9)
