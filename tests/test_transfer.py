@@ -178,3 +178,29 @@ def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path)
     traj, sysid, log_s, log_c = stage2.one_simulator(vg, traj0, SysID.init(), params, w, sb, Progress(False), "t")
     assert log_s.best < log_s.losses[0] and log_c.best < 0.98 * log_c.losses[0], (log_s.losses, log_c.losses)
     assert float(vg(traj, sysid, params, w)[0][0]) == pytest.approx(log_c.best, rel=1e-6)
+
+
+def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> None:
+    """``--method sample-target``: sampling in MuJoCo from the kinematic retarget, checkpointed; its
+    controls replayed open loop give the metrics of the closed-loop run; a resume with other sampling
+    settings is refused."""
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.evaluate import evaluate_controls
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.pipeline import run_transfer
+    from quasisim.method.spec import TransferSpec
+
+    cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 6, "sample_target.horizon": 3})
+    spec = TransferSpec(method="sample-target", render=False, progress=False)
+    res = run_transfer(short_demo, tmp_path / "st", spec, cfg)
+    assert (tmp_path / "st" / "checkpoints" / "sample.npz").is_file()
+    summary = json.loads((tmp_path / "st" / "summary.json").read_text())
+    assert set(summary["seconds"]) == {"retarget", "sample"} and summary["stages"] == ["sample"]
+    c = load_controls(tmp_path / "st" / "controls.npz")
+    assert "sim_qpos" not in c.extras and np.abs(c.q_targets - c.extras["kinematic_q"]).max() > 1e-4
+    again = evaluate_controls(load_demo(short_demo), c, "mujoco", None, render=False)
+    assert again.metrics == res.metrics
+    with pytest.raises(InputError, match="sample_target"):
+        other = TransferConfig.from_yaml(overrides={"sample_target.samples": 7, "sample_target.horizon": 3})
+        run_transfer(short_demo, tmp_path / "st", spec, other, resume=True)

@@ -311,5 +311,28 @@ def bench_predict(
     run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out, sims, mus)
 
 
+@bench.command("fit")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--residual/--no-residual", default=True, show_default=True, help="Also fit the residual networks.")
+@click.option("--set", "sets", multiple=True, help="Override a config key, e.g. --set stage3.steps=20.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/fit"), show_default=True)
+@_friendly
+def bench_fit(
+    data_dir: Path, clip_names: str, pattern: str, hand: str, residual: bool, sets: tuple[str, ...], out: Path
+) -> None:
+    """Stage 3's measure: held-out prediction error of the simulator fitted to MuJoCo (nominal, + S and
+    constants, + residual networks) beside zero motion."""
+    _setup_runtime()
+    from quasisim.bench.fit import run_fit_bench
+
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_fit_bench(data_dir, names, pattern, hand, out, residual, _parse_sets(sets))
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -13,7 +13,7 @@ from quasisim.assets.hand import load_hand
 from quasisim.bench.tables import clips, header, publish
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
-from quasisim.eval.predict import prediction_error, record_target
+from quasisim.eval.predict import collect, prediction_errors, windows
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import make_problem
@@ -59,10 +59,11 @@ def run_predict_bench(
             for i, m in pairs
         }
         t0 = time.perf_counter()
-        obs, ro = record_target(prob.scene, rt.q, demo.fps)
-        errs = prediction_error(prob.model, params, prob.base_quat, demo.fps, rt.q, obs, ro, horizon)
-        wall = time.perf_counter() - t0
-        rows += [{"clip": p.stem, "simulator": name, **e.summary(), "wall_s": wall} for name, e in errs.items()]
+        buf = collect(prob.scene, [rt.q], demo.fps)
+        w = windows(prob.model, buf, [(0, t) for t in range(demo.n_frames - horizon)], horizon, prob.base_quat)
+        for name, par in params.items():
+            e = prediction_errors(prob.model, par, w, demo.fps, prob.base_quat)
+            rows.append({"clip": p.stem, "simulator": name, **e.summary(), "wall_s": time.perf_counter() - t0})
     return publish(out, "predict", rows, _markdown(rows, horizon, hand_name))
 
 

@@ -1,22 +1,18 @@
 """How well the quasi-physical simulator predicts the target: the measure of stage 3's fitting.
 
-Stage 3 of the paper fits residual physics and S so that the quasi-physical simulator's multi-step
-predictions match transitions recorded in the target. This module holds what that fitting is judged by,
-the open-loop ``H``-step prediction error (paper appendix, transition prediction analysis):
-
-1. replay PD targets in MuJoCo frame by frame and record every frame's full state (hand joints and
-   velocities, object pose and twist) and the robot keypoints;
-2. from each recorded frame ``t``, put the state into the quasi-physical simulator (contacts start fresh),
-   apply the same PD targets for frames ``t+1 .. t+H`` and compare the predicted object pose and robot
-   keypoints with MuJoCo's after ``h = 1 .. H`` frames.
-
-A zero-motion predictor (the object stays where it is at ``t``) is reported beside it, so that an error
-has a scale: a model that predicts worse than "nothing moves" has not learned the contact dynamics.
-The residual networks are not fitted yet (see the README status).
+* :class:`ReplayBuffer` (:func:`collect`): PD-target trajectories rolled out in MuJoCo, every frame's state
+  (hand joints and velocities, object pose and twist, robot keypoints) and the PD targets.
+* :class:`Windows` (:func:`windows`): from a recorded frame ``t`` the target's state is put into the
+  quasi-physical simulator (contacts start fresh) and the recorded PD targets of frames ``t+1 .. t+H`` are
+  applied (open loop; paper appendix, transition prediction analysis).
+* :func:`prediction_errors`: the predicted object pose and robot keypoints against the target's after
+  ``h = 1 .. H`` frames, beside a zero-motion predictor (the object stays where it is at ``t``), so that an
+  error has a scale: a model that predicts worse than "nothing moves" has not learned the contact dynamics.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import jax
@@ -27,48 +23,14 @@ from quasisim.optim.objective import hand_keypoints
 from quasisim.optim.trajectory import Trajectory, observed_state, sim_controls
 from quasisim.rotations import quat_angle_deg
 from quasisim.sim.step import object_pose, rollout
-from quasisim.sim.types import Model, Params, State
+from quasisim.sim.types import Model, Params, State, pytree
 from quasisim.targets import TargetRollout
 from quasisim.targets.mujoco_target import MujocoTarget
 from quasisim.targets.scene import Scene
 
+Array = jax.Array
 F32 = jnp.float32
-
-
-@dataclass(frozen=True, eq=False)
-class PredictionError:
-    """Errors of ``H``-step open-loop predictions, averaged over the windows of one clip.
-
-    Attributes:
-        horizon: H (frames).  n_windows: windows (start frames ``0 .. T - H - 1``).
-        n_diverged: windows whose prediction became non-finite (left out of the means).
-        obj_pos_cm: (H,) object position error after h = 1..H frames (cm).
-        obj_rot_deg: (H,) object rotation error (deg).
-        keypoints_mm: (H,) mean robot-keypoint error (mm).
-        static_pos_cm, static_rot_deg: (H,) the same for the zero-motion predictor.
-    """
-
-    horizon: int
-    n_windows: int
-    n_diverged: int
-    obj_pos_cm: np.ndarray
-    obj_rot_deg: np.ndarray
-    keypoints_mm: np.ndarray
-    static_pos_cm: np.ndarray
-    static_rot_deg: np.ndarray
-
-    def summary(self) -> dict[str, float]:
-        """The figures after the last frame of the horizon."""
-        return {
-            "horizon": self.horizon,
-            "n_windows": self.n_windows,
-            "n_diverged": self.n_diverged,
-            "obj_pos_cm": float(self.obj_pos_cm[-1]),
-            "obj_rot_deg": float(self.obj_rot_deg[-1]),
-            "keypoints_mm": float(self.keypoints_mm[-1]),
-            "static_pos_cm": float(self.static_pos_cm[-1]),
-            "static_rot_deg": float(self.static_rot_deg[-1]),
-        }
+OBS_KEYS = ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel", "keypoints")
 
 
 def record_target(scene: Scene, q_targets: np.ndarray, fps: float) -> tuple[list[dict[str, np.ndarray]], TargetRollout]:
@@ -84,46 +46,168 @@ def record_target(scene: Scene, q_targets: np.ndarray, fps: float) -> tuple[list
     return obs, sess.result(0.0)
 
 
-def prediction_error(
-    model: Model, params: dict[str, Params], base_quat: np.ndarray, fps: float, q_targets: np.ndarray,
-    obs: list[dict], ro: TargetRollout, horizon: int = 10,
-) -> dict[str, PredictionError]:  # fmt: skip
-    """Open-loop ``horizon``-frame predictions of the quasi-physical simulator ``model`` under each of the
-    named parameter sets ``params`` (S already applied), from the target's recorded states ``obs`` under
-    ``q_targets``; ``ro`` is the target's rollout of the same run (see :func:`record_target`). One compiled
-    prediction serves every parameter set (they are array leaves)."""
-    T = len(q_targets)
-    if T <= horizon:
-        raise ValueError(f"a {horizon}-frame prediction needs more than {horizon} frames, the clip has {T}")
+@dataclass(frozen=True, eq=False)
+class ReplayBuffer:
+    """``R`` rollouts of ``T`` frames in the target.
+
+    Attributes:
+        q_targets: (R, T, 6 + J) the PD targets applied.  qpos, qvel: (R, T, 6 + J) hand (m, rad; per s).
+        obj_pos: (R, T, 3) m.  obj_quat: (R, T, 4) w x y z.  obj_vel, obj_angvel: (R, T, 3) world (m/s, rad/s).
+        keypoints: (R, T, K, 3) all robot keypoints (m).
+    """
+
+    q_targets: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    obj_pos: np.ndarray
+    obj_quat: np.ndarray
+    obj_vel: np.ndarray
+    obj_angvel: np.ndarray
+    keypoints: np.ndarray
+
+    @property
+    def n_rollouts(self) -> int:
+        return len(self.q_targets)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The buffer as named arrays (for a checkpoint)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def extended(self, other: ReplayBuffer, capacity: int) -> ReplayBuffer:
+        """This buffer and ``other``, keeping the newest ``capacity`` rollouts."""
+        return ReplayBuffer(**{k: np.concatenate([v, getattr(other, k)])[-capacity:] for k, v in self.arrays().items()})
+
+    def observation(self, r: int, t: int) -> dict[str, np.ndarray]:
+        """Frame ``t`` of rollout ``r`` as a target observation (:meth:`MujocoSession.observe`)."""
+        return {k: getattr(self, k)[r, t] for k in OBS_KEYS}
+
+
+def collect(scene: Scene, controls: list[np.ndarray], fps: float) -> ReplayBuffer:
+    """Roll each PD-target trajectory (T, 6 + J) of ``controls`` out in MuJoCo and record every frame."""
+    frames: dict[str, list[np.ndarray]] = {k: [] for k in ("q_targets", *OBS_KEYS)}
+    for q in controls:
+        obs, _ = record_target(scene, q, fps)
+        frames["q_targets"].append(np.asarray(q, np.float64))
+        for k in OBS_KEYS:
+            frames[k].append(np.stack([o[k] for o in obs]))
+    return ReplayBuffer(**{k: np.stack(v) for k, v in frames.items()})
+
+
+@pytree
+class Windows:
+    """``B`` H-frame prediction windows (array leaves batched over B; see module docstring).
+
+    Attributes:
+        s0: the target's state at each window's start, as a simulator :class:`State` (leading axis B).
+        wins: the window's PD targets, H + 1 frames each, as a :class:`Trajectory` (leading axis B).
+        obj_pos, obj_quat: (B, H, ...) what the target's object did.  keypoints: (B, H, K, 3) its keypoints.
+        start_pos, start_quat: (B, 3), (B, 4) the object at each window's start (zero-motion predictor).
+    """
+
+    s0: State
+    wins: Trajectory
+    obj_pos: Array
+    obj_quat: Array
+    keypoints: Array
+    start_pos: Array
+    start_quat: Array
+
+    def __len__(self) -> int:
+        return len(self.obj_pos)
+
+    def take(self, idx: Array) -> Windows:
+        """The windows ``idx`` (traceable)."""
+        return jax.tree_util.tree_map(lambda x: x[idx], self)
+
+
+def windows(
+    model: Model, buf: ReplayBuffer, starts: list[tuple[int, int]], horizon: int, base_quat: np.ndarray
+) -> Windows:
+    """The windows starting at frame ``t`` of rollout ``r`` for each ``(r, t)`` of ``starts``."""
+    T = buf.q_targets.shape[1]
+    late = [(r, t) for r, t in starts if t + horizon >= T]
+    if late:
+        raise ValueError(
+            f"a {horizon}-frame window needs {horizon} frames after its start; {late[0]} is too late (T = {T})"
+        )
+    bq = jnp.asarray(base_quat, F32)
+    s0 = [observed_state(model, buf.observation(r, t), bq) for r, t in starts]
+    wins = [Trajectory.from_q(buf.q_targets[r, t : t + horizon + 1], model.n_points) for r, t in starts]
+    stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    sl = [(r, slice(t + 1, t + horizon + 1)) for r, t in starts]
+    arr = lambda xs: jnp.asarray(np.stack(xs), F32)  # noqa: E731
+    return Windows(
+        stack(s0), stack(wins), arr([buf.obj_pos[r, s] for r, s in sl]), arr([buf.obj_quat[r, s] for r, s in sl]),
+        arr([buf.keypoints[r, s] for r, s in sl]), arr([buf.obj_pos[r, t] for r, t in starts]),
+        arr([buf.obj_quat[r, t] for r, t in starts]),
+    )  # fmt: skip
+
+
+def split_starts(
+    n_rollouts: int, T: int, horizon: int, held_out: float
+) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """Training and held-out window starts: a window is held out when it starts in the last ``held_out``
+    fraction of the clip; training windows end before the first held-out start (they never see its frames)."""
+    cut = round((T - horizon) * (1.0 - held_out))
+    train = [(r, t) for r in range(n_rollouts) for t in range(0, cut - horizon + 1)]
+    test = [(r, t) for r in range(n_rollouts) for t in range(cut, T - horizon)]
+    return train, test
+
+
+def predict(model: Model, params: Params, w: Windows, fps: float, base_quat: np.ndarray) -> tuple[Array, Array, Array]:
+    """The simulator's predictions of all windows: object positions (B, H, 3), quaternions (B, H, 4) and
+    keypoints (B, H, K, 3)."""
     bq = jnp.asarray(base_quat, F32)
 
-    @jax.jit
-    def predict(p: Params, s0: State, win: Trajectory) -> tuple[jax.Array, jax.Array, jax.Array]:
-        states = rollout(model, p, s0, sim_controls(win, bq, fps))
+    def one(s0: State, win: Trajectory) -> tuple[Array, Array, Array]:
+        states = rollout(model, params, s0, sim_controls(win, bq, fps))
         pos, quat = object_pose(model, states)
         return pos, quat, hand_keypoints(model, states)
 
-    starts = range(T - horizon)
-    s0s = [observed_state(model, obs[t], bq) for t in starts]
-    wins = [Trajectory.from_q(q_targets[t : t + horizon + 1], model.n_points) for t in starts]
-    spos_e, srot_e = [], []
-    for t in starts:
-        sl = slice(t + 1, t + horizon + 1)
-        spos_e.append(np.linalg.norm(ro.object_pos[t] - ro.object_pos[sl], axis=-1) * 100.0)
-        srot_e.append(quat_angle_deg(ro.object_quat[t][None], ro.object_quat[sl]))
-    m = lambda x: np.mean(np.stack(x), 0)  # noqa: E731
-    out = {}
-    mf = lambda x, ok: np.mean(np.stack(x)[ok], 0) if ok.any() else np.full(horizon, np.nan)  # noqa: E731
-    for name, p in params.items():
-        pos_e, rot_e, kp_e = [], [], []
-        for t, s0, win in zip(starts, s0s, wins, strict=True):
-            pos, quat, kp = (np.asarray(x, np.float64) for x in predict(p, s0, win))
-            sl = slice(t + 1, t + horizon + 1)
-            pos_e.append(np.linalg.norm(pos - ro.object_pos[sl], axis=-1) * 100.0)
-            rot_e.append(quat_angle_deg(quat, ro.object_quat[sl]))
-            kp_e.append(np.linalg.norm(kp - ro.keypoints[sl], axis=-1).mean(-1) * 1000.0)
-        ok = np.isfinite(np.stack(pos_e)).all(1) & np.isfinite(np.stack(kp_e)).all(1)
-        out[name] = PredictionError(
-            horizon, len(starts), int((~ok).sum()), mf(pos_e, ok), mf(rot_e, ok), mf(kp_e, ok), m(spos_e), m(srot_e)
-        )
-    return out
+    return jax.vmap(one)(w.s0, w.wins)
+
+
+@dataclass(frozen=True, eq=False)
+class WindowErrors:
+    """Mean errors after h = 1..H frames over windows (non-finite predictions left out and counted).
+
+    Attributes: obj_pos_cm, obj_rot_deg, keypoints_mm: (H,).  static_pos_cm, static_rot_deg: (H,) of the
+    zero-motion predictor.  n_windows, n_diverged: counts.
+    """
+
+    obj_pos_cm: np.ndarray
+    obj_rot_deg: np.ndarray
+    keypoints_mm: np.ndarray
+    static_pos_cm: np.ndarray
+    static_rot_deg: np.ndarray
+    n_windows: int
+    n_diverged: int
+
+    def summary(self) -> dict[str, float]:
+        """The figures after the last frame of the horizon."""
+        return {
+            "horizon": len(self.obj_pos_cm), "n_windows": self.n_windows, "n_diverged": self.n_diverged,
+            "obj_pos_cm": float(self.obj_pos_cm[-1]), "obj_rot_deg": float(self.obj_rot_deg[-1]),
+            "keypoints_mm": float(self.keypoints_mm[-1]), "static_pos_cm": float(self.static_pos_cm[-1]),
+            "static_rot_deg": float(self.static_rot_deg[-1]),
+        }  # fmt: skip
+
+
+def prediction_errors(
+    model: Model, params: Params, w: Windows, fps: float, base_quat: np.ndarray, chunk: int = 16
+) -> WindowErrors:
+    """H-frame prediction errors of the simulator ``params`` on windows ``w`` (see :class:`WindowErrors`)."""
+    run = jax.jit(lambda p, ww: predict(model, p, ww, fps, base_quat))
+    outs = [run(params, w.take(jnp.arange(i, min(i + chunk, len(w))))) for i in range(0, len(w), chunk)]
+    pos, quat, kp = (np.concatenate([np.asarray(o[k], np.float64) for o in outs]) for k in range(3))
+    w = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), w)
+    pos_e = np.linalg.norm(pos - w.obj_pos, axis=-1) * 100.0
+    rot_e = quat_angle_deg(quat, w.obj_quat)
+    kp_e = np.linalg.norm(kp - w.keypoints, axis=-1).mean(-1) * 1000.0
+    ok = np.isfinite(pos_e).all(1) & np.isfinite(kp_e).all(1) & np.isfinite(rot_e).all(1)
+    mean = lambda x: x[ok].mean(0) if ok.any() else np.full(x.shape[1], np.nan)  # noqa: E731
+    static_pos = np.linalg.norm(w.obj_pos - w.start_pos[:, None], axis=-1) * 100.0
+    static_rot = quat_angle_deg(np.broadcast_to(w.start_quat[:, None], w.obj_quat.shape), w.obj_quat)
+    return WindowErrors(
+        mean(pos_e), mean(rot_e), mean(kp_e), static_pos.mean(0), static_rot.mean(0), len(w), int((~ok).sum())
+    )

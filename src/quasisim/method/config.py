@@ -15,6 +15,7 @@ from quasisim.config import apply_overrides, build, read_yaml
 from quasisim.errors import InputError, choice_error
 from quasisim.method.mpc import MPCOptions
 from quasisim.method.sample_target import SamplingOptions
+from quasisim.method.stage3 import FitOptions
 from quasisim.optim.adam import StepBudget
 from quasisim.optim.objective import Weights
 
@@ -47,6 +48,7 @@ class TransferConfig:
     mpc: MPCOptions
     soften_samples: int
     sample_target: SamplingOptions
+    stage3: FitOptions
     path: str = ""
 
     @classmethod
@@ -73,11 +75,14 @@ class TransferConfig:
             raise choice_error("budget", name, list(self.budgets))
         return self.budgets[name]
 
-    def identity(self, budget: str) -> dict[str, Any]:
-        """The settings that determine a run's results (recorded in its checkpoints)."""
-        return {
-            "mpc": dataclasses.asdict(self.mpc),
-            "sample_target": dataclasses.asdict(self.sample_target),
+    def identity(self, budget: str, stages: tuple[str, ...]) -> dict[str, Any]:
+        """The settings that determine the results of a run of ``stages`` (recorded in its checkpoints)."""
+        out: dict[str, Any] = {
             "budget_settings": dataclasses.asdict(self.budget(budget)),
             "weights": dataclasses.asdict(self.weights),
         }
+        if "mpc" in stages:
+            out["mpc"] = dataclasses.asdict(self.mpc)
+        if "sample" in stages:
+            out["sample_target"] = dataclasses.asdict(self.sample_target)
+        return out

@@ -244,7 +244,7 @@ def _identity(
     return {
         "demo": demo_name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
         "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
-        "method": spec.method, **cfg.identity(spec.budget),
+        "method": spec.method, **cfg.identity(spec.budget, spec.stages),
     }  # fmt: skip
 
 

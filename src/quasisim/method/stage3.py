@@ -1,0 +1,194 @@
+"""Stage 3: fit the quasi-physical simulator to the target (paper appendix "Optimizing towards a realistic
+physical environment").
+
+1. **Replay buffer** (:class:`~quasisim.eval.predict.ReplayBuffer`, :func:`~quasisim.eval.predict.collect`): PD-target trajectories (the current controls
+   and noisy variants of them) rolled out in the target; per frame the hand's joints and velocities, the
+   object's pose and twist, the robot keypoints and the PD targets.
+2. **Windows** (:func:`~quasisim.eval.predict.windows`): from a recorded frame ``t`` the target's state is put into the
+   quasi-physical simulator (contacts start fresh) and the recorded PD targets of frames ``t+1 .. t+H`` are
+   applied; the prediction is compared with what the target did (object position, rotation, keypoints).
+3. **Fit** (:func:`fit`): Adam on the mean H-frame prediction error of training windows over
+   :class:`SimFit`: S (object mass, inertia, velocity damping) and the contact and joint constants
+   (contact stiffness scale, friction coefficient, joint damping, PD gain scale), all in log coordinates;
+   then, optionally, the residual networks (:mod:`quasisim.sim.residual`, zero at start) on the same loss.
+4. **Measure** (:func:`quasisim.eval.predict.prediction_errors`): the error after ``h = 1..H`` frames on windows the fit never
+   saw (the clip's later frames), beside the zero-motion predictor (the object stays where it is).
+
+The loss is the tracking objective's terms (:func:`quasisim.optim.objective.tracking_errors`) between the
+predicted and the recorded trajectory: object translation (m), ``1 - |q . q_ref|`` and keypoint distance (m).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from quasisim.eval.predict import Windows, predict
+from quasisim.method.sample_target import SamplingOptions, sample_windows
+from quasisim.optim.objective import tracking_errors, weighted_sum
+from quasisim.optim.sysid import SysID
+from quasisim.sim.build import attach_residual
+from quasisim.sim.residual import ResidualConfig, ResidualNets
+from quasisim.sim.types import Model, Params, pytree
+
+Array = jax.Array
+F32 = jnp.float32
+OBS_KEYS = ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel", "keypoints")
+
+
+def noisy_variants(
+    plan: np.ndarray, n: int, noise: SamplingOptions, seed: int, joint_range: np.ndarray
+) -> list[np.ndarray]:
+    """``n`` smooth perturbations of ``plan`` (T, 6 + J) with the sampling baseline's noise model (knots
+    every ~6 frames, the noise scales cycled), joints kept within ``joint_range`` (J, 2)."""
+    T = len(plan)
+    opts = dataclasses.replace(noise, samples=n + 1, horizon=T - 1, knots=max(2, (T - 1) // 6))
+    wins = sample_windows(np.random.default_rng(seed), plan, opts, joint_range[:, 0], joint_range[:, 1])
+    return [w for w in wins[1:]]
+
+
+@pytree
+class SimFit:
+    """The fitted simulator parameters in unconstrained (log) coordinates; zeros are the nominal simulator.
+
+    Attributes:
+        sysid: S (object mass, inertia, velocity damping).
+        log_contact: contact stiffness, friction stiffness and damping scale (multiplies ``contact_scale``).
+        log_mu: friction coefficient scale.  log_joint_damping: joint damping scale.
+        log_gain: joint PD gain scale (kp and kv).
+    """
+
+    sysid: SysID
+    log_contact: Array
+    log_mu: Array
+    log_joint_damping: Array
+    log_gain: Array
+
+    @staticmethod
+    def nominal() -> SimFit:
+        z = jnp.zeros((), F32)
+        return SimFit(SysID.init(), z, z, z, z)
+
+    def apply(self, params: Params, mass0: float, inertia0: np.ndarray) -> Params:
+        """``params`` with the fitted values (differentiable in ``self``)."""
+        p = self.sysid.apply(params, mass0, inertia0)
+        g = jnp.exp(self.log_gain)
+        return dataclasses.replace(
+            p,
+            contact_scale=p.contact_scale * jnp.exp(self.log_contact),
+            mu=p.mu * jnp.exp(self.log_mu),
+            joint_damping=p.joint_damping * jnp.exp(self.log_joint_damping),
+            joint_kp=p.joint_kp * g,
+            joint_kv=p.joint_kv * g,
+        )
+
+    def describe(self, mass0: float) -> dict[str, float]:
+        """The fitted values as scales of the nominal ones (S in physical units)."""
+        scales = {
+            k: float(np.exp(float(getattr(self, f"log_{k}")))) for k in ("contact", "mu", "joint_damping", "gain")
+        }
+        return {**self.sysid.describe(mass0), **{f"{k}_scale": v for k, v in scales.items()}}
+
+
+def window_loss(
+    model: Model, params: Params, w: Windows, fps: float, base_quat: np.ndarray, weights: dict[str, Array]
+) -> Array:
+    """Mean over windows of the weighted prediction terms (object translation, rotation, keypoints)."""
+    pos, quat, kp = predict(model, params, w, fps, base_quat)
+
+    def one(p: Array, q: Array, k: Array, rp: Array, rq: Array, rk: Array) -> Array:
+        return weighted_sum(tracking_errors(p, q, k, rp, rq, rk), weights)
+
+    return jnp.mean(jax.vmap(one)(pos, quat, kp, w.obj_pos, w.obj_quat, w.keypoints))
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of the fit (values: ``configs/transfer.yaml``, ``stage3``).
+
+    Attributes:
+        horizon: frames per window (H).  held_out: fraction of the clip's last frames left out of the fit.
+        variants: noisy rollouts added to the buffer beside the current controls.  capacity: rollouts kept.
+        steps, lr: Adam steps and step size of the constants.  batch: windows per step.
+        residual_steps, residual_lr: the same for the residual networks (0 steps: no residual).
+        seed: window sampling and variant noise.
+    """
+
+    horizon: int
+    held_out: float
+    variants: int
+    capacity: int
+    steps: int
+    lr: float
+    batch: int
+    residual_steps: int
+    residual_lr: float
+    seed: int
+
+
+def fit(
+    model: Model, params: Params, train: Windows, fps: float, base_quat: np.ndarray, mass0: float,
+    inertia0: np.ndarray, opts: FitOptions, weights: dict[str, Array],
+) -> tuple[SimFit, list[float]]:  # fmt: skip
+    """Adam on :class:`SimFit` over random batches of the training windows; returns the fit and the losses."""
+
+    @jax.jit
+    def vg(f: SimFit, windows: Windows, idx: Array) -> tuple[Array, SimFit]:
+        batch = windows.take(idx)
+        return jax.value_and_grad(
+            lambda f: window_loss(model, f.apply(params, mass0, inertia0), batch, fps, base_quat, weights)
+        )(f)
+
+    return _adam(vg, SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed)
+
+
+def fit_residual(
+    model: Model, params: Params, train: Windows, fps: float, base_quat: np.ndarray, opts: FitOptions,
+    weights: dict[str, Array], cfg: ResidualConfig, local: bool = True, glob: bool = True,
+) -> tuple[Model, Params, list[float]]:  # fmt: skip
+    """Attach residual networks (zero at start) to the simulator ``params`` and train their weights on the
+    training windows; ``local`` / ``glob`` switch the two networks. Returns the model, params and losses."""
+    model, p0 = attach_residual(model, params, ResidualNets(cfg, seed=opts.seed), local, glob)
+
+    @jax.jit
+    def vg(res: Any, windows: Windows, idx: Array) -> tuple[Array, Any]:
+        batch = windows.take(idx)
+        loss = lambda r: window_loss(model, p0.replace(residual=r), batch, fps, base_quat, weights)  # noqa: E731
+        return jax.value_and_grad(loss)(res)
+
+    res, losses = _adam(vg, p0.residual, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1)
+    return model, p0.replace(residual=res), losses
+
+
+def _adam(
+    vg: Any, x0: Any, train: Windows, steps: int, lr: float, batch: int, seed: int, check_every: int = 10
+) -> tuple[Any, list[float]]:
+    """Minibatch Adam (``batch`` random training windows per step). Every ``check_every`` steps the loss on a
+    fixed subset of ``2 batch`` training windows is measured and the best iterate by it is returned, so a
+    fit never ends worse on that subset than it started. Returns the iterate and the minibatch losses."""
+    rng, n = np.random.default_rng(seed), len(train)
+    check = jnp.asarray(rng.choice(n, size=min(2 * batch, n), replace=False))
+    tx = optax.adam(lr)
+    x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
+    best, best_x = float(vg(x, train, check)[0]), x
+    losses: list[float] = []
+    for k in range(1, steps + 1):
+        idx = jnp.asarray(rng.choice(n, size=min(batch, n), replace=False))
+        loss, g = vg(x, train, idx)
+        if not np.isfinite(float(loss)):
+            break
+        losses.append(float(loss))
+        upd, st = tx.update(g, st, x)
+        x = optax.apply_updates(x, upd)
+        if k % check_every == 0 or k == steps:
+            c = float(vg(x, train, check)[0])
+            if c < best:
+                best, best_x = c, x
+    return best_x, losses

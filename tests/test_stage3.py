@@ -1,0 +1,73 @@
+"""Stage 3: the replay buffer, prediction windows and fitting the simulator to MuJoCo."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory):
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.eval.predict import collect
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.problem import make_problem
+    from quasisim.method.retarget import retarget
+    from quasisim.method.stage3 import noisy_variants
+
+    p: Path = write_example("cube_lift", tmp_path_factory.mktemp("s3"), n_frames=24)
+    demo, hand = load_demo(p), load_hand("shadow")
+    rt = retarget(hand, demo)
+    prob = make_problem(demo, hand, rt.base_rot, 5, 32)
+    cfg = TransferConfig.from_yaml()
+    cur = load_curriculum("default")
+    variants = noisy_variants(rt.q, 1, cfg.sample_target, 0, hand.joint_range)
+    buf = collect(prob.scene, [rt.q, *variants], demo.fps)
+    return prob, cfg, prob.params(cur.contact(cur.stiffest)), buf, rt.q, variants
+
+
+def test_noisy_variants_are_smooth_perturbations_within_limits(setup) -> None:
+    prob, _cfg, _p, buf, q, variants = setup
+    v = variants[0]
+    assert v.shape == q.shape and np.array_equal(v[0], q[0])  # the start is not perturbed
+    assert 1e-3 < np.abs(v - q).max() < 0.5
+    lo, hi = prob.hand.joint_range.T
+    limited = prob.hand.joint_limited
+    assert np.all((v[:, 6:] >= np.minimum(lo, q[:, 6:]) - 1e-12)[:, limited])
+    assert np.all((v[:, 6:] <= np.maximum(hi, q[:, 6:]) + 1e-12)[:, limited])
+    assert buf.n_rollouts == 2 and np.array_equal(buf.q_targets[1], v)
+
+
+@pytest.mark.slow
+def test_fit_lowers_the_prediction_loss_and_residuals_start_at_zero(setup) -> None:
+    from quasisim.eval.predict import predict, split_starts, windows
+    from quasisim.method.stage3 import SimFit, fit, window_loss
+    from quasisim.sim.build import attach_residual
+    from quasisim.sim.residual import ResidualConfig, ResidualNets
+
+    prob, cfg, p0, buf, _q, _v = setup
+    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    opts = dataclasses.replace(cfg.stage3, horizon=3, steps=10, batch=4)
+    train_s, _ = split_starts(buf.n_rollouts, demo.n_frames, opts.horizon, opts.held_out)
+    train = windows(m, buf, train_s, opts.horizon, bq)
+    w = cfg.weights.arrays()
+    loss = jax.jit(lambda p: window_loss(m, p, train, demo.fps, bq, w))
+    nominal = float(loss(SimFit.nominal().apply(p0, obj.mass, obj.inertia)))
+    f, losses = fit(m, p0, train, demo.fps, bq, obj.mass, obj.inertia, opts, w)
+    fitted = float(loss(f.apply(p0, obj.mass, obj.inertia)))
+    # measured on all training windows (the fit saw minibatches): lower than the nominal simulator
+    assert len(losses) == opts.steps and fitted < nominal, (nominal, fitted, f.describe(obj.mass))
+
+    # the residual networks start at zero: attached, they predict exactly what the analytical model does
+    m2, p2 = attach_residual(m, p0, ResidualNets(ResidualConfig(), seed=0))
+    a = predict(m, p0, train, demo.fps, bq)
+    b = predict(m2, p2, train, demo.fps, bq)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-6)
