@@ -204,3 +204,24 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
     with pytest.raises(InputError, match="sample_target"):
         other = TransferConfig.from_yaml(overrides={"sample_target.samples": 7, "sample_target.horizon": 3})
         run_transfer(short_demo, tmp_path / "st", spec, other, resume=True)
+
+
+@pytest.mark.slow
+def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> None:
+    """``--stages 3,mpc``: the simulator is fitted to MuJoCo rollouts of the plan (checkpointed, held-out errors
+    in the summary) and the MPC plans with it; stage 3 is refused for PyBullet."""
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.pipeline import run_transfer
+    from quasisim.method.spec import TransferSpec
+
+    over = {**TINY, "stage3.steps": 2, "stage3.variants": 1, "stage3.horizon": 3, "stage3.batch": 4,
+            "mpc.horizon": 2, "mpc.steps": 1}  # fmt: skip
+    cfg = TransferConfig.from_yaml(overrides=over)
+    spec = TransferSpec(curriculum="none", stages=("3", "mpc"), render=False, progress=False)
+    run_transfer(short_demo, tmp_path / "s3", spec, cfg)
+    assert {"stage3.npz", "mpc.npz"} <= {p.name for p in (tmp_path / "s3" / "checkpoints").iterdir()}
+    s = json.loads((tmp_path / "s3" / "summary.json").read_text())
+    assert len(s["stage3"]["held_out_before"]) == 3 and np.all(np.isfinite(s["stage3"]["held_out_after"]))
+    assert {"stage3", "mpc"} <= set(s["seconds"])
+    with pytest.raises(QuasisimError, match="MuJoCo only"):
+        TransferSpec(stages=("3",), target="pybullet").checked()

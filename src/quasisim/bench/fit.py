@@ -9,11 +9,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from quasisim.assets.hand import load_hand
-from quasisim.bench.tables import clips, header, publish
+from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.eval import predict
 from quasisim.method import stage3
@@ -96,16 +95,4 @@ def _markdown(rows: list[dict[str, Any]], cfg: TransferConfig, hand: str) -> lis
             f"| {r['clip']} | {r['simulator']} | {r['obj_pos_cm']:.2f} | {r['obj_rot_deg']:.1f} | {r['keypoints_mm']:.1f} | "
             f"{r['static_pos_cm']:.2f} | {r['static_rot_deg']:.1f} | {r['n_windows'] - r['n_diverged']} | {r['fit_s']:.0f} |"
         )
-    lines += [
-        "",
-        "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for sim in dict.fromkeys(r["simulator"] for r in rows):
-        rs = [r for r in rows if r["simulator"] == sim]
-        mean = lambda k, rs=rs: float(np.nanmean([r[k] for r in rs]))  # noqa: E731
-        lines.append(
-            f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
-            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} |"
-        )
-    return lines
+    return [*lines, "", *prediction_summary(rows)]

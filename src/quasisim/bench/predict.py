@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from quasisim.assets.hand import load_hand
-from quasisim.bench.tables import clips, header, publish
+from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
 from quasisim.eval.predict import collect, prediction_errors, windows
@@ -73,15 +73,5 @@ def _markdown(rows: list[dict[str, Any]], horizon: int, hand: str) -> list[str]:
         f"Mean over clips and start frames, after {horizon} frames; zero-motion: the object stays where it was; "
         "diverged: windows whose prediction became non-finite (left out of the means).",
         "",
-        "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) | diverged |",
-        "|---|---|---|---|---|---|---|---|",
     ]
-    for sim in dict.fromkeys(r["simulator"] for r in rows):
-        rs = [r for r in rows if r["simulator"] == sim]
-        mean = lambda k, rs=rs: float(np.nanmean([r[k] for r in rs]))  # noqa: E731
-        lines.append(
-            f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
-            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} | "
-            f"{sum(r['n_diverged'] for r in rs)} of {sum(r['n_windows'] for r in rs)} |"
-        )
-    return lines
+    return lines + prediction_summary(rows)

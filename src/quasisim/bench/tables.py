@@ -110,3 +110,23 @@ def publish(out: Path, name: str, rows: list[dict[str, Any]], lines: list[str]) 
 def peak_rss_mb() -> float:
     """Peak resident memory of this process (MB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+PREDICTION_HEAD = (
+    "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) | diverged |\n"
+    "|---|---|---|---|---|---|---|---|"
+)
+
+
+def prediction_summary(rows: list[dict[str, Any]]) -> list[str]:
+    """One row per simulator: mean prediction errors over clips (``bench predict``, ``bench fit``)."""
+    lines = [PREDICTION_HEAD]
+    for sim in dict.fromkeys(r["simulator"] for r in rows):
+        rs = [r for r in rows if r["simulator"] == sim]
+        mean = lambda k, rs=rs: float(np.nanmean([r[k] for r in rs]))  # noqa: E731
+        lines.append(
+            f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
+            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} | "
+            f"{sum(r['n_diverged'] for r in rs)} of {sum(r['n_windows'] for r in rs)} |"
+        )
+    return lines

@@ -83,6 +83,8 @@ class TransferConfig:
         }
         if "mpc" in stages:
             out["mpc"] = dataclasses.asdict(self.mpc)
+        if "3" in stages:
+            out["stage3"] = dataclasses.asdict(self.stage3)
         if "sample" in stages:
             out["sample_target"] = dataclasses.asdict(self.sample_target)
         return out

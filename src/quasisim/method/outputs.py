@@ -29,6 +29,7 @@ class RunRecord:
     seconds: dict[str, float] = field(default_factory=dict)
     curves: dict[str, list[float]] = field(default_factory=dict)
     simulators: list[dict[str, Any]] = field(default_factory=list)
+    fit: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -80,7 +81,7 @@ def write_outputs(
         "demo": demo.name, "hand": prob.hand.name, "target": target, "curriculum": settings["curriculum"],
         "stages": list(settings["stages"]), "budget": settings["budget"], "method": settings["method"],
         "seconds": record.seconds, "simulators": record.simulators, "kinematic_metrics": km, "sysid": s_desc,
-        "metrics": ev.metrics,
+        "stage3": record.fit or None, "metrics": ev.metrics,
     }  # fmt: skip
     save_json_atomic(out / "summary.json", summary)
     return TransferResult(controls, ev.metrics, km, record, out)

@@ -26,7 +26,7 @@ import numpy as np
 from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import load_demo
-from quasisim.method import stage1, stage2
+from quasisim.method import stage1, stage2, stage3
 from quasisim.method.checkpoints import Checkpoints, trajectory_arrays, trajectory_from
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
@@ -74,6 +74,8 @@ def run_transfer(
     if "2" in spec.stages:
         plan = _stage2(prob, cur, cfg, spec, ck, plan, objective, kin["q"], progress, record)
     model_params = plan.sysid.apply(prob.params(cur.contact(cur.stiffest)), prob.obj.mass, prob.obj.inertia)
+    if "3" in spec.stages:
+        model_params = _stage3(prob, cfg, ck, plan, prob.params(cur.contact(cur.stiffest)), progress, record)
     q_out, extras = plan.traj.q_targets, {"kinematic_q": np.asarray(kin["q"])}
     if "mpc" in spec.stages:
         extras["plan_q"] = q_out
@@ -81,7 +83,7 @@ def run_transfer(
     if "sample" in spec.stages:
         extras["sample_nominal_q"] = q_out
         q_out = _sample_in_target(prob, cfg, spec, ck, q_out, progress, record)
-    if {"1", "2", "mpc"} & set(spec.stages):
+    if {"1", "2", "3", "mpc"} & set(spec.stages):
         extras["sim_qpos"] = sim_qpos(prob, model_params, plan.traj)
     label = {"ours": "transfer"}.get(spec.method, spec.method)
     controls = Controls(
@@ -177,6 +179,38 @@ def _record_simulator(
         f"sim {i + 1}: loss {losses[0]:.5f} -> {min(losses):.5f} in {len(losses)} steps, "
         f"{float(d['wall_s']):.0f} s; mass {s_desc['mass_kg'] * 1e3:.0f} g"
     )
+
+
+def _stage3(
+    prob: Problem,
+    cfg: TransferConfig,
+    ck: Checkpoints,
+    plan: Plan,
+    params: Params,
+    progress: Progress,
+    record: RunRecord,
+) -> Params:
+    """Stage 3: fit the stiffest simulator (S from stage 2) to MuJoCo rollouts of the plan and its variants;
+    returns the fitted simulator (the model of the MPC that follows)."""
+    o = cfg.stage3
+
+    def run() -> dict[str, Any]:
+        t0 = time.perf_counter()
+        d = stage3.fit_to_target(
+            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, cfg.weights.arrays()
+        )
+        return {**d, "wall_s": np.array(time.perf_counter() - t0)}
+
+    d = ck.get("stage3", run)
+    record.seconds["stage3"] = float(d["wall_s"])
+    record.curves["stage 3 fit (minibatch loss)"] = [float(x) for x in d["losses"]]
+    f = stage3.SimFit.from_array(d["fit"])
+    b, a = d["held_out_before"], d["held_out_after"]
+    record.fit = {"fitted": f.describe(prob.obj.mass), "held_out_before": b.tolist(), "held_out_after": a.tolist()}
+    progress.write(
+        f"stage 3: held-out {o.horizon}-frame error {b[0]:.2f} cm / {b[1]:.1f} deg -> {a[0]:.2f} cm / {a[1]:.1f} deg"
+    )
+    return f.apply(params, prob.obj.mass, prob.obj.inertia)
 
 
 def _closed_loop(

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.targets import TARGETS
 
-STAGES = ("1", "2", "mpc", "sample")
+STAGES = ("1", "2", "3", "mpc", "sample")
 METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
 
 
@@ -45,10 +45,10 @@ class TransferSpec:
         bad = [s for s in stages if s not in STAGES]
         if bad:
             raise choice_error("stage", bad[0], STAGES)
-        if "mpc" in stages and self.target != "mujoco":
+        if {"3", "mpc"} & set(stages) and self.target != "mujoco":
             raise QuasisimError(
-                f"closed-loop MPC runs in MuJoCo only (target {self.target!r}); use --target mujoco or leave out "
-                "the mpc stage"
+                f"stage 3 and closed-loop MPC run in MuJoCo only (target {self.target!r}); use --target mujoco or "
+                "leave out stages 3 and mpc"
             )
         return dataclasses.replace(self, stages=tuple(s for s in STAGES if s in stages))
 
@@ -60,6 +60,6 @@ def parse_stages(text: str) -> tuple[str, ...]:
     if bad or not stages:
         raise QuasisimError(
             f"unknown stage(s) {', '.join(bad) or '(none given)'}; valid stages: {', '.join(STAGES)} "
-            "(stage 3, fitting residual physics to the target, is not implemented yet)"
+            "(3: fit the simulator's S and constants to MuJoCo; residual networks are not used by transfer yet)"
         )
     return tuple(s for s in STAGES if s in stages)

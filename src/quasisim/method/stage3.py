@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from quasisim.eval.predict import Windows, predict
+from quasisim.eval.predict import Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method.sample_target import SamplingOptions, sample_windows
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
@@ -72,9 +72,20 @@ class SimFit:
     log_gain: Array
 
     @staticmethod
-    def nominal() -> SimFit:
+    def nominal(sysid: SysID | None = None) -> SimFit:
+        """The nominal constants with S ``sysid`` (default: the object's nominal S)."""
         z = jnp.zeros((), F32)
-        return SimFit(SysID.init(), z, z, z, z)
+        return SimFit(sysid or SysID.init(), z, z, z, z)
+
+    def as_array(self) -> np.ndarray:
+        """(8,) S then the four log scales (for checkpoints)."""
+        rest = [float(x) for x in (self.log_contact, self.log_mu, self.log_joint_damping, self.log_gain)]
+        return np.concatenate([self.sysid.as_array(), rest])
+
+    @staticmethod
+    def from_array(x: np.ndarray) -> SimFit:
+        """Inverse of :meth:`as_array`."""
+        return SimFit(SysID.from_array(x[:4]), *(jnp.asarray(v, F32) for v in np.asarray(x)[4:]))
 
     def apply(self, params: Params, mass0: float, inertia0: np.ndarray) -> Params:
         """``params`` with the fitted values (differentiable in ``self``)."""
@@ -135,9 +146,10 @@ class FitOptions:
 
 def fit(
     model: Model, params: Params, train: Windows, fps: float, base_quat: np.ndarray, mass0: float,
-    inertia0: np.ndarray, opts: FitOptions, weights: dict[str, Array],
+    inertia0: np.ndarray, opts: FitOptions, weights: dict[str, Array], start: SimFit | None = None,
 ) -> tuple[SimFit, list[float]]:  # fmt: skip
-    """Adam on :class:`SimFit` over random batches of the training windows; returns the fit and the losses."""
+    """Adam on :class:`SimFit` (from ``start``, default nominal) over random batches of the training
+    windows; returns the fit and the losses."""
 
     @jax.jit
     def vg(f: SimFit, windows: Windows, idx: Array) -> tuple[Array, SimFit]:
@@ -146,7 +158,7 @@ def fit(
             lambda f: window_loss(model, f.apply(params, mass0, inertia0), batch, fps, base_quat, weights)
         )(f)
 
-    return _adam(vg, SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed)
+    return _adam(vg, start or SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed)
 
 
 def fit_residual(
@@ -192,3 +204,27 @@ def _adam(
             if c < best:
                 best, best_x = c, x
     return best_x, losses
+
+
+def fit_to_target(
+    prob: Any, params: Params, plan: np.ndarray, sysid: SysID, opts: FitOptions, noise: SamplingOptions,
+    weights: dict[str, Array],
+) -> dict[str, Any]:  # fmt: skip
+    """Stage 3 for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay buffer of the
+    plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the training windows,
+    and the held-out ``H``-frame errors before and after (checkpoint arrays)."""
+    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    plans = [plan, *noisy_variants(plan, opts.variants, noise, opts.seed, prob.hand.joint_range)]
+    buf = collect(prob.scene, plans, demo.fps)
+    train_s, test_s = split_starts(buf.n_rollouts, demo.n_frames, opts.horizon, opts.held_out)
+    train = windows(m, buf, train_s, opts.horizon, bq)
+    test = windows(m, buf, [s for s in test_s if s[0] == 0], opts.horizon, bq)
+    start = SimFit.nominal(sysid)
+    f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start)
+    before = prediction_errors(m, start.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
+    after = prediction_errors(m, f.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
+    return {
+        "fit": f.as_array(), "losses": np.asarray(losses, np.float64),
+        "held_out_before": np.array([before.obj_pos_cm[-1], before.obj_rot_deg[-1], before.keypoints_mm[-1]]),
+        "held_out_after": np.array([after.obj_pos_cm[-1], after.obj_rot_deg[-1], after.keypoints_mm[-1]]),
+    }  # fmt: skip
