@@ -34,7 +34,7 @@ test-fast: setup
 	$(VENV)/bin/pytest -q -m "not slow"
 
 lint: setup
-	$(VENV)/bin/ruff check src tests examples
+	$(VENV)/bin/ruff check src tests examples scripts
 
 bench-baseline: setup
 	$(VENV)/bin/quasisim bench baseline $(QUASISIM_DATA) --hand shadow --out bench_out/baseline

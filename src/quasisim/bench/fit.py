@@ -1,10 +1,12 @@
 """``quasisim bench fit``: how well the fitted quasi-physical simulator predicts MuJoCo on windows the fit
 never saw (stage 3's measure), per clip and in summary: the analytical nominal simulator, + S and the
-contact/joint constants, + residual networks (local only, global only, both), beside zero motion."""
+contact/joint constants, + residual networks (local only, global only, both), beside zero motion.
+Resumable: each finished clip's rows are kept in ``OUT/clips/<clip>.json``."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -15,6 +17,7 @@ from quasisim.assets.hand import load_hand
 from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.eval import predict
+from quasisim.files import save_json_atomic
 from quasisim.method import stage3
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
@@ -74,7 +77,15 @@ def run_fit_bench(
     """:func:`fit_clip` on every clip; prints and writes the markdown table (per clip, then the summary)."""
     paths = clips(data_dir, pattern, clip_names)
     cfg = TransferConfig.from_yaml(overrides=overrides)
-    rows = [r for p in tqdm(paths, desc="clips", unit="clip") for r in fit_clip(p, hand_name, cfg, residual)]
+    settings = {"stage3": dataclasses.asdict(cfg.stage3), "residual": residual, "hand": hand_name}
+    rows: list[dict[str, Any]] = []
+    for p in tqdm(paths, desc="clips", unit="clip"):
+        done = out / "clips" / f"{p.stem}.json"  # a finished clip is read back (same settings), never redone
+        cached = json.loads(done.read_text()) if done.is_file() else None
+        if cached is None or cached["settings"] != settings:
+            cached = {"settings": settings, "rows": fit_clip(p, hand_name, cfg, residual)}
+            save_json_atomic(done, cached)
+        rows += cached["rows"]
     return publish(out, "fit", rows, _markdown(rows, cfg, hand_name))
 
 
