@@ -98,6 +98,7 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     assert metrics == res.metrics
     summary = json.loads((out / "summary.json").read_text())
     assert [s["sim"] for s in summary["simulators"]] == [2, 3]
+    assert summary["notes"] and "simulator(s) 4 with residual physics: not run" in summary["notes"][0]
     # restart guard: sim 3 started from the best candidate in sim 3, and its first (identification) step
     # evaluated exactly that trajectory
     s3 = summary["simulators"][1]

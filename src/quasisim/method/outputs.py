@@ -30,6 +30,7 @@ class RunRecord:
     curves: dict[str, list[float]] = field(default_factory=dict)
     simulators: list[dict[str, Any]] = field(default_factory=list)
     fit: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -74,6 +75,7 @@ def write_outputs(
             "budget": f"{settings['budget']} (simulator dt {prob.model.dt * 1e3:g} ms)",
             "seconds per stage": ", ".join(f"{k} {v:.0f}" for k, v in record.seconds.items()),
             "identified S": ", ".join(f"{k} {v:.4g}" for k, v in s_desc.items()),
+            **({"notes": "; ".join(record.notes)} if record.notes else {}),
         },
         extra_images=images, progress=progress,
     )  # fmt: skip
@@ -81,7 +83,7 @@ def write_outputs(
         "demo": demo.name, "hand": prob.hand.name, "target": target, "curriculum": settings["curriculum"],
         "stages": list(settings["stages"]), "budget": settings["budget"], "method": settings["method"],
         "seconds": record.seconds, "simulators": record.simulators, "kinematic_metrics": km, "sysid": s_desc,
-        "stage3": record.fit or None, "metrics": ev.metrics,
+        "stage3": record.fit or None, "notes": record.notes, "metrics": ev.metrics,
     }  # fmt: skip
     save_json_atomic(out / "summary.json", summary)
     return TransferResult(controls, ev.metrics, km, record, out)

@@ -73,6 +73,7 @@ def run_transfer(
         plan, objective = _stage1(prob, cur, cfg, spec, ck, plan, kin["q"], progress, record)
     if "2" in spec.stages:
         plan = _stage2(prob, cur, cfg, spec, ck, plan, objective, kin["q"], progress, record)
+        _note_residual_stages(cur, spec, progress, record)
     model_params = plan.sysid.apply(prob.params(cur.contact(cur.stiffest)), prob.obj.mass, prob.obj.inertia)
     if "3" in spec.stages:
         model_params = _stage3(prob, cfg, ck, plan, prob.params(cur.contact(cur.stiffest)), progress, record)
@@ -160,6 +161,20 @@ def _stage2(
         plan = Plan(*trajectory_from(d))
         _record_simulator(record, cur, i, d, plan.sysid.describe(prob.obj.mass), progress)
     return plan
+
+
+def _note_residual_stages(cur: Curriculum, spec: TransferSpec, progress: Progress, record: RunRecord) -> None:
+    """Say what happens to the curriculum's simulators with residual physics (they are stage 3's)."""
+    res = [i + 1 for i, s in enumerate(cur.stages) if s.residual]
+    if not res:
+        return
+    how = (
+        "stage 3 fits S and the contact/joint constants to MuJoCo (residual networks are not used by transfer yet)"
+        if "3" in spec.stages
+        else "not run: add stage 3 (--stages ...,3) to fit the simulator to the target"
+    )
+    record.notes.append(f"simulator(s) {', '.join(map(str, res))} with residual physics: {how}")
+    progress.write(record.notes[-1])
 
 
 def _record_simulator(
