@@ -152,5 +152,5 @@ def test_transfer_config_validation(tmp_path) -> None:
     with pytest.raises(InputError, match="foo"):
         TransferConfig.from_yaml(bad)
     assert parse_stages("2,1") == ("1", "2")
-    with pytest.raises(QuasisimError, match="valid stages: 1, 2"):
-        parse_stages("1,3")
+    with pytest.raises(QuasisimError, match="valid stages: 1, 2, 3, mpc, sample"):
+        parse_stages("1,4")

@@ -132,8 +132,8 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
     choices = next(p for p in main.commands["transfer"].params if p.name == "method").type.choices
     assert tuple(choices) == METHODS
 
-    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "1,3"])
-    assert r.exit_code == 2 and "valid stages: 1, 2, mpc" in r.output
+    r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "1,4"])
+    assert r.exit_code == 2 and "valid stages: 1, 2, 3, mpc, sample" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--budget", "huge"])
     assert r.exit_code == 2 and "valid options: fast, paper" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--curriculum", "soft"])
@@ -226,3 +226,6 @@ def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> N
     assert {"stage3", "mpc"} <= set(s["seconds"])
     with pytest.raises(QuasisimError, match="MuJoCo only"):
         TransferSpec(stages=("3",), target="pybullet").checked()
+    short = TransferConfig.from_yaml(overrides={**over, "stage3.horizon": 10})  # 16 frames: no held-out window
+    with pytest.raises(QuasisimError, match="too few for 10-frame windows"):
+        run_transfer(short_demo, tmp_path / "s3b", dataclasses.replace(spec, stages=("3",)), short)

@@ -10,9 +10,12 @@ simulator.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -274,6 +277,18 @@ def convex_decomposition(
     return [(np.asarray(h.vertices, np.float64), np.asarray(h.faces, np.int64)) for h in hulls]
 
 
+@contextlib.contextmanager
+def quiet_trimesh() -> Iterator[None]:
+    """Silence trimesh's "only got n/m samples" notices while sampling (the level is restored afterwards)."""
+    log = logging.getLogger("trimesh")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
 @dataclass(frozen=True, eq=False)
 class ObjectAsset:
     """A rigid object. Build it with :func:`load_object`.
@@ -371,7 +386,8 @@ class ObjectAsset:
             points (n, 3) object frame, m; normals (n, 3) outward unit face normals.
         """
         mesh = self.to_trimesh()
-        pts, idx = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+        with quiet_trimesh():
+            pts, idx = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
         if len(pts) < n:  # the even sampler can return fewer; top up with area-weighted samples
             more, more_idx = trimesh.sample.sample_surface(mesh, n - len(pts), seed=seed + 1)
             pts, idx = np.vstack([pts, more]), np.concatenate([idx, more_idx])

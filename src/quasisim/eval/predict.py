@@ -124,6 +124,8 @@ def windows(
     model: Model, buf: ReplayBuffer, starts: list[tuple[int, int]], horizon: int, base_quat: np.ndarray
 ) -> Windows:
     """The windows starting at frame ``t`` of rollout ``r`` for each ``(r, t)`` of ``starts``."""
+    if not starts:
+        raise ValueError("no window starts given")
     T = buf.q_targets.shape[1]
     late = [(r, t) for r, t in starts if t + horizon >= T]
     if late:

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from quasisim.errors import QuasisimError
 from quasisim.eval.predict import Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method.sample_target import SamplingOptions, sample_windows
 from quasisim.optim.objective import tracking_errors, weighted_sum
@@ -214,9 +215,14 @@ def fit_to_target(
     plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the training windows,
     and the held-out ``H``-frame errors before and after (checkpoint arrays)."""
     demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    train_s, test_s = split_starts(1 + opts.variants, demo.n_frames, opts.horizon, opts.held_out)
+    if not train_s or not test_s:
+        raise QuasisimError(
+            f"stage 3: the clip's {demo.n_frames} frames are too few for {opts.horizon}-frame windows with the last "
+            f"{100 * opts.held_out:.0f} % held out; lower stage3.horizon or stage3.held_out (--set), or leave out stage 3"
+        )
     plans = [plan, *noisy_variants(plan, opts.variants, noise, opts.seed, prob.hand.joint_range)]
     buf = collect(prob.scene, plans, demo.fps)
-    train_s, test_s = split_starts(buf.n_rollouts, demo.n_frames, opts.horizon, opts.held_out)
     train = windows(m, buf, train_s, opts.horizon, bq)
     test = windows(m, buf, [s for s in test_s if s[0] == 0], opts.horizon, bq)
     start = SimFit.nominal(sysid)

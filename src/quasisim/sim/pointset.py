@@ -5,9 +5,6 @@ Used for the quasi-physical point set (contacts), for the Chamfer-distance metri
 
 from __future__ import annotations
 
-import contextlib
-import logging
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import jax
@@ -16,6 +13,7 @@ import numpy as np
 import trimesh
 
 from quasisim.assets.hand import Geom, HandModel
+from quasisim.assets.object import quiet_trimesh
 from quasisim.rotations import np_quat_to_mat
 from quasisim.sim.kinematics import fk_full, points_world
 
@@ -63,20 +61,8 @@ def sample_hand_points(hand: HandModel, spacing: float, offset: float, seed: int
 
     Points that fall inside another collision geom of the same body are dropped (overlapping boxes).
     """
-    with _quiet_trimesh():
+    with quiet_trimesh():
         return _sample(hand, spacing, offset, seed)
-
-
-@contextlib.contextmanager
-def _quiet_trimesh() -> Iterator[None]:
-    """Silence trimesh's "only got n/m samples" notices while sampling (restored afterwards)."""
-    log = logging.getLogger("trimesh")
-    level = log.level
-    log.setLevel(logging.ERROR)
-    try:
-        yield
-    finally:
-        log.setLevel(level)
 
 
 def _sample(hand: HandModel, spacing: float, offset: float, seed: int) -> HandPoints:
