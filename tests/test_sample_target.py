@@ -201,13 +201,15 @@ def test_zero_noise_is_a_replay_of_the_plan(real) -> None:
 def test_best_candidate_lowers_the_first_window_cost(real) -> None:
     """At frame 0 the chosen window is cheaper than the nominal, whose cost (scored from a plain replay of
     the plan) the loop's own candidate 0 reproduces; the applied run is a replay of the applied targets."""
-    from quasisim.method.sample_target import _references
+    from quasisim.optim.objective import window_references
 
     demo, plan, scene = real
     res = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
     rep = _replay(scene, plan)
     H, km = OPTS.horizon, scene.hand.kp_metric
-    ref_pos, ref_quat, ref_kp = (x[1 : H + 1] for x in _references(demo, scene, H))
+    ref_pos, ref_quat, ref_kp = (
+        x[1 : H + 1] for x in window_references(demo, scene.hand.kp_human, np.flatnonzero(scene.hand.kp_metric), H)
+    )
     pred = Prediction(rep.qpos[None, 1 : H + 1], rep.object_pos[None, 1 : H + 1], rep.object_quat[None, 1 : H + 1],
                       rep.keypoints[None, 1 : H + 1][:, :, km], 0)  # fmt: skip
     nominal = window_costs(plan[None, : H + 1], pred, ref_pos, ref_quat, ref_kp, np.ones(H), W)[0]

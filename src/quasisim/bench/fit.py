@@ -37,11 +37,7 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
     cur = load_curriculum("default")
     p0 = prob.params(cur.contact(cur.stiffest))
     t0 = time.perf_counter()
-    plans = [rt.q, *stage3.noisy_variants(rt.q, o.variants, cfg.sample_target, o.seed, hand.joint_range)]
-    buf = predict.collect(prob.scene, plans, demo.fps)
-    train_s, test_s = predict.split_starts(buf.n_rollouts, demo.n_frames, o.horizon, o.held_out)
-    train = predict.windows(prob.model, buf, train_s, o.horizon, prob.base_quat)
-    test = predict.windows(prob.model, buf, [s for s in test_s if s[0] == 0], o.horizon, prob.base_quat)
+    train, test = stage3.fit_windows(prob, rt.q, o, cfg.sample_target)
     w = cfg.weights.arrays()
     args = (demo.fps, prob.base_quat)
     t_collect = time.perf_counter() - t0

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from quasisim.data.demo import Demo
 from quasisim.optim.adam import adam_steps
-from quasisim.optim.objective import Weights, make_window_objective
+from quasisim.optim.objective import Weights, make_window_objective, padded, window_references
 from quasisim.optim.trajectory import Trajectory, observed_state
 from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.types import Model, Params, State
@@ -93,11 +93,6 @@ def _mask_first_frame(g: Trajectory) -> Trajectory:
     return dataclasses.replace(g, base=g.base.at[0].set(0.0), joints=g.joints.at[0].set(0.0))
 
 
-def padded(x: np.ndarray, horizon: int) -> np.ndarray:
-    """``x`` (T, ...) followed by ``horizon`` copies of its last frame (windows past the clip's end)."""
-    return np.concatenate([x, np.repeat(x[-1:], horizon, 0)])
-
-
 def run_mpc(
     demo: Demo, scene: Scene, model: Model, params: Params, plan: np.ndarray, opts: MPCOptions, weights: Weights,
     progress: bool = True,
@@ -109,9 +104,7 @@ def run_mpc(
     bq = jnp.asarray(np_mat_to_quat(scene.base_rot), F32)
     vg = _gradient_fn(make_window_objective(model, bq, demo.fps, kp_index), weights.arrays(), opts)
     rng = np.random.default_rng(opts.seed)
-    refs = [
-        padded(x, H) for x in (demo.object_pos, demo.object_quat, demo.right_joints[:, model.hand.kp_human[kp_index]])
-    ]
+    refs = window_references(demo, model.hand.kp_human, kp_index, H)
     plan = padded(np.asarray(plan, np.float64), H)
     applied = plan.copy()
     target = MujocoTarget(scene)

@@ -74,9 +74,10 @@ def run_transfer(
     if "2" in spec.stages:
         plan = _stage2(prob, cur, cfg, spec, ck, plan, objective, kin["q"], progress, record)
         _note_residual_stages(cur, spec, progress, record)
-    model_params = plan.sysid.apply(prob.params(cur.contact(cur.stiffest)), prob.obj.mass, prob.obj.inertia)
+    stiffest = prob.params(cur.contact(cur.stiffest))  # the model of stage 3 and MPC
+    model_params = plan.sysid.apply(stiffest, prob.obj.mass, prob.obj.inertia)
     if "3" in spec.stages:
-        model_params = _stage3(prob, cfg, ck, plan, prob.params(cur.contact(cur.stiffest)), progress, record)
+        model_params = _stage3(prob, cfg, ck, plan, stiffest, progress, record)
     q_out, extras = plan.traj.q_targets, {"kinematic_q": np.asarray(kin["q"])}
     if "mpc" in spec.stages:
         extras["plan_q"] = q_out

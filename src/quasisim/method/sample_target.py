@@ -57,7 +57,7 @@ from tqdm import tqdm
 from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.optim import objective
-from quasisim.optim.objective import Weights
+from quasisim.optim.objective import Weights, padded, window_references
 from quasisim.targets import TARGETS, TargetRollout
 from quasisim.targets.scene import Scene
 
@@ -417,19 +417,6 @@ def make_runner(target: str, scene: Scene, opts: SamplingOptions) -> Runner:
 # ---- the control loop ------------------------------------------------------------------------------
 
 
-def _references(demo: Demo, scene: Scene, horizon: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Object positions (T + H, 3), quaternions (T + H, 4) and metric keypoints (T + H, K_metric, 3) of the
-    demo, the last frame repeated ``horizon`` times."""
-    hand = scene.hand
-    kp = demo.right_joints[:, hand.kp_human[np.flatnonzero(hand.kp_metric)]]
-
-    def pad(x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
-        return np.concatenate([x, np.repeat(x[-1:], horizon, axis=0)])
-
-    return pad(demo.object_pos), pad(demo.object_quat), pad(kp)
-
-
 def _check_plan(demo: Demo, scene: Scene, plan: np.ndarray) -> np.ndarray:
     plan = np.asarray(plan, dtype=np.float64)
     D = 6 + scene.hand.n_joints
@@ -466,10 +453,10 @@ def _control_loop(
     demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, runner: Runner, progress: bool
 ) -> SampleResult:
     T, H, fps, hand = len(plan), opts.horizon, float(demo.fps), scene.hand
-    ref_pos, ref_quat, ref_kp = _references(demo, scene, H)
+    ref_pos, ref_quat, ref_kp = window_references(demo, hand.kp_human, np.flatnonzero(hand.kp_metric), H)
     lo = np.where(hand.joint_limited, hand.joint_range[:, 0], -np.inf)
     hi = np.where(hand.joint_limited, hand.joint_range[:, 1], np.inf)
-    work = np.concatenate([plan, np.repeat(plan[-1:], H, axis=0)])  # the plan, shifted as we go
+    work = padded(plan, H)  # the plan, shifted as we go
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
     losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0

@@ -207,14 +207,11 @@ def _adam(
     return best_x, losses
 
 
-def fit_to_target(
-    prob: Any, params: Params, plan: np.ndarray, sysid: SysID, opts: FitOptions, noise: SamplingOptions,
-    weights: dict[str, Array],
-) -> dict[str, Any]:  # fmt: skip
-    """Stage 3 for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay buffer of the
-    plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the training windows,
-    and the held-out ``H``-frame errors before and after (checkpoint arrays)."""
-    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+def fit_windows(prob: Any, plan: np.ndarray, opts: FitOptions, noise: SamplingOptions) -> tuple[Windows, Windows]:
+    """The training and held-out windows of stage 3 for a plan (T, 6 + J): the plan and ``opts.variants``
+    noisy variants rolled out in MuJoCo; training windows end before the last ``held_out`` fraction of the
+    clip, the held-out ones are those of the plan's own rollout. Refuses clips too short for both."""
+    demo, m, bq = prob.demo, prob.model, prob.base_quat
     train_s, test_s = split_starts(1 + opts.variants, demo.n_frames, opts.horizon, opts.held_out)
     if not train_s or not test_s:
         raise QuasisimError(
@@ -225,6 +222,18 @@ def fit_to_target(
     buf = collect(prob.scene, plans, demo.fps)
     train = windows(m, buf, train_s, opts.horizon, bq)
     test = windows(m, buf, [s for s in test_s if s[0] == 0], opts.horizon, bq)
+    return train, test
+
+
+def fit_to_target(
+    prob: Any, params: Params, plan: np.ndarray, sysid: SysID, opts: FitOptions, noise: SamplingOptions,
+    weights: dict[str, Array],
+) -> dict[str, Any]:  # fmt: skip
+    """Stage 3 for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay buffer of the
+    plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the training windows,
+    and the held-out ``H``-frame errors before and after (checkpoint arrays)."""
+    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    train, test = fit_windows(prob, plan, opts, noise)
     start = SimFit.nominal(sysid)
     f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start)
     before = prediction_errors(m, start.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)

@@ -187,6 +187,18 @@ def make_objective(
     return objective
 
 
+def padded(x: np.ndarray, horizon: int) -> np.ndarray:
+    """``x`` (T, ...) followed by ``horizon`` copies of its last frame (windows past the clip's end)."""
+    return np.concatenate([x, np.repeat(x[-1:], horizon, 0)])
+
+
+def window_references(demo: Demo, kp_human: np.ndarray, kp_index: np.ndarray, horizon: int) -> list[np.ndarray]:
+    """The references of MPC windows, padded by ``horizon`` frames: object positions (T + H, 3), quaternions
+    (T + H, 4) and the human keypoints of robot keypoints ``kp_index`` (T + H, K, 3)."""
+    kp = demo.right_joints[:, kp_human[kp_index]]
+    return [padded(x, horizon) for x in (demo.object_pos, demo.object_quat, kp)]
+
+
 def make_window_objective(model: Model, base_quat: np.ndarray, fps: float, kp_index: np.ndarray) -> Any:
     """``f(win, s0, params, ref_pos, ref_quat, ref_kp, frame_w, weights) -> (loss, terms)`` over one MPC window:
     ``win`` (q + 1 frames of PD targets, the first being the targets the step starts from) rolled out from
