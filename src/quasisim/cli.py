@@ -179,6 +179,41 @@ def transfer(
     click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'report.html'}, {out / 'summary.json'}")
 
 
+@main.command()
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder (one folder per clip).")
+@click.option("--method", type=click.Choice(METHODS), default=_SPEC.method, show_default=True, help="As in transfer.")
+@click.option("--stages", default=",".join(_SPEC.stages), show_default=True, help="As in transfer (method ours).")
+@click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
+@click.option("--hand", default=_SPEC.hand, show_default=True)
+@click.option("--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True)
+@click.option("--budget", default=_SPEC.budget, show_default=True)
+@click.option("--pattern", default="*.npz", show_default=True, help="Clips of DATA_DIR (glob); *_long.npz skipped unless named.")
+@click.option("--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern).")
+@click.option("--ray", "ray_address", default=None, help="Address of an existing Ray cluster (default: local Ray on this machine).")
+@click.option("--workers", default=0, show_default=True, help="Clips at once (0: one per core).")
+@click.option("--threads", default=0, show_default=True, help="Cores per worker (0: cores / workers).")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
+@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
+@click.option("--render/--no-render", default=False, show_default=True, help="Render each clip's video.")
+@_friendly
+def batch(
+    data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
+    pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, config_path: Path | None,
+    sets: tuple[str, ...], render: bool,
+) -> None:  # fmt: skip
+    """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
+    reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
+    _setup_runtime()
+    from quasisim.batch import run_batch_command
+
+    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, progress=False).checked()
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_batch_command(
+        data_dir, names, pattern, spec, out, ray_address, workers, threads, config_path, _parse_sets(sets)
+    )
+
+
 @main.group()
 def bench() -> None:
     """Benchmarks whose output goes into BENCHMARKS.md."""
@@ -269,13 +304,17 @@ def bench_sim(
     default=None,
     help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
 )
+@click.option("--ray", "ray_address", default=None, help="Address of an existing Ray cluster (default: local Ray).")
+@click.option("--workers", default=0, show_default=True, help="Clips at once (0: one per core).")
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
-    out: Path, report_only: bool, judge: str | None,
+    out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int,
 ) -> None:  # fmt: skip
-    """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
+    """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
+    Ray batch (resumable)."""
     _setup_runtime()
+    from quasisim.batch import Settings
     from quasisim.bench.transfer import run_spec, run_transfer_bench
 
     st = parse_stages(stages)
@@ -283,7 +322,8 @@ def bench_transfer(
     for r in rs:
         run_spec(r, st, TransferSpec())
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge)
+    s = Settings(ray_address, workers, keep_scratch=True)
+    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s)
 
 
 @bench.command("predict")

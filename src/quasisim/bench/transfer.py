@@ -1,18 +1,17 @@
 """``quasisim bench transfer``: transfer runs (curricula, ``+mpc``, MPC baselines) on clips beside the
-kinematic replay, resumable; optionally judged open loop in the other target."""
+kinematic replay, as one batch (:mod:`quasisim.batch`: Ray workers, resumable); optionally judged open loop
+in the other target."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
+from quasisim.batch import Job, Run, Settings, finished_runs, run_batch
 from quasisim.bench.tables import SUMMARY_HEAD, clips, header, publish, summary_rows
 from quasisim.data.controls import load_controls
 from quasisim.data.demo import load_demo
@@ -21,7 +20,7 @@ from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.metrics import SUCCESS_KEYS
 from quasisim.files import save_json_atomic
 from quasisim.method.curriculum import load_curriculum
-from quasisim.method.pipeline import TransferSpec, run_transfer
+from quasisim.method.spec import TransferSpec
 
 RUN_KINDS = (
     "CURRICULUM (stages 1,2), CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+mpc+sample (those stages after 1,2), "
@@ -40,60 +39,53 @@ def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferS
     return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, *extra)).checked()
 
 
-def _run_once(demo_path: Path, run_dir: Path, spec: TransferSpec, base_checkpoints: Path | None) -> None:
-    """One transfer into ``run_dir``, resumed from its checkpoints; a ``+mpc`` run starts from the stage-1/2
-    checkpoints of its curriculum's run (copied; the run writes its own ``run.json``). Its wall time goes to
-    ``bench.json`` beside the run's own outputs."""
-    for stale in run_dir.glob("metrics_*.json"):  # judgements of an earlier, unfinished or redone run
-        stale.unlink()
-    ck = run_dir / "checkpoints"
-    if base_checkpoints is not None and base_checkpoints.is_dir() and not ck.is_dir():
-        ck.mkdir(parents=True)
-        for f in base_checkpoints.glob("*.npz"):
-            shutil.copy2(f, ck / f.name)
-    t0 = time.perf_counter()
-    run_transfer(demo_path, run_dir, spec, resume=ck.is_dir())
-    save_json_atomic(run_dir / "bench.json", {"wall_s": time.perf_counter() - t0})
+def jobs(paths: list[Path], specs: dict[str, TransferSpec]) -> list[Job]:
+    """One batch job per clip: its runs, each ``CURRICULUM+...`` run after (and seeded by the stage-1/2
+    checkpoints of) its curriculum's run when that run is asked for too."""
+    order = sorted(specs, key=lambda r: "+" in r)
+    runs = tuple(
+        Run(r, specs[r], specs[r].curriculum if "+" in r and specs[r].curriculum in specs else None) for r in order
+    )
+    return [Job(p, runs) for p in paths]
 
 
-def _rows(demo_path: Path, run: str, run_dir: Path, judge: str | None, target: str) -> list[dict[str, Any]]:
-    """The run's row and the kinematic replay's (both from the run's summary, or judged in ``judge``)."""
-    s = json.loads((run_dir / "summary.json").read_text())
+def _rows(r: dict[str, Any], run_dir: Path, demo_path: Path, judge: str | None, target: str) -> list[dict[str, Any]]:
+    """A batch result row as the kinematic replay's row and the run's (judged in ``judge`` when given)."""
+    m, k = r["metrics"], r["kinematic_metrics"]
     if judge and judge != target:
-        s["metrics"], s["kinematic_metrics"] = _judged(demo_path, run_dir, judge)
-    k, m = s["kinematic_metrics"], s["metrics"]
-    bench_json = run_dir / "bench.json"
-    wall = json.loads(bench_json.read_text())["wall_s"] if bench_json.is_file() else sum(s["seconds"].values())
+        m, k = _judged(demo_path, run_dir, judge)
     better = bool(m["T_err_cm"] < k["T_err_cm"] and m["R_err_deg"] < k["R_err_deg"])
     return [
-        {"clip": demo_path.stem, "method": "kinematic", **k, "wall_s": float(s["seconds"].get("retarget", 0.0)), "seconds": {}},
-        {"clip": demo_path.stem, "method": run, **m, "seconds": s["seconds"], "wall_s": float(wall), "better": better},
+        {"clip": r["clip"], "method": "kinematic", **k, "wall_s": float(r["seconds"].get("retarget", 0.0)), "seconds": {}},
+        {"clip": r["clip"], "method": r["run"], **m, "seconds": r["seconds"], "wall_s": float(r["wall_s"]), "better": better},
     ]  # fmt: skip
 
 
 def run_transfer_bench(
     data_dir: Path, clip_names: tuple[str, ...], pattern: str, runs: tuple[str, ...], stages: tuple[str, ...],
     budget: str, target: str, hand_name: str, out: Path, report_only: bool = False, judge: str | None = None,
+    settings: Settings | None = None,
 ) -> str:  # fmt: skip
-    """Each run of ``runs`` on each clip into ``out/<clip>/<run>`` (resumed; finished runs are read back;
-    ``report_only``: nothing is run), beside the kinematic replay in the same target; with ``judge``
-    (another simulator) every run's controls and the kinematic retarget are judged open loop there instead
-    (cached as ``metrics_<judge>.json`` beside each run). Prints and writes the markdown tables."""
-    base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=True)
-    specs = {r: run_spec(r, stages, base) for r in runs}
+    """Each run of ``runs`` on each clip into ``out/<clip>/<run>`` with :func:`quasisim.batch.run_batch`
+    (resumable; ``report_only``: nothing is run, the finished runs are tabulated), beside the kinematic
+    replay in the same target; with ``judge`` (another simulator) every run's controls and the kinematic
+    retarget are judged open loop there instead (cached as ``metrics_<judge>.json`` beside each run).
+    Prints and writes the markdown tables."""
+    base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=False)
+    paths = clips(data_dir, pattern, clip_names)
+    js = jobs(paths, {r: run_spec(r, stages, base) for r in runs})
+    s = (settings or Settings(keep_scratch=True)).resolved()
+    if report_only:
+        results = [row for j in js for row in finished_runs(out, j, s).values()]
+    else:
+        results = run_batch(js, out, s).rows
+    by_clip = {p.stem: p for p in paths}
     rows: list[dict[str, Any]] = []
-    for p in tqdm(clips(data_dir, pattern, clip_names), desc="clips", unit="clip"):
-        for run, spec in specs.items():
-            d = out / p.stem / run
-            if not (d / "summary.json").is_file():
-                if report_only:
-                    continue
-                base_ck = out / p.stem / spec.curriculum / "checkpoints" if "+" in run else None
-                _run_once(p, d, spec, base_ck)
-            kin, row = _rows(p, run, d, judge, target)
-            if not any(r["clip"] == p.stem and r["method"] == "kinematic" for r in rows):
-                rows.append(kin)
-            rows.append(row)
+    for r in sorted(results, key=lambda r: (r["clip"], runs.index(r["run"]))):
+        kin, row = _rows(r, out / r["clip"] / r["run"], by_clip[r["clip"]], judge, target)
+        if not any(x["clip"] == r["clip"] and x["method"] == "kinematic" for x in rows):
+            rows.append(kin)
+        rows.append(row)
     for r in rows:
         r["lifted"] = False  # not recomputed here (see the baseline benchmark)
     return publish(

@@ -1,0 +1,365 @@
+"""Many clips at once: ``quasisim batch DATA_DIR --out DIR`` and the benchmark tables, on Ray.
+
+Each clip is one Ray task (a :class:`Job`: one or more transfer runs of that clip). The driver ships the
+demo and its mesh to the worker as bytes, the worker runs the transfers in a scratch folder (their
+checkpoints live there, so a retried or resumed clip continues where it stopped) and returns the output
+files as bytes; only the driver writes results: each clip's folder ``OUT/<clip>/`` appears at once (written
+aside and renamed) with ``clip.json`` (the clip's metrics and settings) in it, and ``OUT/batch.json`` /
+``OUT/batch.md`` (per-clip rows, failures and the summary table) are rewritten atomically after every clip.
+
+- Resumable: a clip whose folder exists is never redone; a clip that was running when the batch was killed
+  resumes from its checkpoints in the scratch folder (``OUT/.work`` by default).
+- A worker that dies (killed, out of memory) has its clip retried (``max_retries``); a clip that fails
+  with an error is reported with it and the batch goes on.
+- Local by default (``ray.init`` with this machine's cores); ``ray_address`` runs the same tasks on an
+  existing Ray cluster (its workers need quasisim installed; scratch paths are per node).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import resource
+import shutil
+import time
+import traceback
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from quasisim.errors import QuasisimError
+from quasisim.files import save_json_atomic, save_text_atomic
+from quasisim.method.spec import TransferSpec
+
+CLIP_FILE = "clip.json"  # written last into a clip's folder: its metrics and what made them
+BATCH_FILE = "batch.json"
+SKIP_OUTPUT = ("checkpoints",)  # stays in the worker's scratch folder
+FAULT_ENV = "QUASISIM_BATCH_FAULT"  # tests: "<clip>" makes that clip's first attempt kill its worker
+
+
+@dataclass(frozen=True)
+class Run:
+    """One transfer of a clip: ``name`` is its subfolder in the clip's folder ("" for the folder itself);
+    ``seed_from`` names an earlier run of the same job whose checkpoints it starts from (``default+mpc``
+    reuses the stages 1-2 of ``default``)."""
+
+    name: str
+    spec: TransferSpec
+    seed_from: str | None = None
+
+
+@dataclass(frozen=True)
+class Job:
+    """The runs of one clip."""
+
+    demo_path: Path
+    runs: tuple[Run, ...]
+
+    @property
+    def clip(self) -> str:
+        return self.demo_path.stem
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How the batch runs: Ray address (None: local), workers, threads per worker, scratch folder, config."""
+
+    ray_address: str | None = None
+    workers: int = 0  # 0: one per core
+    threads: int = 0  # 0: cores // workers
+    scratch: Path | None = None  # None: OUT/.work
+    config_path: str | None = None
+    overrides: dict[str, Any] = field(default_factory=dict)
+    max_retries: int = 2
+    keep_scratch: bool = False  # keep each clip's checkpoints (later runs of the same clip start from them)
+
+    def resolved(self) -> Settings:
+        cores = os.cpu_count() or 1
+        w = self.workers or cores
+        return dataclasses.replace(self, workers=w, threads=self.threads or max(1, cores // w))
+
+
+def identity(run: Run, s: Settings) -> dict[str, Any]:
+    """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
+    match it), as JSON would give it back."""
+    spec = {k: v for k, v in dataclasses.asdict(run.spec).items() if k != "progress"}
+    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config": s.config_path, "overrides": s.overrides}
+    return json.loads(json.dumps(d))
+
+
+# ---- the worker's side -------------------------------------------------------------------------------
+
+
+def pack_demo(demo_path: Path) -> dict[str, bytes]:
+    """The demo file and its mesh as {relative path: bytes} (what a worker on another machine needs)."""
+    import numpy as np
+
+    from quasisim.data.demo import load_demo
+
+    demo = load_demo(demo_path)  # validated here: a bad demo fails its clip before any work
+    with np.load(demo_path, allow_pickle=False) as z:
+        mesh_name = str(z["object_mesh"])
+    return {demo_path.name: demo_path.read_bytes(), f"meshes/{mesh_name}": demo.object_mesh_path.read_bytes()}
+
+
+def _write_tree(root: Path, files: dict[str, bytes]) -> None:
+    for rel, data in files.items():
+        p = root / rel
+        if not (p.is_file() and p.read_bytes() == data):
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_bytes(data)
+
+
+def _read_tree(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.relative_to(root).parts[0] not in SKIP_OUTPUT
+    }
+
+
+def _inject_fault(clip: str, scratch: Path) -> None:
+    """Tests of the retry: the first attempt of clip ``$QUASISIM_BATCH_FAULT`` kills its own worker."""
+    if os.environ.get(FAULT_ENV) == clip and not (scratch / "fault-injected").exists():
+        scratch.mkdir(parents=True, exist_ok=True)
+        (scratch / "fault-injected").touch()
+        os.kill(os.getpid(), 9)
+
+
+def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> dict[str, Any]:
+    """Run ``job``'s transfers in ``scratch`` (resumed from the checkpoints there); returns their output
+    files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.method.pipeline import run_transfer
+    from quasisim.runtime import configure
+
+    configure()
+    _inject_fault(job.clip, scratch)
+    cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sample_target.threads": s.threads, **s.overrides})
+    _write_tree(scratch / "input", files)
+    demo = scratch / "input" / job.demo_path.name
+    out_files: dict[str, bytes] = {}
+    rows = []
+    for r in job.runs:
+        run_dir = scratch / "runs" / (r.name or "_")
+        ck = run_dir / "checkpoints"
+        if r.seed_from is not None and not ck.is_dir():
+            ck.mkdir(parents=True)
+            for f in (scratch / "runs" / (r.seed_from or "_") / "checkpoints").glob("*.npz"):
+                shutil.copy2(f, ck / f.name)
+        t0 = time.perf_counter()
+        spec = dataclasses.replace(r.spec, progress=False)
+        res = run_transfer(demo, run_dir, spec, cfg, resume=ck.is_dir())
+        rows.append({
+            "clip": job.clip, "run": r.name or r.spec.method, "metrics": res.metrics,
+            "kinematic_metrics": res.kinematic_metrics, "seconds": res.record.seconds,
+            "wall_s": time.perf_counter() - t0,
+        })  # fmt: skip
+        prefix = f"{r.name}/" if r.name else ""
+        out_files |= {prefix + k: v for k, v in _read_tree(run_dir).items()}
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid()}
+
+
+# ---- the driver's side -------------------------------------------------------------------------------
+
+
+@dataclass
+class BatchResult:
+    """Rows (one per clip and run), failures ({clip: error}) and timing of a batch."""
+
+    rows: list[dict[str, Any]]
+    failures: dict[str, str]
+    wall_s: float
+    n_run: int
+    workers: int
+    peak_rss_mb: dict[str, float]
+
+
+def finished_runs(out: Path, job: Job, s: Settings) -> dict[str, dict[str, Any]]:
+    """{run name: result row} of ``job``'s runs already in ``OUT/<clip>/clip.json``; an error when one of
+    them was made with other settings."""
+    p = out / job.clip / CLIP_FILE
+    if not p.is_file():
+        return {}
+    done = json.loads(p.read_text())["runs"]
+    for r in job.runs:
+        if r.name in done and done[r.name]["identity"] != identity(r, s):
+            raise QuasisimError(
+                f"{out / job.clip}: run {r.name or job.clip!r} was made with other settings (see {p}); use another "
+                "--out or remove that folder"
+            )
+    return {r.name: done[r.name]["row"] for r in job.runs if r.name in done}
+
+
+def _persist(out: Path, job: Job, s: Settings, result: dict[str, Any]) -> None:
+    """Write a clip's folder as a whole, with the runs it held before: aside, then swapped into place."""
+    final, tmp, old = out / job.clip, out / f".{job.clip}.incoming", out / f".{job.clip}.old"
+    shutil.rmtree(tmp, ignore_errors=True)
+    runs: dict[str, Any] = {}
+    if (final / CLIP_FILE).is_file():
+        shutil.copytree(final, tmp)
+        runs = json.loads((final / CLIP_FILE).read_text())["runs"]
+    _write_tree(tmp, result["files"])
+    runs |= {r.name: {"identity": identity(r, s), "row": row} for r, row in zip(job.runs, result["rows"], strict=True)}
+    save_json_atomic(tmp / CLIP_FILE, {"clip": job.clip, "runs": runs})
+    if final.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(final, old)
+    os.replace(tmp, final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _ray_init(s: Settings) -> Any:
+    import ray
+
+    env = {"XLA_FLAGS": f"--xla_cpu_multi_thread_eigen={'true' if s.threads > 1 else 'false'} "
+           f"intra_op_parallelism_threads={s.threads}"}  # fmt: skip
+    if s.ray_address:
+        ray.init(address=s.ray_address, runtime_env={"env_vars": env}, log_to_driver=False)
+    else:
+        ray.init(
+            num_cpus=s.workers * s.threads, include_dashboard=False, log_to_driver=False,
+            runtime_env={"env_vars": env}, logging_level="ERROR",
+        )  # fmt: skip
+    return ray
+
+
+def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> BatchResult:
+    """The runs of ``jobs`` not finished in ``out``, on Ray; ``on_clip(rows, failures)`` after each clip."""
+    s = s.resolved()
+    out.mkdir(parents=True, exist_ok=True)
+    scratch = (s.scratch or out / ".work").resolve()
+    rows: list[dict[str, Any]] = []
+    todo: list[Job] = []
+    for j in jobs:
+        done = finished_runs(out, j, s)
+        rows += list(done.values())
+        missing = tuple(r for r in j.runs if r.name not in done)
+        if missing:
+            todo.append(dataclasses.replace(j, runs=missing))
+    failures: dict[str, str] = {}
+    peak: dict[str, float] = {}
+    t0 = time.perf_counter()
+    for job, result in _dispatch(todo, s, scratch) if todo else ():
+        if isinstance(result, str):
+            failures[job.clip] = result
+        else:
+            _persist(out, job, s, result)
+            if not s.keep_scratch:
+                shutil.rmtree(scratch / job.clip, ignore_errors=True)
+            rows += result["rows"]
+            peak[str(result["pid"])] = result["peak_rss_mb"]
+        if on_clip is not None:
+            on_clip(rows, failures)
+    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak)
+
+
+def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
+    """Yield (job, result or error text) as the workers finish, with a progress bar over clips."""
+    from tqdm import tqdm
+
+    ray = _ray_init(s)
+    try:
+        task = ray.remote(num_cpus=s.threads, max_retries=s.max_retries)(run_job)
+        pending = {}
+        with tqdm(total=len(todo), desc="clips", unit="clip", dynamic_ncols=True) as bar:
+            for j in todo:
+                try:
+                    pending[task.remote(j, pack_demo(j.demo_path), s, scratch / j.clip)] = j
+                except QuasisimError as e:  # an unreadable demo fails its clip only
+                    bar.update(1)
+                    yield j, str(e)
+            while pending:
+                ready, _ = ray.wait(list(pending), num_returns=1)
+                job = pending.pop(ready[0])
+                try:
+                    yield job, ray.get(ready[0])
+                except Exception as e:  # one clip's failure is reported; the batch goes on
+                    yield job, _error_text(e)
+                    bar.set_postfix(failed=job.clip)
+                bar.update(1)
+    finally:
+        ray.shutdown()
+
+
+def _error_text(e: BaseException) -> str:
+    """The clip's error in one line: a quasisim error's message, else the exception and its last frame."""
+    cause = getattr(e, "cause", None) or e
+    if isinstance(cause, QuasisimError):
+        return str(cause)
+    tb = traceback.extract_tb(cause.__traceback__)
+    where = f" ({tb[-1].filename}:{tb[-1].lineno})" if tb else ""
+    text = str(cause).strip().splitlines()
+    return f"{type(cause).__name__}: {text[-1] if text else ''}{where}"
+
+
+def write_batch_files(
+    out: Path, result_rows: list[dict[str, Any]], failures: dict[str, str], meta: dict[str, Any]
+) -> str:
+    """``OUT/batch.json`` (rows, failures, settings) and ``OUT/batch.md`` (summary + per-clip table)."""
+    from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, summary_rows
+
+    first = {r["clip"]: r for r in reversed(result_rows)}  # the kinematic replay once per clip
+    rows = [_flat(r, "kinematic") for r in first.values()] + [_flat(r, "method") for r in result_rows]
+    lines = [
+        f"# batch: {len(result_rows)} runs, {len(failures)} failed clip(s)", "",
+        SUMMARY_HEAD.format(g="method"), *summary_rows(rows, "method"), "",
+        CLIP_HEAD.format(g="method"), *[clip_row(r, "method") for r in sorted(rows, key=_order)], "",
+        *([f"- failed: {c}: {e}" for c, e in sorted(failures.items())] or ["- no failures"]),
+    ]  # fmt: skip
+    save_json_atomic(out / BATCH_FILE, {**meta, "rows": result_rows, "failures": failures})
+    text = "\n".join(lines) + "\n"
+    save_text_atomic(out / "batch.md", text)
+    return text
+
+
+def _flat(r: dict[str, Any], which: str) -> dict[str, Any]:
+    """A result row as a table row of the run (``method``) or of its kinematic replay."""
+    m = r["metrics"] if which == "method" else r["kinematic_metrics"]
+    name = r["run"] if which == "method" else "kinematic"
+    wall = r["wall_s"] if which == "method" else r["seconds"].get("retarget", 0.0)
+    return {"clip": r["clip"], "method": name, **m, "wall_s": wall, "lifted": m.get("lifted", False)}
+
+
+def run_batch_command(
+    data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec, out: Path, ray_address: str | None,
+    workers: int, threads: int, config_path: Path | None, overrides: dict[str, Any],
+) -> BatchResult:  # fmt: skip
+    """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput."""
+    from quasisim.bench.tables import clips
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+
+    TransferConfig.from_yaml(config_path or CONFIG_PATH, overrides).budget(spec.budget)  # bad settings: fail now
+    paths = clips(data_dir, pattern, names)
+    if not paths:
+        raise QuasisimError(f"no clips matching {pattern!r} in {data_dir}")
+    s = Settings(ray_address, workers, threads, None, str(config_path) if config_path else None, overrides).resolved()
+    jobs = [Job(p, (Run("", spec),)) for p in paths]
+    meta = {"data_dir": str(data_dir), "spec": dataclasses.asdict(spec), "workers": s.workers, "threads": s.threads,
+            "ray": ray_address or "local"}  # fmt: skip
+    res = run_batch(jobs, out, s, lambda rows, fails: write_batch_files(out, rows, fails, meta))
+    text = write_batch_files(out, res.rows, res.failures, {**meta, **throughput(res)})
+    print(text)
+    t = throughput(res)
+    if res.n_run:
+        print(
+            f"{res.n_run} clip(s) in {res.wall_s:.0f} s with {s.workers} worker(s): {t['clips_per_hour']:.1f} clips/hour"
+        )
+    print(f"wrote {out / BATCH_FILE}, {out / 'batch.md'} and one folder per clip")
+    return res
+
+
+def throughput(res: BatchResult) -> dict[str, Any]:
+    """Clips per hour of the clips run now, and the workers' peak memory."""
+    return {
+        "clips_run": res.n_run, "wall_s": res.wall_s,
+        "clips_per_hour": 3600.0 * res.n_run / res.wall_s if res.n_run and res.wall_s > 0 else None,
+        "peak_rss_mb_per_worker": res.peak_rss_mb,
+    }  # fmt: skip
+
+
+def _order(r: dict[str, Any]) -> tuple[str, bool, str]:
+    return r["clip"], r["method"] != "kinematic", r["method"]

@@ -1,0 +1,90 @@
+"""``quasisim batch``: many clips on local Ray workers, resumable, failures reported, a killed worker's clip
+retried, results identical to a single transfer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quasisim.batch import FAULT_ENV, Job, Run, Settings, run_batch
+from quasisim.errors import QuasisimError
+from quasisim.method.spec import TransferSpec
+
+pytest.importorskip("ray", reason="Ray is installed with the 'cluster' extra (make setup installs it)")
+
+SPEC = TransferSpec(method="sample-target", render=False, progress=False)
+FAST = {"sample_target.samples": 4, "sample_target.horizon": 3}
+
+
+@pytest.fixture(scope="module")
+def clips_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two short synthetic clips and a broken one."""
+    from quasisim.data.synthetic import EXAMPLES, write_example
+
+    d = tmp_path_factory.mktemp("batch_clips")
+    for name in EXAMPLES:
+        write_example(name, d, n_frames=12)
+    (d / "broken.npz").write_bytes(b"not an npz archive")
+    return d
+
+
+def _jobs(d: Path) -> list[Job]:
+    return [Job(p, (Run("", SPEC),)) for p in sorted(d.glob("*.npz"))]
+
+
+def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_path: Path, monkeypatch) -> None:
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.pipeline import run_transfer
+
+    out = tmp_path / "out"
+    good = sorted(p.stem for p in clips_dir.glob("*.npz") if p.stem != "broken")
+    monkeypatch.setenv(FAULT_ENV, good[0])  # the first attempt of this clip kills its worker
+    s = Settings(workers=2, threads=1, overrides=FAST)
+    res = run_batch(_jobs(clips_dir), out, s)
+
+    assert sorted(r["clip"] for r in res.rows) == good
+    assert list(res.failures) == ["broken"] and "broken.npz" in res.failures["broken"]
+    assert (out / ".work" / good[0]).exists() is False  # scratch removed once the clip is persisted
+    for c in good:
+        d = json.loads((out / c / "clip.json").read_text())
+        assert d["runs"][""]["row"]["metrics"] == json.loads((out / c / "metrics.json").read_text())
+        assert (out / c / "controls.npz").is_file() and not (out / c / "checkpoints").exists()
+
+    # the same clip transferred alone, in this process (sampling threads 2): bit-identical controls
+    cfg = TransferConfig.from_yaml(overrides=FAST)
+    single = run_transfer(clips_dir / f"{good[1]}.npz", tmp_path / "single", SPEC, cfg)
+    with np.load(out / good[1] / "controls.npz") as z:
+        np.testing.assert_array_equal(z["q_targets"], single.controls.q_targets)
+
+    # resumed: finished clips are not redone (files untouched), the broken clip is tried and reported again
+    stamp = (out / good[0] / "controls.npz").stat().st_mtime_ns
+    again = run_batch(_jobs(clips_dir), out, s)
+    assert again.n_run == 1 and list(again.failures) == ["broken"]
+    assert (out / good[0] / "controls.npz").stat().st_mtime_ns == stamp
+    assert sorted(r["clip"] for r in again.rows) == good
+
+    # without retries the injected kill is a failure of that clip alone: the retry above was real
+    lone = [j for j in _jobs(clips_dir) if j.clip == good[0]]
+    dead = run_batch(lone, tmp_path / "no_retry", Settings(workers=1, threads=1, overrides=FAST, max_retries=0))
+    assert list(dead.failures) == [good[0]] and not dead.rows
+
+
+def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path) -> None:
+    from quasisim.batch import _persist
+
+    job = _jobs(clips_dir)[0]
+    _persist(tmp_path, job, Settings(overrides=FAST), {"files": {"controls.npz": b"x"}, "rows": [{"clip": job.clip}]})
+    with pytest.raises(QuasisimError, match="other settings"):
+        run_batch([job], tmp_path, Settings(overrides={"sample_target.samples": 8}))
+
+
+def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    r = CliRunner().invoke(main, ["batch", str(tmp_path), "--out", str(tmp_path / "o"), "--stages", "9"])
+    assert r.exit_code == 2 and "valid stages" in r.output
