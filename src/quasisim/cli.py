@@ -181,16 +181,27 @@ def transfer(
 
 @main.command()
 @click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
-@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder (one folder per clip).")
+@click.option(
+    "--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder (one folder per clip)."
+)
 @click.option("--method", type=click.Choice(METHODS), default=_SPEC.method, show_default=True, help="As in transfer.")
 @click.option("--stages", default=",".join(_SPEC.stages), show_default=True, help="As in transfer (method ours).")
 @click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
 @click.option("--hand", default=_SPEC.hand, show_default=True)
 @click.option("--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True)
 @click.option("--budget", default=_SPEC.budget, show_default=True)
-@click.option("--pattern", default="*.npz", show_default=True, help="Clips of DATA_DIR (glob); *_long.npz skipped unless named.")
-@click.option("--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern).")
-@click.option("--ray", "ray_address", default=None, help="Address of an existing Ray cluster (default: local Ray on this machine).")
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips of DATA_DIR (glob); *_long.npz skipped unless named."
+)
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option(
+    "--ray",
+    "ray_address",
+    default=None,
+    help="Address of an existing Ray cluster (default: local Ray on this machine).",
+)
 @click.option("--workers", default=0, show_default=True, help="Clips at once (0: one per core).")
 @click.option("--threads", default=0, show_default=True, help="Cores per worker (0: cores / workers).")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
@@ -207,7 +218,9 @@ def batch(
     _setup_runtime()
     from quasisim.batch import run_batch_command
 
-    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, progress=False).checked()
+    spec = TransferSpec(
+        hand, target, curriculum, parse_stages(stages), budget, method, render, progress=False
+    ).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
         data_dir, names, pattern, spec, out, ray_address, workers, threads, config_path, _parse_sets(sets)
@@ -324,6 +337,36 @@ def bench_transfer(
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     s = Settings(ray_address, workers, keep_scratch=True)
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s)
+
+
+@bench.command("batch")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
+@click.option("--method", type=click.Choice(METHODS), default="sample-target", show_default=True)
+@click.option("--stages", default=",".join(_SPEC.stages), show_default=True, help="As in transfer (method ours).")
+@click.option("--layouts", default="1x1,2x1,1x2", show_default=True, help="WORKERSxTHREADS per layout, in order.")
+@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/batch"), show_default=True)
+@_friendly
+def bench_batch(
+    data_dir: Path, clip_names: str, pattern: str, method: str, stages: str, layouts: str, sets: tuple[str, ...],
+    out: Path,
+) -> None:  # fmt: skip
+    """Clips per hour of `quasisim batch` with 1 and 2 Ray workers on the same clips (same command)."""
+    _setup_runtime()
+    from quasisim.bench.batch import run_batch_bench
+
+    try:
+        lay = tuple(tuple(int(x) for x in s.split("x")) for s in layouts.split(",") if s.strip())
+        assert lay and all(len(x) == 2 and min(x) >= 1 for x in lay)
+    except (ValueError, AssertionError):
+        raise QuasisimError(f"--layouts expects WORKERSxTHREADS,... (e.g. 1x1,2x1), got {layouts!r}") from None
+    spec = TransferSpec(method=method, stages=parse_stages(stages), render=False, progress=False).checked()
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))  # type: ignore[arg-type]
 
 
 @bench.command("predict")

@@ -1,0 +1,60 @@
+"""``quasisim bench batch``: clips per hour of :mod:`quasisim.batch` with 1 and 2 (or more) Ray workers on
+the same clips, one after the other in the same command, and whether they give the same controls."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.batch import Job, Run, Settings, run_batch, throughput
+from quasisim.bench.tables import clips, header, publish
+from quasisim.method.spec import TransferSpec
+
+
+def run_batch_bench(
+    data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec, layouts: tuple[tuple[int, int], ...],
+    out: Path, overrides: dict[str, Any],
+) -> str:  # fmt: skip
+    """Each (workers, threads per worker) of ``layouts`` runs every clip from scratch into ``out/w<W>t<T>``."""
+    paths = clips(data_dir, pattern, names)
+    jobs = [Job(p, (Run("", spec),)) for p in paths]
+    rows: list[dict[str, Any]] = []
+    for w, t in layouts:
+        d = out / f"w{w}t{t}"
+        shutil.rmtree(d, ignore_errors=True)
+        res = run_batch(jobs, d, Settings(workers=w, threads=t, overrides=overrides))
+        tp = throughput(res)
+        rows.append({"workers": w, "threads": t, "failures": res.failures, **tp,
+                     "same_controls": _same_controls(out / f"w{layouts[0][0]}t{layouts[0][1]}", d, paths)})  # fmt: skip
+    return publish(out, "batch", rows, _markdown(rows, spec, len(paths)))
+
+
+def _same_controls(a: Path, b: Path, paths: list[Path]) -> bool:
+    """Are the PD targets of every clip bit-identical in the two batches?"""
+    for p in paths:
+        fa, fb = a / p.stem / "controls.npz", b / p.stem / "controls.npz"
+        if not (fa.is_file() and fb.is_file()):
+            return False
+        with np.load(fa) as za, np.load(fb) as zb:
+            if not np.array_equal(za["q_targets"], zb["q_targets"]):
+                return False
+    return True
+
+
+def _markdown(rows: list[dict[str, Any]], spec: TransferSpec, n: int) -> list[str]:
+    base = rows[0]["clips_per_hour"]
+    lines = [
+        header(f"Batch throughput ({spec.method}, {spec.hand}, {spec.target}, {n} clips, each layout from scratch)"),
+        "| workers | threads per worker | clips | failed | wall s | clips/hour | speed-up vs first row | peak RSS per worker (MB) | same controls as first row |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        mem = ", ".join(f"{v:.0f}" for v in r["peak_rss_mb_per_worker"].values())
+        lines.append(
+            f"| {r['workers']} | {r['threads']} | {r['clips_run']} | {len(r['failures'])} | {r['wall_s']:.0f} | "
+            f"{r['clips_per_hour']:.1f} | {r['clips_per_hour'] / base:.2f}x | {mem} | {'yes' if r['same_controls'] else 'NO'} |"
+        )
+    return lines
