@@ -369,6 +369,31 @@ def bench_batch(
     run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))  # type: ignore[arg-type]
 
 
+@bench.command("profile")
+@click.argument("demo", type=click.Path(path_type=Path, exists=True, dir_okay=False))
+@click.option("--stages", default="1,2,3,mpc", show_default=True, help="Stages of the profiled transfer.")
+@click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
+@click.option("--budget", default=_SPEC.budget, show_default=True)
+@click.option("--cold", is_flag=True, help="Start from an empty XLA compilation cache.")
+@click.option("--cprofile", is_flag=True, help="Also measure MuJoCo's share (cProfile; slows tracing).")
+@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/profile"), show_default=True)
+@_friendly
+def bench_profile(
+    demo: Path, stages: str, curriculum: str, budget: str, cold: bool, cprofile: bool, sets: tuple[str, ...], out: Path
+) -> None:
+    """Where one transfer's time goes: per piece, XLA compilation, MuJoCo, the rest (JAX execution, Python)."""
+    _setup_runtime()
+    import shutil
+
+    from quasisim.bench.profile import run_profile
+    from quasisim.method.config import TransferConfig
+
+    spec = TransferSpec(curriculum=curriculum, stages=parse_stages(stages), budget=budget, render=False, progress=False)
+    shutil.rmtree(out / "run", ignore_errors=True)
+    run_profile(demo, spec.checked(), TransferConfig.from_yaml(overrides=_parse_sets(sets)), out, cold, cprofile)
+
+
 @bench.command("predict")
 @click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option(
