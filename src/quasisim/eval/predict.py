@@ -169,6 +169,9 @@ def predict(model: Model, params: Params, w: Windows, fps: float, base_quat: np.
     return jax.vmap(one)(w.s0, w.wins)
 
 
+_predict_jit = jax.jit(predict, static_argnames=("fps",))
+
+
 @dataclass(frozen=True, eq=False)
 class WindowErrors:
     """Mean errors after h = 1..H frames over windows (non-finite predictions left out and counted).
@@ -199,8 +202,11 @@ def prediction_errors(
     model: Model, params: Params, w: Windows, fps: float, base_quat: np.ndarray, chunk: int = 16
 ) -> WindowErrors:
     """H-frame prediction errors of the simulator ``params`` on windows ``w`` (see :class:`WindowErrors`)."""
-    run = jax.jit(lambda p, ww: predict(model, p, ww, fps, base_quat))
-    outs = [run(params, w.take(jnp.arange(i, min(i + chunk, len(w))))) for i in range(0, len(w), chunk)]
+    bq = jnp.asarray(base_quat, jnp.float32)
+    outs = [
+        _predict_jit(model, params, w.take(jnp.arange(i, min(i + chunk, len(w)))), fps, bq)
+        for i in range(0, len(w), chunk)
+    ]
     pos, quat, kp = (np.concatenate([np.asarray(o[k], np.float64) for o in outs]) for k in range(3))
     w = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), w)
     pos_e = np.linalg.norm(pos - w.obj_pos, axis=-1) * 100.0

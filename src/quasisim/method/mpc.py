@@ -16,6 +16,7 @@ the stage-2 trajectory with the identified S). Only MuJoCo offers a step-by-step
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -27,7 +28,7 @@ from tqdm import tqdm
 
 from quasisim.data.demo import Demo
 from quasisim.optim.adam import adam_steps
-from quasisim.optim.objective import Weights, make_window_objective, padded, window_references
+from quasisim.optim.objective import Weights, WindowObjective, make_window_objective, padded, window_references
 from quasisim.optim.trajectory import Trajectory, observed_state
 from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.types import Model, Params, State
@@ -66,26 +67,29 @@ class MPCResult:
     wall_s: float
 
 
-def _gradient_fn(f: Any, w: dict[str, Array], opts: MPCOptions) -> Any:
-    """jit-compiled value and gradient of the window objective ``f``; with ``opts.soften`` the mean over
-    contact stiffnesses scaled by ``scales`` (S, 3): k_n, k_f, k_d."""
+def _gradient_fn(f: WindowObjective, w: dict[str, Array], opts: MPCOptions) -> Any:
+    """Compiled value and gradient of the window objective ``f``: ``vg(win, s0, p, *ref)``; with
+    ``opts.soften``, ``vg(win, s0, p, scales, *ref)``, the mean over contact stiffnesses scaled by
+    ``scales`` (S, 3): k_n, k_f, k_d."""
+    return functools.partial(_vg_soft if opts.soften else _vg_plain, f, w)
 
-    def vg_plain(win: Trajectory, s0: State, p: Params, *ref: Array) -> Any:
-        return jax.value_and_grad(f, has_aux=True)(win, s0, p, *ref, w)
 
-    if opts.soften == 0:
-        return jax.jit(vg_plain)
+@jax.jit
+def _vg_plain(f: WindowObjective, w: dict[str, Array], win: Trajectory, s0: State, p: Params, *ref: Array) -> Any:
+    return jax.value_and_grad(f, has_aux=True)(win, s0, p, *ref, w)
 
-    def vg_soft(win: Trajectory, s0: State, p: Params, scales: Array, *ref: Array) -> Any:
-        def one(sc: Array) -> Any:
-            ps = dataclasses.replace(p, k_n=p.k_n * sc[0], k_f=p.k_f * sc[1], k_d=p.k_d * sc[2])
-            return vg_plain(win, s0, ps, *ref)
 
-        (loss, terms), g = jax.vmap(one)(scales)
-        mean = lambda x: jnp.mean(x, axis=0)  # noqa: E731
-        return (mean(loss), jax.tree_util.tree_map(mean, terms)), jax.tree_util.tree_map(mean, g)
+@jax.jit
+def _vg_soft(
+    f: WindowObjective, w: dict[str, Array], win: Trajectory, s0: State, p: Params, scales: Array, *ref: Array
+) -> Any:
+    def one(sc: Array) -> Any:
+        ps = dataclasses.replace(p, k_n=p.k_n * sc[0], k_f=p.k_f * sc[1], k_d=p.k_d * sc[2])
+        return jax.value_and_grad(f, has_aux=True)(win, s0, ps, *ref, w)
 
-    return jax.jit(vg_soft)
+    (loss, terms), g = jax.vmap(one)(scales)
+    mean = lambda x: jnp.mean(x, axis=0)  # noqa: E731
+    return (mean(loss), jax.tree_util.tree_map(mean, terms)), jax.tree_util.tree_map(mean, g)
 
 
 def _mask_first_frame(g: Trajectory) -> Trajectory:

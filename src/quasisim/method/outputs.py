@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
 from quasisim.data.controls import Controls
@@ -17,7 +16,7 @@ from quasisim.eval.report import loss_plot
 from quasisim.files import save_json_atomic
 from quasisim.method.problem import Problem
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory
+from quasisim.optim.trajectory import Trajectory, simulate_jit
 from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
 from quasisim.sim.types import Params
 
@@ -46,7 +45,7 @@ class TransferResult:
 
 def sim_qpos(prob: Problem, params: Params, traj: Trajectory) -> np.ndarray:
     """(T, 6 + J) the hand trajectory of ``traj``'s quasi-physical rollout in base coordinates."""
-    states = jax.jit(prob.simulate)(params, traj)
+    states = simulate_jit(prob.model, params, traj, prob.base_quat, prob.demo.fps, prob.obj0)
     root = np.asarray(prob.model.to_world(states.root_pos), np.float64)
     R = np_quat_to_mat(np.asarray(states.root_quat))
     eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("ji,tjk->tik", prob.base_rot, R)), axis=0)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
 from quasisim.assets.hand import load_hand
@@ -37,7 +36,7 @@ from quasisim.method.retarget import retarget
 from quasisim.method.sample_target import run_sample_target
 from quasisim.method.spec import TransferSpec
 from quasisim.optim.adam import Progress
-from quasisim.optim.objective import Objective
+from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.types import Params
@@ -107,7 +106,7 @@ def run_transfer(
 def _stage1(
     prob: Problem, cur: Curriculum, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, plan: Plan,
     kinematic_q: np.ndarray, progress: Progress, record: RunRecord,
-) -> tuple[Plan, Objective]:  # fmt: skip
+) -> tuple[Plan, TrackingObjective]:  # fmt: skip
     """Stage 1 (point dynamics) in the curriculum's first relaxed simulator: the human point set, then the
     robot point set tracking it. Returns the plan and the objective whose reference holds the human points."""
     bud, i1 = cfg.budget(spec.budget), cur.relaxed[0]
@@ -122,7 +121,7 @@ def _stage1(
     record.curves["1b human point set"] = list(hp.get("losses", []))
     point_index = stage1.correspondences(prob, kinematic_q, human_points)
     objective = prob.objective(prob.reference(human_points, point_index))
-    vg = jax.jit(jax.value_and_grad(objective, argnums=(0, 1), has_aux=True))
+    vg = objective.value_and_grad
     p1 = prob.params(contact)
 
     def robot() -> dict[str, Any]:
@@ -142,10 +141,10 @@ def _stage1(
 
 def _stage2(
     prob: Problem, cur: Curriculum, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, plan: Plan,
-    objective: Objective, kinematic_q: np.ndarray, progress: Progress, record: RunRecord,
+    objective: TrackingObjective, kinematic_q: np.ndarray, progress: Progress, record: RunRecord,
 ) -> Plan:  # fmt: skip
     """Stage 2: each rigid simulator of the curriculum, soft to stiff (:mod:`quasisim.method.stage2`)."""
-    vg = jax.jit(jax.value_and_grad(objective, argnums=(0, 1), has_aux=True))
+    vg = objective.value_and_grad
     w2, sb = cfg.weights.arrays(points=0.0), cfg.budget(spec.budget).sim
     start, kin_traj = plan.traj, Trajectory.from_q(kinematic_q, prob.model.n_points)
     record.seconds["stage2"] = 0.0

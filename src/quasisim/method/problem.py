@@ -15,7 +15,7 @@ from quasisim.assets.hand import HandModel
 from quasisim.assets.object import ObjectAsset
 from quasisim.data.demo import Demo
 from quasisim.eval.evaluate import load_object_for
-from quasisim.optim.objective import Objective, Reference, make_objective
+from quasisim.optim.objective import Reference, TrackingObjective, make_objective
 from quasisim.optim.trajectory import Trajectory, simulate
 from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.build import SimOptions, build_model, default_params
@@ -63,7 +63,7 @@ class Problem:
         metric = np.flatnonzero(self.hand.kp_metric)
         return Reference.from_demo(self.demo, self.hand.kp_human, metric, points, point_index)
 
-    def objective(self, ref: Reference) -> Objective:
+    def objective(self, ref: Reference) -> TrackingObjective:
         """:func:`~quasisim.optim.objective.make_objective` for this problem."""
         return make_objective(
             self.model, ref, self.base_quat, self.demo.fps, self.obj0, self.obj.mass, self.obj.inertia

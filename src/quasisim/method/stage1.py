@@ -12,6 +12,7 @@ d. the robot point set's controls are optimised to track the human point set (ne
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
@@ -29,10 +30,10 @@ from quasisim.method.retarget import RetargetOptions, RetargetResult, retarget
 from quasisim.optim.adam import Progress, StepBudget, StepLog, minimise
 from quasisim.optim.objective import Reference, Weights, hand_point_positions
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory
+from quasisim.optim.trajectory import Trajectory, simulate
 from quasisim.rotations import quat_angle_deg
 from quasisim.sim.kinematics import fk_full, points_world
-from quasisim.sim.types import Params
+from quasisim.sim.types import Model, Params
 
 
 def motion_onset(demo: Demo, pos_tol: float = 0.005, deg_tol: float = 5.0) -> int:
@@ -62,32 +63,38 @@ def human_point_set(
     prob = make_problem(demo, human, fit.base_rot, substeps, n_candidates, obj)
     params = prob.params(contact)
     ref = Reference.from_demo(demo, human.kp_human, np.arange(len(human.kp_human)))
-    vg = jax.jit(jax.value_and_grad(prob.objective(ref), argnums=0, has_aux=True))
+    vg = prob.objective(ref).value_and_grad
     sysid, w = SysID.init(), weights.arrays(points=0.0)
     traj, log = minimise(
-        lambda x: vg(x, sysid, params, w), Trajectory.from_q(fit.q, prob.model.n_points), sb.control_steps,
+        lambda x: pick_grad(vg(x, sysid, params, w), 0), Trajectory.from_q(fit.q, prob.model.n_points), sb.control_steps,
         sb.control_lr, sb, progress, f"stage 1b human point set ({label})",
     )  # fmt: skip
     return {
-        "points": np.asarray(_point_set_over_time(prob, params)(traj), np.float32),
+        "points": np.asarray(_point_set(prob, params, traj), np.float32),
         "losses": np.asarray(log.losses, np.float64),
         "human_fit_error_mm": np.array(float(fit.mean_metric_error_mm)),
         "wall_s": np.array(time.perf_counter() - t0),
     }
 
 
-def _point_set_over_time(prob: Problem, params: Params) -> Any:
-    """jit-compiled ``traj -> (T, P, 3)``: all hand points at frame 0 and along the rollout of ``traj``."""
-    model = prob.model
+def _point_set(prob: Problem, params: Params, traj: Trajectory) -> jax.Array:
+    """(T, P, 3): all hand points at frame 0 and along the rollout of ``traj``."""
+    base_rot = jnp.asarray(prob.base_rot, jnp.float32)
+    return _points_over_time(prob.model, params, traj, prob.base_quat, base_rot, prob.obj0, prob.demo.fps)
 
-    @jax.jit
-    def points_of(traj: Trajectory) -> jax.Array:
-        p = hand_point_positions(model, params, prob.simulate(params, traj), np.arange(model.n_points))
-        q0 = jnp.concatenate([traj.base[0], traj.joints[0]])
-        poses = fk_full(prob.hand, jnp.asarray(prob.base_rot, jnp.float32), q0)
-        return jnp.concatenate([points_world(poses, model.point_body, model.point_local)[None], p], axis=0)
 
-    return points_of
+@functools.partial(jax.jit, static_argnames=("fps",))
+def _points_over_time(
+    model: Model, params: Params, traj: Trajectory, base_quat: jax.Array, base_rot: jax.Array,
+    obj0: tuple[jax.Array, jax.Array], fps: float,
+) -> jax.Array:  # fmt: skip
+    """(T, P, 3): all hand points at frame 0 and along the rollout of ``traj``."""
+    p = hand_point_positions(
+        model, params, simulate(model, params, traj, base_quat, fps, obj0), jnp.arange(model.n_points)
+    )
+    q0 = jnp.concatenate([traj.base[0], traj.joints[0]])
+    poses = fk_full(model.hand, base_rot, q0)
+    return jnp.concatenate([points_world(poses, model.point_body, model.point_local)[None], p], axis=0)
 
 
 def correspondences(prob: Problem, kinematic_q: np.ndarray, human_points: np.ndarray) -> np.ndarray:

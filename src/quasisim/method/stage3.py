@@ -21,6 +21,7 @@ predicted and the recorded trajectory: object translation (m), ``1 - |q . q_ref|
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -152,14 +153,23 @@ def fit(
     """Adam on :class:`SimFit` (from ``start``, default nominal) over random batches of the training
     windows; returns the fit and the losses."""
 
-    @jax.jit
-    def vg(f: SimFit, windows: Windows, idx: Array) -> tuple[Array, SimFit]:
-        batch = windows.take(idx)
-        return jax.value_and_grad(
-            lambda f: window_loss(model, f.apply(params, mass0, inertia0), batch, fps, base_quat, weights)
-        )(f)
-
+    const = (model, params, jnp.asarray(mass0, jnp.float32), jnp.asarray(inertia0, jnp.float32))
+    vg = functools.partial(_fit_vg, const, jnp.asarray(base_quat, jnp.float32), weights, fps=fps)
     return _adam(vg, start or SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed)
+
+
+@functools.partial(jax.jit, static_argnames=("fps",))
+def _fit_vg(
+    const: tuple[Model, Params, Array, Array], base_quat: Array, weights: dict[str, Array], f: SimFit,
+    windows: Windows, idx: Array, fps: float,
+) -> tuple[Array, SimFit]:  # fmt: skip
+    """Value and gradient of the window loss of a batch ``idx`` of ``windows`` w.r.t. the fit ``f``;
+    ``const``: the model, the simulator and the object's nominal mass and inertia."""
+    model, params, mass0, inertia0 = const
+    batch = windows.take(idx)
+    return jax.value_and_grad(
+        lambda f: window_loss(model, f.apply(params, mass0, inertia0), batch, fps, base_quat, weights)
+    )(f)
 
 
 def fit_residual(

@@ -11,11 +11,17 @@
 :func:`make_objective` scores a whole clip from its first frame (stages 1-2, S identification);
 :func:`make_window_objective` a few frames from an observed state (MPC); :func:`window_costs` candidate
 windows measured in a target (sampling MPC). All three call :func:`tracking_errors`.
+
+The objectives are pytrees (the clip's model, reference and start as array leaves, not closed-over
+constants), differentiated and compiled by module-level functions (:func:`objective_value_and_grad`,
+:func:`window_value_and_grad`): one compiled program serves every clip of equal sizes, within a process
+and, through the persistent compilation cache, across processes.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -30,7 +36,7 @@ from quasisim.optim.trajectory import Trajectory, sim_controls, simulate
 from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import forward_kinematics, keypoints, points_world
 from quasisim.sim.step import object_pose, rollout
-from quasisim.sim.types import Model, Params, State
+from quasisim.sim.types import Model, Params, State, pytree, static
 
 Array = jax.Array
 F32 = jnp.float32
@@ -61,7 +67,7 @@ class Weights:
         return {k: jnp.asarray(v, F32) for k, v in d.items()}
 
 
-@dataclass(frozen=True, eq=False)
+@pytree
 class Reference:
     """What the hand and object should do (world frame, frames 1..T-1 after the rollout's start).
 
@@ -72,12 +78,12 @@ class Reference:
         point_index: (P,) the hand point that should follow each target point.
     """
 
-    obj_pos: np.ndarray
-    obj_quat: np.ndarray
-    keypoints: np.ndarray
-    kp_index: np.ndarray
-    points: np.ndarray | None = None
-    point_index: np.ndarray | None = None
+    obj_pos: Array
+    obj_quat: Array
+    keypoints: Array
+    kp_index: Array
+    points: Array | None = None
+    point_index: Array | None = None
 
     @staticmethod
     def from_demo(
@@ -86,10 +92,11 @@ class Reference:
     ) -> Reference:  # fmt: skip
         """The demo's frames 1..T-1; robot keypoint ``kp_index[k]`` follows human keypoint ``kp_human[kp_index[k]]``;
         ``points`` (T, P, 3) per frame, when given."""
+        f, i = (lambda x: jnp.asarray(x, F32)), (lambda x: jnp.asarray(x, jnp.int32))
         return Reference(
-            obj_pos=demo.object_pos[1:], obj_quat=demo.object_quat[1:],
-            keypoints=demo.right_joints[1:, kp_human[kp_index]], kp_index=kp_index,
-            points=None if points is None else points[1:], point_index=point_index,
+            obj_pos=f(demo.object_pos[1:]), obj_quat=f(demo.object_quat[1:]),
+            keypoints=f(demo.right_joints[1:, kp_human[kp_index]]), kp_index=i(kp_index),
+            points=None if points is None else f(points[1:]), point_index=None if point_index is None else i(point_index),
         )  # fmt: skip
 
 
@@ -103,9 +110,9 @@ def hand_keypoints(model: Model, states: State) -> Array:
     return jax.vmap(one)(states)
 
 
-def hand_point_positions(model: Model, params: Params, states: State, index: np.ndarray) -> Array:
+def hand_point_positions(model: Model, params: Params, states: State, index: Array) -> Array:
     """(F, P, 3) world positions of hand points ``index`` (including the relaxed offsets)."""
-    body = jnp.asarray(model.point_body[index])
+    body = model.point_body[index]
     local = model.point_local[index]
 
     def one(s: State) -> Array:
@@ -148,7 +155,7 @@ def tracking_terms(
     kp = hand_keypoints(model, states)[:, ref.kp_index]
     terms = tracking_errors(pos, quat, kp, ref.obj_pos, ref.obj_quat, ref.keypoints, frame_w)
     if ref.points is not None:
-        hp = hand_point_positions(model, params, states, np.asarray(ref.point_index))
+        hp = hand_point_positions(model, params, states, ref.point_index)
         terms["points"] = frame_mean(_norm(hp - jnp.asarray(ref.points, F32)), frame_w)
     return terms
 
@@ -165,26 +172,54 @@ def weighted_sum(terms: dict[str, Array], weights: dict[str, Array]) -> Array:
     return sum(weights[k] * v for k, v in terms.items())  # type: ignore[return-value]
 
 
-def make_objective(
-    model: Model, ref: Reference, base_quat: np.ndarray, fps: float, obj0: tuple[np.ndarray, np.ndarray],
-    mass0: float, inertia0: np.ndarray,
-) -> Objective:  # fmt: skip
+@pytree
+class TrackingObjective:
     """``objective(traj, sysid, params, weights) -> (loss, terms)``: roll ``traj`` out from the demo's first
-    object pose ``obj0`` in the simulator ``params`` (with S from ``sysid``) and score it against ``ref``.
-    One differentiable function serves control optimisation and identification (one compiled program)."""
-    bq = jnp.asarray(base_quat, F32)
+    object pose (``obj_pos0``, ``obj_quat0``) in the simulator ``params`` (with S from ``sysid``, relative to
+    the nominal ``mass0`` kg, ``inertia0`` (3, 3) kg m^2) and score it against ``ref``. One differentiable
+    function serves control optimisation and identification (one compiled program:
+    :attr:`value_and_grad`)."""
 
-    def objective(
-        traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
+    model: Model
+    ref: Reference
+    base_quat: Array
+    obj_pos0: Array
+    obj_quat0: Array
+    mass0: Array
+    inertia0: Array
+    fps: float = static()
+
+    def __call__(
+        self, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
     ) -> tuple[Array, dict[str, Array]]:
-        p = sysid.apply(params, mass0, inertia0)
-        states = simulate(model, p, traj, bq, fps, obj0)
-        terms = tracking_terms(model, p, states, ref)
+        p = sysid.apply(params, self.mass0, self.inertia0)
+        states = simulate(self.model, p, traj, self.base_quat, self.fps, (self.obj_pos0, self.obj_quat0))
+        terms = tracking_terms(self.model, p, states, self.ref)
         terms["smooth"] = smoothness(traj.base, traj.joints)
         terms["point_force"] = jnp.mean(jnp.sum(traj.point_force**2, -1)) * p.alpha
         return weighted_sum(terms, weights), terms
 
-    return objective
+    @property
+    def value_and_grad(self) -> Callable[..., Any]:
+        """``(traj, sysid, params, weights) -> ((loss, terms), (d/dtraj, d/dsysid))``, compiled."""
+        return functools.partial(objective_value_and_grad, self)
+
+
+@jax.jit
+def objective_value_and_grad(
+    objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
+) -> tuple[tuple[Array, dict[str, Array]], tuple[Trajectory, SysID]]:
+    """The objective's value and its gradient with respect to the trajectory and S."""
+    return jax.value_and_grad(lambda t, s: objective(t, s, params, weights), argnums=(0, 1), has_aux=True)(traj, sysid)
+
+
+def make_objective(
+    model: Model, ref: Reference, base_quat: np.ndarray, fps: float, obj0: tuple[np.ndarray, np.ndarray],
+    mass0: float, inertia0: np.ndarray,
+) -> TrackingObjective:  # fmt: skip
+    """The :class:`TrackingObjective` of a clip (arrays as float32 leaves)."""
+    f = lambda x: jnp.asarray(x, F32)  # noqa: E731
+    return TrackingObjective(model, ref, f(base_quat), f(obj0[0]), f(obj0[1]), f(mass0), f(inertia0), float(fps))
 
 
 def padded(x: np.ndarray, horizon: int) -> np.ndarray:
@@ -199,23 +234,32 @@ def window_references(demo: Demo, kp_human: np.ndarray, kp_index: np.ndarray, ho
     return [padded(x, horizon) for x in (demo.object_pos, demo.object_quat, kp)]
 
 
-def make_window_objective(model: Model, base_quat: np.ndarray, fps: float, kp_index: np.ndarray) -> Any:
+@pytree
+class WindowObjective:
     """``f(win, s0, params, ref_pos, ref_quat, ref_kp, frame_w, weights) -> (loss, terms)`` over one MPC window:
     ``win`` (q + 1 frames of PD targets, the first being the targets the step starts from) rolled out from
     the observed state ``s0``; references (q, ...) for the window's frames; ``frame_w`` (q,) masks frames
-    past the clip's end."""
-    bq = jnp.asarray(base_quat, F32)
+    past the clip's end; robot keypoints ``kp_index`` (K,) follow the references' keypoints."""
 
-    def f(
-        win: Trajectory, s0: State, params: Params, ref_pos: Array, ref_quat: Array, ref_kp: Array, frame_w: Array,
-        weights: dict[str, Array],
+    model: Model
+    base_quat: Array
+    kp_index: Array
+    fps: float = static()
+
+    def __call__(
+        self, win: Trajectory, s0: State, params: Params, ref_pos: Array, ref_quat: Array, ref_kp: Array,
+        frame_w: Array, weights: dict[str, Array],
     ) -> tuple[Array, dict[str, Array]]:  # fmt: skip
-        states = rollout(model, params, s0, sim_controls(win, bq, fps))
-        terms = tracking_terms(model, params, states, Reference(ref_pos, ref_quat, ref_kp, kp_index), frame_w)
+        states = rollout(self.model, params, s0, sim_controls(win, self.base_quat, self.fps))
+        ref = Reference(ref_pos, ref_quat, ref_kp, self.kp_index)
+        terms = tracking_terms(self.model, params, states, ref, frame_w)
         terms["smooth"] = smoothness(win.base, win.joints)
         return weighted_sum(terms, weights), terms
 
-    return f
+
+def make_window_objective(model: Model, base_quat: np.ndarray, fps: float, kp_index: np.ndarray) -> WindowObjective:
+    """The :class:`WindowObjective` of a clip."""
+    return WindowObjective(model, jnp.asarray(base_quat, F32), jnp.asarray(kp_index, jnp.int32), float(fps))
 
 
 @jax.jit

@@ -102,6 +102,10 @@ def simulate(
     return rollout(model, params, s0, sim_controls(traj, bq, fps))
 
 
+simulate_jit = jax.jit(simulate, static_argnames=("fps",))
+"""Compiled :func:`simulate` (the model and the start as arguments: one program per size of scene)."""
+
+
 def observed_state(model: Model, obs: dict[str, np.ndarray], base_quat: Array) -> State:
     """The quasi-physical state of a target observation (contacts start fresh)."""
     q = jnp.asarray(obs["qpos"], F32)

@@ -62,7 +62,7 @@ def build_model(
     surf, normals = obj.surface_points(opts.n_surface, seed=0)
     return Model(
         hand=hand,
-        point_body=np.asarray(points.body, dtype=np.int32),
+        point_body=jnp.asarray(points.body, dtype=jnp.int32),
         point_local=jnp.asarray(points.local, F32),
         sdf_values=jnp.asarray(grid.values, F32),
         sdf_origin=jnp.asarray(grid.origin, F32),

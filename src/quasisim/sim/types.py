@@ -19,7 +19,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 Array = jax.Array
 
@@ -44,7 +43,7 @@ class Model:
 
     Attributes:
         hand: the parsed :class:`~quasisim.assets.hand.HandModel` (static).
-        point_body: (N,) body index of each hand point (static numpy).
+        point_body: (N,) int32 body index of each hand point.
         point_local: (N, 3) hand points in their body frames.
         sdf_values: (nx, ny, nz) object signed distances (m), negative inside.
         sdf_origin: (3,) object-frame position of grid node (0, 0, 0).  sdf_spacing: () grid spacing (m).
@@ -61,7 +60,7 @@ class Model:
     """
 
     hand: Any = static()
-    point_body: np.ndarray = static()
+    point_body: Array = None  # type: ignore[assignment]
     point_local: Array = None  # type: ignore[assignment]
     sdf_values: Array = None  # type: ignore[assignment]
     sdf_origin: Array = None  # type: ignore[assignment]
