@@ -20,9 +20,11 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise InputError(path, None, "an existing YAML file", "no such file")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:
-        raise InputError(path, None, "valid YAML", str(e).replace("\n", " ")) from None
+        raise InputError(path, None, "valid YAML", " ".join(str(e).split())) from None
+    except (UnicodeDecodeError, OSError) as e:
+        raise InputError(path, None, "a readable UTF-8 YAML file", " ".join(str(e).split())[:160]) from None
     if not isinstance(data, dict):
         raise InputError(path, None, "a YAML mapping at the top level", type(data).__name__)
     return data

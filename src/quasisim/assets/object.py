@@ -17,6 +17,7 @@ import logging
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -33,6 +34,7 @@ from quasisim.files import (
 )
 
 DEFAULT_DENSITY = 500.0  # kg/m^3
+SIZE_RANGE = (0.005, 2.0)  # m, largest extent of a hand-held object's mesh (in metres)
 SDF_MAX_NODES = 600_000  # the grid is coarsened beyond this (bake ~10 s for a 30k-vertex mesh on 2 cores)
 COACD_MAX_FACES = 2000  # CoACD input is simplified (igl.qslim) to this many faces
 COACD_SETTINGS: dict[str, Any] = {  # measured: every dev mesh < 20 s, hulls cover the mesh (see tests)
@@ -411,6 +413,15 @@ def load_object(
     path = Path(mesh_path)
     if not path.is_file():
         raise InputError(path, "mesh", "an existing mesh file (.obj, .ply, .stl, ...)", "no such file")
+    st = path.stat()
+    return _load_object(path.resolve(), st.st_mtime_ns, st.st_size, name, float(density), mass)
+
+
+@lru_cache(maxsize=16)
+def _load_object(
+    path: Path, mtime_ns: int, size: int, name: str | None, density: float, mass: float | None
+) -> ObjectAsset:
+    """:func:`load_object`, kept for the same file (path, modification time and size) and settings."""
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
     except Exception as e:
@@ -442,6 +453,12 @@ def load_object(
                 "a watertight (closed) triangle mesh",
                 f"{_open_edges(mesh)} open edges after trimesh repair (fill_holes, fix_normals)",
             )
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    if not SIZE_RANGE[0] <= extent <= SIZE_RANGE[1]:
+        lo, hi = SIZE_RANGE
+        raise InputError(
+            path, "mesh", f"an object {lo * 1e3:g} mm to {hi:g} m across (vertices in metres)", f"{extent:.3g} m across"
+        )
     if mesh.volume < 0:
         mesh.invert()
     volume = float(mesh.volume)

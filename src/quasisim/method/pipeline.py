@@ -25,9 +25,11 @@ import numpy as np
 
 from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
-from quasisim.data.demo import load_demo
-from quasisim.method import stage1, stage2, stage3
-from quasisim.method.checkpoints import Checkpoints, trajectory_arrays, trajectory_from
+from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
+from quasisim.errors import InputError
+from quasisim.files import check_out_dir, existing_outputs, remove_orphans
+from quasisim.method import outputs, stage1, stage2, stage3
+from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.mpc import run_mpc
@@ -53,18 +55,22 @@ class Plan:
 
 def run_transfer(
     demo_path: str | Path, out: str | Path, spec: TransferSpec | None = None, config: TransferConfig | None = None,
-    resume: bool = False,
+    resume: bool = False, overwrite: bool = False,
 ) -> TransferResult:  # fmt: skip
     """Transfer one demonstration (see the module docstring); writes ``OUT/controls.npz``,
-    ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``."""
+    ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``.
+    An ``out`` holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (start afresh)."""
     spec = (spec or TransferSpec()).checked()
     cfg = config or TransferConfig.from_yaml()
     bud, cur, out = cfg.budget(spec.budget), load_curriculum(spec.curriculum), Path(out)
     demo, hand = load_demo(demo_path), load_hand(spec.hand)
-    ck = Checkpoints(out / "checkpoints", _identity(demo_path, demo.name, spec, cur, cfg), resume)
+    _check_run_dir(out, resume, overwrite)
+    warn_long_clip(demo, *TRANSFER_COST.get(spec.budget, TRANSFER_COST["fast"]), f"transfer ({spec.budget} budget)")
+    ck = Checkpoints(out / "checkpoints", _identity(demo_path, demo, spec, cur, cfg), resume, overwrite)
     progress, record = Progress(spec.progress), RunRecord()
 
-    kin = _timed(ck, "kinematic", lambda: _kinematic(hand, demo, progress))
+    T, J = demo.n_frames, hand.n_joints
+    kin = _timed(ck, "kinematic", lambda: _kinematic(hand, demo, progress), {"q": (T, 6 + J), "base_rot": (3, 3)})
     record.seconds["retarget"] = float(kin["wall_s"])
     prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates)
     plan = Plan(Trajectory.from_q(kin["q"], prob.model.n_points), SysID.init())
@@ -91,6 +97,7 @@ def run_transfer(
     controls = Controls(
         hand=spec.hand, demo=demo.name, method=f"{label}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
         fps=demo.fps, base_rot=prob.base_rot, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
+        demo_hash=content_hash(demo),
     )  # fmt: skip
     settings = {
         "label": label,
@@ -117,6 +124,7 @@ def _stage1(
         lambda: stage1.human_point_set(
             prob.demo, prob.obj, bud.substeps, bud.n_candidates, contact, cfg.weights, bud.human, progress, label
         ),
+        {"points": (prob.demo.n_frames, None, 3), "losses": (None,), "wall_s": ()},
     )
     human_points = np.asarray(hp["points"], np.float32)
     record.curves["1b human point set"] = list(hp.get("losses", []))
@@ -131,7 +139,7 @@ def _stage1(
         )
         return trajectory_arrays(traj, plan.sysid, log, log.wall_s)
 
-    rp = ck.get("stage1_robot", robot)
+    rp = ck.get("stage1_robot", robot, _traj_expect(prob, losses=(None,)))
     traj, sysid = trajectory_from(rp)
     record.curves[f"1d robot point set ({label})"] = list(rp.get("losses", []))
     record.seconds["stage1_human"], record.seconds["stage1_robot"] = float(hp["wall_s"]), float(rp["wall_s"])
@@ -158,6 +166,7 @@ def _stage2(
             lambda p=p, label=label, alt=alternatives, start=plan: stage2.run_simulator(
                 vg, start.traj, start.sysid, p, w2, sb, progress, label, alt
             ),
+            _traj_expect(prob, losses=(None,), n_sysid=(), start_losses="str"),
         )
         plan = Plan(*trajectory_from(d))
         _record_simulator(record, cur, i, d, plan.sysid.describe(prob.obj.mass), progress)
@@ -217,7 +226,7 @@ def _stage3(
         )
         return {**d, "wall_s": np.array(time.perf_counter() - t0)}
 
-    d = ck.get("stage3", run)
+    d = ck.get("stage3", run, {"fit": (8,), "losses": (None,), "held_out_before": (3,), "held_out_after": (3,)})
     record.seconds["stage3"] = float(d["wall_s"])
     record.curves["stage 3 fit (minibatch loss)"] = [float(x) for x in d["losses"]]
     f = stage3.SimFit.from_array(d["fit"])
@@ -240,7 +249,7 @@ def _closed_loop(
         r = run_mpc(prob.demo, prob.scene, prob.model, params, traj.q_targets, opts, cfg.weights, spec.progress)
         return {"q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s)}
 
-    d = ck.get("mpc", mpc)
+    d = ck.get("mpc", mpc, _q_expect(prob))
     record.seconds["mpc"] = float(d["wall_s"])
     record.curves["mpc window loss per frame"] = [float(x) for x in d["window_loss"]]
     progress.write(f"mpc done in {record.seconds['mpc']:.0f} s")
@@ -263,7 +272,7 @@ def _sample_in_target(
             "n_physics_steps": np.array(r.n_physics_steps),
         }  # fmt: skip
 
-    d = ck.get("sample", sample)
+    d = ck.get("sample", sample, _q_expect(prob))
     record.seconds["sample"] = float(d["wall_s"])
     record.curves["sampling window loss per frame"] = [float(x) for x in d["window_loss"]]
     progress.write(f"sampling in {spec.target} done in {record.seconds['sample']:.0f} s")
@@ -276,26 +285,60 @@ def _kinematic(hand: Any, demo: Any, progress: Progress) -> dict[str, Any]:
     return {"q": rt.q, "base_rot": rt.base_rot}
 
 
-def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-    """``ck.get(name, fn)`` recording ``fn``'s wall time as ``wall_s``."""
+def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]], expect: Expect) -> dict[str, Any]:
+    """``ck.get(name, fn, expect)`` recording ``fn``'s wall time as ``wall_s``."""
 
     def run() -> dict[str, Any]:
         t0 = time.perf_counter()
         d = fn()
         return {**d, "wall_s": np.array(time.perf_counter() - t0)}
 
-    return ck.get(name, run)
+    return ck.get(name, run, {**expect, "wall_s": ()})
+
+
+def _traj_expect(prob: Problem, **more: Any) -> Expect:
+    return trajectory_expect(prob.demo.n_frames, prob.hand.n_joints, prob.model.n_points, **more)
+
+
+def _q_expect(prob: Problem) -> Expect:
+    return {"q_targets": (prob.demo.n_frames, 6 + prob.hand.n_joints), "window_loss": (None,), "wall_s": ()}
+
+
+# (seconds, MB) per frame of a transfer, measured on the synthetic example (2 CPU cores); the clip-length warning
+TRANSFER_COST = {"fast": (2.0, 1.5), "paper": (20.0, 1.5)}
+
+
+def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse an output folder that cannot be written, or one holding the outputs of a run whose checkpoints
+    are gone (they would be replaced without a trace) unless ``resume`` or ``overwrite``."""
+    check_out_dir(out)
+    remove_orphans(out)
+    found = existing_outputs(out, outputs.OUTPUTS)
+    has_checkpoints = any((out / "checkpoints").glob("*.npz")) if (out / "checkpoints").is_dir() else False
+    if found and not has_checkpoints and not (resume or overwrite):
+        raise InputError(
+            out, "--out", "a folder without the outputs of an earlier run (pass --overwrite to replace them)",
+            ", ".join(found),
+        )  # fmt: skip
 
 
 def _identity(
-    demo_path: str | Path, demo_name: str, spec: TransferSpec, cur: Curriculum, cfg: TransferConfig
+    demo_path: str | Path, demo: Demo, spec: TransferSpec, cur: Curriculum, cfg: TransferConfig
 ) -> dict[str, Any]:
-    """What made the run (recorded in ``checkpoints/run.json``; a resumed run must match it)."""
-    return {
-        "demo": demo_name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
+    """What made the run (recorded in ``checkpoints/run.json`` and, hashed, in every checkpoint; a resumed run
+    must match it): the demo (file and content), the hand (config and model files), the settings."""
+    cur_settings = {k: v for k, v in dataclasses.asdict(cur).items() if k != "path"}
+    hand_files = hashlib.sha256()
+    for f in (Path(load_hand(spec.hand).config.path), load_hand(spec.hand).source):
+        hand_files.update(f.read_bytes())
+    info = {
+        "demo": demo.name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
         "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
         "method": spec.method, **cfg.identity(spec.budget, spec.stages),
+        "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
+        "curriculum_settings": cur_settings,
     }  # fmt: skip
+    return json.loads(json.dumps(info))  # as run.json holds it (lists, not tuples)
 
 
 def _json(x: np.ndarray) -> Any:
