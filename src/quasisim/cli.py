@@ -145,14 +145,13 @@ def evaluate(
 ) -> None:  # fmt: skip
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
-    from quasisim.assets.hand import load_hand
     from quasisim.data.controls import check_demo_hash, load_controls
     from quasisim.data.demo import content_hash, load_demo, warn_long_clip
-    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls
+    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hand_of
 
     d = load_demo(demo)
     c = load_controls(controls)
-    check_controls(d, c, load_hand(c.hand), controls)
+    check_controls(d, c, hand_of(c, controls), controls)
     note = check_demo_hash(c, content_hash(d), controls, force)
     _outputs_free(out, OUTPUTS, overwrite)
     if note:
@@ -230,7 +229,7 @@ def transfer(
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     if resume and overwrite:
-        raise QuasisimError("--resume continues the run in OUT and --overwrite replaces it: give one of them")
+        raise QuasisimError("options --resume (continue OUT) and --overwrite (replace it): expected one, got both")
     res = run_transfer(demo, out, spec, cfg, resume, overwrite)
     click.echo(json.dumps(res.metrics))
     k = res.kinematic_metrics

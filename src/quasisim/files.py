@@ -179,7 +179,9 @@ def check_out_dir(out: Path, option: str = "--out") -> None:
         os.close(fd)
         os.unlink(tmp)
     except OSError as e:
-        raise InputError(out, option, "a folder quasisim may write into", f"{probe}: {e.strerror or e}") from None
+        raise InputError(
+            out, option, "a folder quasisim may write into", f"no write access to {probe} ({e.strerror or e})"
+        ) from None
 
 
 def existing_outputs(out: Path, names: tuple[str, ...]) -> list[str]:

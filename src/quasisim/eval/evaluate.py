@@ -11,11 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.assets.hand import HandModel, load_hand
+from quasisim.assets.hand import HandModel, builtin_hands, load_hand
 from quasisim.assets.object import DEFAULT_DENSITY, ObjectAsset, load_object
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo
-from quasisim.errors import InputError
+from quasisim.errors import InputError, QuasisimError
 from quasisim.eval.metrics import PerFrame, evaluate_rollout
 from quasisim.eval.render import render_side_by_side
 from quasisim.eval.report import write_report
@@ -57,6 +57,18 @@ def robot_surface(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray) -> np
     if pts is None:
         pts = _CD_POINTS[hand] = sample_hand_points(hand, CD_SPACING, 0.0, seed=1)
     return surface_points_over_time(hand, base_rot, qpos, pts)
+
+
+def hand_of(controls: Controls, path: str | Path | None) -> HandModel:
+    """The hand that ``controls`` (read from ``path``) were made for; an unknown hand names the controls file."""
+    try:
+        return load_hand(controls.hand)
+    except QuasisimError as e:
+        if isinstance(e, InputError):
+            raise
+        raise InputError(
+            path, "hand", f"a built-in hand ({', '.join(builtin_hands())}) or a hand YAML", repr(controls.hand)
+        ) from None
 
 
 def check_controls(demo: Demo, controls: Controls, hand: HandModel, path: str | Path | None = None) -> None:
