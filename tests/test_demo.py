@@ -20,7 +20,7 @@ def _write(tmp: Path, name: str = "clip", **override: object) -> Path:
     )
     T = 5
     q = np.tile([1.0, 0.0, 0.0, 0.0], (T, 1))
-    hand = hand_keypoints(np.zeros((5, 3))) + [0.0, 0.0, 0.9]  # a human hand skeleton above the object
+    hand = hand_keypoints(np.zeros((5, 3))) + np.array([0.0, 0.0, 0.9])  # a human hand skeleton above the object
     arrays: dict[str, object] = dict(
         format=np.array(FORMAT), source=np.array("test"), name=np.array(name), fps=np.array(20.0, np.float32),
         right_joints=np.tile(hand, (T, 1, 1)).astype(np.float32), object_name=np.array("box"),

@@ -185,8 +185,8 @@ def check_out_dir(out: Path, option: str = "--out") -> None:
 
 
 def existing_outputs(out: Path, names: tuple[str, ...]) -> list[str]:
-    """Which of ``names`` (plus the manifest) already exist in ``out``."""
-    return [n for n in (*names, MANIFEST) if (Path(out) / n).exists()]
+    """Which of ``names`` already exist in ``out``."""
+    return [n for n in names if (Path(out) / n).exists()]
 
 
 def refuse_overwrite(out: Path, names: tuple[str, ...], overwrite: bool) -> None:

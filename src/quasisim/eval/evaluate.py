@@ -25,7 +25,8 @@ from quasisim.targets import TargetRollout, make_target
 from quasisim.targets.scene import PhysicsOptions, Scene, make_scene
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
-OUTPUTS = ("metrics.json", "rollout.npz", "report.html")  # what evaluate writes (as one set, see files.output_set)
+OUTPUTS = ("metrics.json", "rollout.npz", "report.html")
+STABILITY_KEY = "unstable"  # metrics.json: the metrics of eval.metrics plus this flag (see mark_stability)  # what evaluate writes (as one set, see files.output_set)
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,9 +115,9 @@ def mark_stability(metrics: dict[str, Any], instability: str, what: str) -> dict
     """``metrics`` with ``unstable`` (true when the simulation blew up); an unstable rollout is a failure
     (every success flag false), said in one line on stderr."""
     if not instability:
-        return {**metrics, "unstable": False}
+        return {**metrics, STABILITY_KEY: False}
     print(f"warning: {what}: unstable simulation ({instability}); counted as a failure", file=sys.stderr)
-    return {**metrics, "success": dict.fromkeys(metrics["success"], False), "unstable": True}
+    return {**metrics, "success": dict.fromkeys(metrics["success"], False), STABILITY_KEY: True}
 
 
 def write_outputs(

@@ -87,7 +87,7 @@ class Checkpoints:
         _say(f"{p}: {why}; discarded, recomputing it")
         p.unlink(missing_ok=True)
 
-    def save(self, name: str, **arrays: Any) -> None:
+    def save(self, name: str, /, **arrays: Any) -> None:
         save_npz_atomic(self.folder / f"{name}.npz", **{IDENTITY_KEY: np.array(self.identity)}, **arrays)
 
     def get(self, name: str, compute: Callable[[], dict[str, Any]], expect: Expect) -> dict[str, Any]:

@@ -27,7 +27,7 @@ from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError
-from quasisim.files import check_out_dir, existing_outputs, remove_orphans
+from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
 from quasisim.method import outputs, stage1, stage2, stage3
 from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
 from quasisim.method.config import TransferConfig
@@ -65,7 +65,7 @@ def run_transfer(
     bud, cur, out = cfg.budget(spec.budget), load_curriculum(spec.curriculum), Path(out)
     demo, hand = load_demo(demo_path), load_hand(spec.hand)
     _check_run_dir(out, resume, overwrite)
-    warn_long_clip(demo, *TRANSFER_COST.get(spec.budget, TRANSFER_COST["fast"]), f"transfer ({spec.budget} budget)")
+    warn_long_clip(demo, *_cost_per_frame(cfg, spec), f"transfer ({spec.budget} budget)")
     ck = Checkpoints(out / "checkpoints", _identity(demo_path, demo, spec, cur, cfg), resume, overwrite)
     progress, record = Progress(spec.progress), RunRecord()
 
@@ -304,8 +304,26 @@ def _q_expect(prob: Problem) -> Expect:
     return {"q_targets": (prob.demo.n_frames, 6 + prob.hand.n_joints), "window_loss": (None,), "wall_s": ()}
 
 
-# (seconds, MB) per frame of a transfer, measured on the synthetic example (2 CPU cores); the clip-length warning
-TRANSFER_COST = {"fast": (2.0, 1.5), "paper": (20.0, 1.5)}
+# Seconds per frame of each stage with the fast budget (BENCHMARKS.md: 60-frame clips, default curriculum, 2 CPU
+# cores) and memory per frame (a 10,000-frame clip took about 4 GB): the clip-length warning's estimate.
+STAGE_S_PER_FRAME = {"retarget": 0.05, "1": 2.9, "2": 8.0, "3": 2.0, "mpc": 1.5, "sample": 0.25}
+MB_PER_FRAME = 0.4
+
+
+def _cost_per_frame(cfg: TransferConfig, spec: TransferSpec) -> tuple[float, float]:
+    """(seconds, MB) per frame of ``spec``'s run: the fast budget's figures scaled by substeps and Adam steps."""
+    b = cfg.budget(spec.budget)
+    f = cfg.budgets.get("fast", b)
+    sub = b.substeps / f.substeps
+    steps = {
+        "1": (b.human.control_steps + b.robot_points.control_steps)
+        / max(1, f.human.control_steps + f.robot_points.control_steps),
+        "2": (b.sim.control_steps + b.sim.sysid_steps) / max(1, f.sim.control_steps + f.sim.sysid_steps),
+    }
+    s = STAGE_S_PER_FRAME["retarget"] + sum(
+        STAGE_S_PER_FRAME[st] * (sub * steps[st] if st in steps else 1.0) for st in spec.stages
+    )
+    return s, MB_PER_FRAME * sub
 
 
 def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
@@ -313,7 +331,7 @@ def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
     are gone (they would be replaced without a trace) unless ``resume`` or ``overwrite``."""
     check_out_dir(out)
     remove_orphans(out)
-    found = existing_outputs(out, outputs.OUTPUTS)
+    found = existing_outputs(out, (*outputs.OUTPUTS, MANIFEST))
     has_checkpoints = any((out / "checkpoints").glob("*.npz")) if (out / "checkpoints").is_dir() else False
     if found and not has_checkpoints and not (resume or overwrite):
         raise InputError(
