@@ -41,7 +41,7 @@ def _fresh(folder: Path, info: dict | None = None, resume: bool = False) -> Chec
 def test_checkpoints_carry_their_run_identity(tmp_path: Path, capsys) -> None:
     ck = _fresh(tmp_path)
     ck.save("piece", **_arrays())
-    assert str(np.load(tmp_path / "piece.npz")[IDENTITY_KEY]) == ck.identity
+    assert str(np.load(tmp_path / "piece.npz")[IDENTITY_KEY]) == ck.identity("piece")
     assert _fresh(tmp_path, resume=True).load("piece", EXPECT)["q"].shape == (4, 3)
     # run.json gone and another run resumes in the folder: the piece is not reused, and that is said once
     (tmp_path / "run.json").unlink()
@@ -51,7 +51,7 @@ def test_checkpoints_carry_their_run_identity(tmp_path: Path, capsys) -> None:
     assert calls == [1] and str(d["name"]) == "y"
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "piece.npz" in err[0] and "another run" in err[0]
-    assert str(np.load(tmp_path / "piece.npz")[IDENTITY_KEY]) == other.identity
+    assert str(np.load(tmp_path / "piece.npz")[IDENTITY_KEY]) == other.identity("piece")
 
 
 DAMAGE = {
@@ -80,6 +80,22 @@ def test_damaged_checkpoints_are_recomputed(tmp_path: Path, capsys, damage: str)
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "piece.npz" in err[0] and "recomputing" in err[0], err
     assert ck.load("piece", EXPECT) is not None  # rewritten whole
+
+
+def test_each_checkpoint_is_named_by_what_determines_it() -> None:
+    """A ``+mpc`` run (the bench copies its curriculum run's checkpoints) reuses the stage-1/2 pieces; the MPC
+    piece depends on the stages before it and on the method."""
+    from quasisim.method.pipeline import _piece_scope
+
+    info = {"demo_content": "d", "hand": "shadow", "budget": "fast", "weights": {"w": 1.0}}
+    base = {**info, "stages": ["1", "2"], "method": "ours"}
+    plus = {**info, "stages": ["1", "2", "mpc"], "method": "ours", "mpc": {"horizon": 5}}
+    alone = {**info, "stages": ["mpc"], "method": "mpc-base", "mpc": {"horizon": 5}}
+    for name in ("kinematic", "stage1_human", "stage1_robot", "stage2_sim03"):
+        assert _piece_scope(base, name) == _piece_scope(plus, name)
+    assert _piece_scope(base, "stage2_sim03") != _piece_scope({**base, "stages": ["2"]}, "stage2_sim03")
+    assert _piece_scope(plus, "mpc") != _piece_scope(alone, "mpc")
+    assert _piece_scope({**plus, "hand": "allegro"}, "kinematic") != _piece_scope(plus, "kinematic")
 
 
 def test_run_json_damage_and_legacy_checkpoints(tmp_path: Path, capsys) -> None:

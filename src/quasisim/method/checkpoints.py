@@ -1,9 +1,9 @@
 """Checkpoints of a transfer run: one ``.npz`` per finished piece of work, written atomically.
 
 ``OUT/checkpoints/run.json`` names the settings that made the run; ``--resume`` continues only a run with
-the same settings. Every checkpoint also carries the identity of the run that made it (a hash of those
-settings, the demo's content and the hand's), so a checkpoint is reused only by the run that wrote it,
-whatever happened to ``run.json``. A checkpoint that is unreadable, made by another run, or lacks an array
+the same settings. Every checkpoint also carries the identity of what made it (a hash of the settings that
+determine that piece: the demo's content, the hand, the settings of its stage and of the stages before it),
+so a checkpoint is reused only by a run that would compute the same piece, whatever happened to ``run.json``. A checkpoint that is unreadable, made by another run, or lacks an array
 or has one of the wrong shape is discarded and recomputed, said in one line on stderr.
 """
 
@@ -43,9 +43,13 @@ def _say(text: str) -> None:
 class Checkpoints:
     """One ``.npz`` per finished piece of work in ``folder``, plus ``run.json`` naming the run's settings."""
 
-    def __init__(self, folder: Path, run_info: dict[str, Any], resume: bool, overwrite: bool = False) -> None:
+    def __init__(
+        self, folder: Path, run_info: dict[str, Any], resume: bool, overwrite: bool = False,
+        scope: Callable[[str], dict[str, Any]] | None = None,
+    ) -> None:  # fmt: skip
+        """``scope(name)``: the part of ``run_info`` that determines checkpoint ``name`` (default: all of it)."""
         self.folder = folder
-        self.identity = run_identity(run_info)
+        self._scope = scope or (lambda name: run_info)
         info_path = folder / "run.json"
         remove_orphans(folder)  # what a killed atomic write left behind
         existing = sorted(folder.glob("*.npz")) if folder.is_dir() else []
@@ -78,7 +82,7 @@ class Checkpoints:
         ident = d.pop(IDENTITY_KEY, None)
         if ident is None and not self.trust_unmarked:
             return self._discard(p, "carries no run identity and run.json did not confirm it")
-        if ident is not None and str(ident) != self.identity:
+        if ident is not None and str(ident) != self.identity(name):
             return self._discard(p, "made by another run (other demo, hand or settings)")
         problem = mismatch(d, expect)
         return self._discard(p, problem) if problem else d
@@ -87,8 +91,12 @@ class Checkpoints:
         _say(f"{p}: {why}; discarded, recomputing it")
         p.unlink(missing_ok=True)
 
+    def identity(self, name: str) -> str:
+        """The identity stored in checkpoint ``name`` (a hash of what determines it)."""
+        return run_identity(self._scope(name))
+
     def save(self, name: str, /, **arrays: Any) -> None:
-        save_npz_atomic(self.folder / f"{name}.npz", **{IDENTITY_KEY: np.array(self.identity)}, **arrays)
+        save_npz_atomic(self.folder / f"{name}.npz", **{IDENTITY_KEY: np.array(self.identity(name))}, **arrays)
 
     def get(self, name: str, compute: Callable[[], dict[str, Any]], expect: Expect) -> dict[str, Any]:
         """Checkpoint ``name``: loaded when it was written (and holds ``expect``), else computed by ``compute``

@@ -37,7 +37,7 @@ from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_o
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget
 from quasisim.method.sample_target import run_sample_target
-from quasisim.method.spec import TransferSpec
+from quasisim.method.spec import STAGES, TransferSpec
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import Objective
 from quasisim.optim.sysid import SysID
@@ -66,7 +66,8 @@ def run_transfer(
     demo, hand = load_demo(demo_path), load_hand(spec.hand)
     _check_run_dir(out, resume, overwrite)
     warn_long_clip(demo, *_cost_per_frame(cfg, spec), f"transfer ({spec.budget} budget)")
-    ck = Checkpoints(out / "checkpoints", _identity(demo_path, demo, spec, cur, cfg), resume, overwrite)
+    info = _identity(demo_path, demo, spec, cur, cfg)
+    ck = Checkpoints(out / "checkpoints", info, resume, overwrite, lambda name: _piece_scope(info, name))
     progress, record = Progress(spec.progress), RunRecord()
 
     T, J = demo.n_frames, hand.n_joints
@@ -338,6 +339,26 @@ def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
             out, "--out", "a folder without the outputs of an earlier run (pass --overwrite to replace them)",
             ", ".join(found),
         )  # fmt: skip
+
+
+# the run settings that concern single stages (the rest, e.g. demo, hand, curriculum, budget, concern every piece)
+_STAGE_KEYS = {"stages": None, "method": None, "mpc": "mpc", "stage3": "3", "sample_target": "sample"}
+
+
+def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
+    """What determines checkpoint ``name``: the settings every piece shares, the stages that run before its
+    stage and its stage's own settings (a ``+mpc`` run reuses the stage-1/2 checkpoints of its curriculum's)."""
+    stage = {"kinematic": "", "stage1": "1", "stage2": "2", "stage3": "3", "mpc": "mpc", "sample": "sample"}[
+        name.split("_")[0]
+    ]
+    shared = {k: v for k, v in info.items() if k not in _STAGE_KEYS}
+    if not stage:
+        return shared
+    before = [s for s in info["stages"] if STAGES.index(s) < STAGES.index(stage)]
+    own = {k: info[k] for k, st in _STAGE_KEYS.items() if st == stage and k in info}
+    if stage == "mpc":
+        own["method"] = info["method"]  # mpc-soften samples softened simulators
+    return {**shared, "stage": stage, "before": before, **own}
 
 
 def _identity(
