@@ -224,6 +224,18 @@ DEMO_CASES: list[tuple[str, Callable[[Path], None], tuple[str, ...]]] = [
     ("hand_100m_away", _npz_edit(DEMO, right_joints=lambda a: a + np.array([100.0, 0, 0])), ("right_joints", "+-10 m")),
     ("hand_5m_away", _npz_edit(DEMO, right_joints=lambda a: a + np.array([5.0, 0, 0])), ("object_pos", "within 1 m")),
     ("object_10m_away", _npz_edit(DEMO, object_pos=lambda a: a + np.array([0, 9.0, 0])), ("object_pos", "within 1 m")),
+    (
+        "joints_mirrored",
+        _npz_edit(DEMO, right_joints=lambda a: a * np.array([1.0, -1.0, 1.0])),
+        ("right_joints", "right hand"),
+    ),
+    ("joints_reordered", _npz_edit(DEMO, right_joints=lambda a: a[:, ::-1]), ("right_joints", "MediaPipe order")),
+    (
+        "object_in_table",
+        _npz_edit(DEMO, object_pos=lambda a: a - np.array([0, 0, 0.3])),
+        ("support_height", "table top"),
+    ),
+    ("table_far_below", _npz_edit(DEMO, support_height=np.array(0.3)), ("support_height", "table top")),
     ("object_pos_short", _npz_edit(DEMO, object_pos=lambda a: a[:-1]), ("object_pos", "same T")),
     ("object_pos_4", _npz_edit(DEMO, object_pos=lambda a: np.c_[a, a[:, :1]]), ("object_pos", "shape")),
     ("object_pos_nan", _npz_edit(DEMO, object_pos=lambda a: a * np.nan), ("object_pos", "finite")),
@@ -367,6 +379,28 @@ HAND_CASES = [
     Case("hand-pd-kp-string", _yaml_edit(lambda y: y["pd"]["joint"].update(kp="stiff")), RET, (HAND, "pd.joint.kp")),
     Case("hand-spacing-zero", _yaml_edit(lambda y: y["points"].update(spacing=0.0)), RET, (HAND, "points")),
     Case("hand-wrist-fit", _yaml_edit(lambda y: y.update(wrist_fit_human=[0, 22])), RET, (HAND, "wrist_fit_human")),
+    Case("hand-pd-negative", _yaml_edit(lambda y: y["pd"]["joint"].update(kp=-5.0)), RET, (HAND, "pd.joint", "kp > 0")),
+    Case(
+        "hand-pd-nan",
+        _yaml_edit(lambda y: y["pd"]["base_pos"].update(kv=float("nan"))),
+        RET,
+        (HAND, "pd.base_pos.kv", "finite"),
+    ),
+    Case(
+        "hand-force-limit",
+        _yaml_edit(lambda y: y["pd"].update(joint_force_limit=0.0)),
+        RET,
+        (HAND, "pd", "joint_force_limit"),
+    ),
+    Case("hand-spacing-tiny", _yaml_edit(lambda y: y["points"].update(spacing=1e-7)), RET, (HAND, "points", "0.001")),
+    Case("hand-kp-pos-far", _yaml_edit(_kp(0, pos=[100.0, 0, 0])), RET, (HAND, "keypoints[0].pos", "0.5 m")),
+    Case(
+        "hand-kp-duplicate",
+        _yaml_edit(lambda y: y.update(keypoints=y["keypoints"] * 2)),
+        RET,
+        (HAND, "keypoints", "distinct"),
+    ),
+    Case("hand-model-passwd", _yaml_edit(lambda y: y.update(model="/etc/passwd")), RET, ("/etc/passwd", "MJCF")),
     Case("hand-unknown-name", _nothing, "retarget {d}/cube_lift.npz --hand nohand --out {d}/out", ("nohand", "shadow")),
 ]
 
@@ -394,6 +428,25 @@ OPTION_CASES = [
     Case("transfer-set-syntax", _nothing, TR + "--set budgets", ("--set", "KEY=VALUE")),
     Case("transfer-set-key", _nothing, TR + "--set budgets.fast.x=1", ("budgets.fast.x",)),
     Case("transfer-set-type", _nothing, TR + "--set budgets.fast.substeps=many", ("budgets.fast.substeps", "integer")),
+    Case("transfer-set-negative-weight", _nothing, TR + "--set weights.obj_pos=-1", ("weights.obj_pos", ">= 0")),
+    Case("transfer-set-nan", _nothing, TR + "--set weights.hand=.nan", ("weights.hand", "finite")),
+    Case("transfer-set-inf-lr", _nothing, TR + "--set budgets.fast.sim.control_lr=.inf", ("control_lr", "finite")),
+    Case("transfer-set-stage3-horizon", _nothing, TR + "--stages 3 --set stage3.horizon=0", ("stage3.horizon", ">= 1")),
+    Case("transfer-set-held-out", _nothing, TR + "--stages 3 --set stage3.held_out=2", ("stage3.held_out", "(0, 1)")),
+    Case("transfer-set-mpc-lr", _nothing, TR + "--stages mpc --set mpc.lr=-1", ("mpc.lr", ">= 0")),
+    Case("transfer-set-samples", _nothing, TR + "--set sample_target.samples=0", ("samples", "positive")),
+    Case("transfer-set-mode", _nothing, TR + "--set sample_target.mode=best", ("best", "predictive")),
+    Case(
+        "transfer-curriculum-nan",
+        _write(
+            "c.yaml",
+            "name: c\nmu: 1.0\nstages:\n  - {alpha: 0.0, d_c: 0.0, k_n: .nan, k_f: 1.0, k_d: 1.0, residual: false}\n",
+        ),
+        TR + "--curriculum {d}/c.yaml",
+        ("c.yaml", "stages[0].k_n", "finite"),
+    ),
+    Case("transfer-config-npz", _nothing, TR + "--config {d}/cube_lift.npz", ("cube_lift.npz", "YAML")),
+    Case("bench-out-proc", _nothing, "bench baseline {d} --out /proc/quasisim_out", ("/proc/quasisim_out", "--out")),
     Case("transfer-config-absent", _nothing, TR + "--config {d}/cfg.yaml", ("cfg.yaml", "no such file")),
     Case("transfer-resume-overwrite", _nothing, TR + "--resume --overwrite", ("--resume", "--overwrite")),
     Case("transfer-hand", _nothing, TR + "--hand nohand", ("nohand", "allegro")),
@@ -474,7 +527,7 @@ def test_bad_input(case: Case, base: Path, tmp_path: Path) -> None:
     assert lines[0].startswith("error: ") and "Traceback" not in r.output
     for w in case.words:
         assert w in lines[0], (w, lines[0])
-    markers = ("expect", "valid", "Invalid value", "Missing", "No such", "use --")  # what was expected
+    markers = ("expect", "valid", "must be", "Invalid value", "Missing", "No such", "use --")  # what was expected
     assert any(m in lines[0] for m in markers), lines[0]
     assert _snapshot(d) == before, "the command wrote or changed files"
     assert not Path("/proc/quasisim_out").exists()

@@ -30,7 +30,7 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return fn(*args, **kwargs)
         except QuasisimError as e:
-            click.echo(f"error: {e}", err=True)
+            click.echo(f"error: {' '.join(str(e).split())}", err=True)  # one line, whatever the names hold
             sys.exit(2)
 
     return wrapper
@@ -57,7 +57,7 @@ class _OneLineErrors(click.Group):
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
-def _outputs_free(out: Path, names: tuple[str, ...], overwrite: bool) -> None:
+def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True) -> None:
     """Before any work: ``out`` can be written and holds none of ``names`` (unless ``overwrite``)."""
     from quasisim.files import check_out_dir, refuse_overwrite
 
@@ -257,6 +257,7 @@ def bench() -> None:
 @_friendly
 def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool) -> None:
     """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.baseline import run_baseline
 
@@ -334,6 +335,7 @@ def bench_transfer(
     out: Path, report_only: bool, judge: str | None,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay (resumable)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.transfer import run_spec, run_transfer_bench
 
@@ -363,6 +365,7 @@ def bench_predict(
     mus: tuple[float, ...], hand: str, out: Path,
 ) -> None:  # fmt: skip
     """Open-loop prediction error of the quasi-physical simulators against MuJoCo (the fit of stage 3)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.predict import run_predict_bench
 
@@ -386,6 +389,7 @@ def bench_fit(
 ) -> None:
     """Stage 3's measure: held-out prediction error of the simulator fitted to MuJoCo (nominal, + S and
     constants, + residual networks) beside zero motion."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.fit import run_fit_bench
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -106,11 +107,13 @@ def _coerce(tp: Any, value: Any, path: str | Path | None, field: str) -> Any:
     if tp is float:
         if isinstance(value, str):  # PyYAML reads 4.0e4 (no sign in the exponent) as a string
             try:
-                return float(value)
+                value = float(value)
             except ValueError:
                 pass
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise InputError(path, field, "a number", repr(value))
+        if not math.isfinite(value):
+            raise InputError(path, field, "a finite number", repr(value))
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):

@@ -64,8 +64,10 @@ FPS_RANGE = (1.0, 1000.0)  # Hz
 COORD_MAX = 10.0  # m, |coordinate| of any keypoint or object position (the scene is a table top)
 SUPPORT_RANGE = (0.01, 5.0)  # m, table-top height above the floor
 BONE_RANGE = (0.005, 0.15)  # m, median length over the clip of each bone (GRAB hands: 15-95 mm)
+PALM_RATIO = 1.3  # median wrist-to-finger-base length over the longest median finger bone (reordered keypoints: < 1.1)
 MIN_HAND_EXTENT = 0.02  # m, wrist to the farthest keypoint in every frame (less: a collapsed skeleton)
 HAND_OBJECT_MAX = 1.0  # m, the hand (keypoint mean) must come this close to the object origin at some frame
+REST_GAP = (-0.01, 0.2)  # m, the object's lowest point at frame 0 relative to the table top (GRAB, ARCTIC: 0)
 LONG_CLIP = 1500  # frames; longer clips get a warning with an estimate of time and memory
 
 
@@ -181,12 +183,28 @@ def validate_scales(demo: Demo, path: str | Path | None) -> None:
             path, "right_joints", f"a human hand skeleton (median bone lengths {lo * 1e3:g}-{hi * 1e3:g} mm)",
             f"bone {KEYPOINT_NAMES[a]}-{KEYPOINT_NAMES[b]} {med[k] * 1e3:.3g} mm",
         )  # fmt: skip
+    palm = np.mean([med[BONES.index((0, k))] for k in (5, 9, 13, 17)])
+    finger = max(med[k] for k, (a, _) in enumerate(BONES) if a != 0)
+    if palm < PALM_RATIO * finger:
+        raise InputError(
+            path, "right_joints", f"keypoints in MediaPipe order (wrist to finger bases > {PALM_RATIO:g} x the longest "
+            "finger bone; GRAB and ARCTIC hands: 2.3-2.5 x)", f"{palm / finger:.2f} x (another keypoint order?)",
+        )  # fmt: skip
     extent = np.linalg.norm(j - j[:, :1], axis=-1).max(axis=1)
     if (extent < MIN_HAND_EXTENT).any():
         t = int(np.argmax(extent < MIN_HAND_EXTENT))
         raise InputError(
             path, "right_joints", f"keypoints spread over at least {MIN_HAND_EXTENT * 1e3:g} mm in every frame",
             f"a collapsed skeleton at frame {t} ({extent[t] * 1e3:.3g} mm)",
+        )  # fmt: skip
+    # a right hand: the thumb's MCP lies on the palm side of the plane wrist, index MCP, little MCP (every
+    # frame of every GRAB and ARCTIC clip); a left hand (or a mirrored recording) has it on the other side
+    palm = np.cross(j[:, 5] - j[:, 0], j[:, 17] - j[:, 0])
+    right = np.einsum("ti,ti->t", palm, j[:, 2] - j[:, 0]) > 0
+    if right.mean() < 0.5:
+        raise InputError(
+            path, "right_joints", "a right hand (thumb on the palm side)",
+            f"a left or mirrored hand in {100 * (1 - right.mean()):.0f}% of the frames",
         )  # fmt: skip
     gap = np.linalg.norm(j.mean(axis=1) - demo.object_pos, axis=-1)
     if gap.min() > HAND_OBJECT_MAX:
@@ -275,8 +293,22 @@ def load_demo(path: str | Path, check_mesh: bool = True) -> Demo:
     if check_mesh:
         from quasisim.assets.object import load_object  # heavy imports (trimesh, JAX): only when a demo is read
 
-        load_object(mesh_path, name=object_name)  # readable, watertight, plausible size; cached for later use
+        obj = load_object(mesh_path, name=object_name)  # readable, watertight, plausible size; cached for later use
+        _check_resting(demo, obj.vertices, path)
     return demo
+
+
+def _check_resting(demo: Demo, vertices: np.ndarray, path: Path) -> None:
+    """The object starts on the table: its lowest point at frame 0 near ``support_height`` (not inside it)."""
+    from quasisim.rotations import np_quat_to_mat
+
+    low = float((vertices @ np_quat_to_mat(demo.object_quat[0]).T + demo.object_pos[0])[:, 2].min())
+    gap = low - demo.support_height
+    if not REST_GAP[0] <= gap <= REST_GAP[1]:
+        raise InputError(
+            path, "support_height", f"the table top under the object at frame 0 (its lowest point {low:.3f} m, "
+            f"{-REST_GAP[0] * 100:g} cm below to {REST_GAP[1] * 100:g} cm above)", f"{demo.support_height:.3f} m",
+        )  # fmt: skip
 
 
 def save_demo(demo: Demo, path: str | Path) -> Path:
