@@ -132,12 +132,14 @@ def test_overwrite_starts_afresh(tmp_path: Path) -> None:
 # ---- output sets -----------------------------------------------------------------------------------------
 
 
-def _write_set(out: Path, tag: str, fail: bool = False) -> None:
+def _write_set(out: Path, tag: str, fail: bool = False, extra: str = "") -> None:
     with output_set(out) as stage:
         (stage / "metrics.json").write_text(tag)
         if fail:
             raise KeyboardInterrupt
         (stage / "report.html").write_text(tag)
+        if extra:
+            (stage / extra).write_text(tag)
 
 
 def test_outputs_are_written_as_a_set(tmp_path: Path) -> None:
@@ -151,6 +153,9 @@ def test_outputs_are_written_as_a_set(tmp_path: Path) -> None:
     assert (tmp_path / "report.html").read_text() == "new" and read_manifest(tmp_path) is not None
     (tmp_path / "metrics.json").write_text("mixed")  # a reader can tell a mixed or unfinished set
     assert read_manifest(tmp_path) is None
+    _write_set(tmp_path, "a", extra="rollout.npz")
+    _write_set(tmp_path, "b")  # a file of the earlier set that the new set lacks goes with it
+    assert set(read_manifest(tmp_path)) == {"metrics.json", "report.html"} and not (tmp_path / "rollout.npz").exists()
 
 
 def test_sigkill_while_writing_leaves_the_earlier_set(tmp_path: Path) -> None:
@@ -329,3 +334,9 @@ def test_sigkill_at_random_points_then_resume_is_bit_identical(clip: dict[str, P
         assert diffs == [] and n >= 4, diffs
         assert read_manifest(out) is not None and not [q for q in out.rglob(".*")]
     assert kills >= 2  # the kills did land
+    # SIGTERM: the command ends at once and its temporary files go with it
+    p = _transfer(clip["cube"], tmp_path / "term")
+    time.sleep(0.7 * t_ref)
+    p.send_signal(signal.SIGTERM)
+    assert p.wait() in (0, 128 + signal.SIGTERM, -signal.SIGTERM)
+    assert not [q for q in (tmp_path / "term").rglob(".*")]

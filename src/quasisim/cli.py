@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -29,8 +30,9 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
-        except QuasisimError as e:
-            click.echo(f"error: {' '.join(str(e).split())}", err=True)  # one line, whatever the names hold
+        except (QuasisimError, OSError) as e:  # OSError: a path the system refuses (too long, a loop, no space)
+            msg = f"{e.filename}: {e.strerror}" if isinstance(e, OSError) and e.filename and e.strerror else e
+            click.echo(f"error: {' '.join(str(msg).split())}", err=True)  # one line, whatever the names hold
             sys.exit(2)
 
     return wrapper
@@ -59,20 +61,26 @@ class _OneLineErrors(click.Group):
 
 def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True) -> None:
     """Before any work: ``out`` can be written and holds none of ``names`` (unless ``overwrite``)."""
-    from quasisim.files import check_out_dir, refuse_overwrite
+    from quasisim.files import check_out_dir, refuse_overwrite, remove_orphans
 
     check_out_dir(out)
     refuse_overwrite(out, names, overwrite)
+    remove_orphans(out)  # what a killed atomic write left there
 
 
 _OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
 
 
 def _setup_runtime() -> None:
-    """Environment and JAX settings of every command (before MuJoCo or JAX load)."""
+    """Environment and JAX settings of every command (before MuJoCo or JAX load); SIGTERM ends the command
+    like Ctrl-C, so atomic writes remove their temporary files."""
+    import signal
+
     from quasisim.runtime import configure
 
     configure()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
 
 
 @click.group(cls=_OneLineErrors, context_settings={"help_option_names": ["-h", "--help"]})

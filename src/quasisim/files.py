@@ -92,7 +92,8 @@ def open_npz(path: Path, fmt: str, what: str) -> np.lib.npyio.NpzFile:
     """Open ``path`` as a ``.npz`` archive (no pickles); :class:`~quasisim.errors.InputError` naming the file
     when it is missing (``what``: e.g. "controls .npz file") or not an archive of format ``fmt``."""
     if not path.is_file():
-        raise InputError(path, None, f"an existing {what}", "no such file" if not path.exists() else "a folder")
+        got = "no such file" if not path.exists() else "a folder" if path.is_dir() else "not a regular file"
+        raise InputError(path, None, f"an existing {what}", got)
     try:
         with open(path, "rb") as f:
             head = f.read(6)
@@ -165,22 +166,22 @@ def check_out_dir(out: Path, option: str = "--out") -> None:
     """Refuse an output folder that cannot be created or written (checked before any work, leaving no trace):
     a file, a folder under a file, a folder without write permission, a virtual file system such as /proc."""
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, option, "a folder for the outputs", "an existing file")
-    probe = out
-    while not probe.exists():
-        if probe.parent == probe:
-            break
-        probe = probe.parent
-    if not probe.is_dir():
-        raise InputError(out, option, "a folder that can be created", f"{probe} is a file")
     try:
+        if out.is_symlink() and not out.exists():
+            raise InputError(out, option, "a folder for the outputs", "a broken symbolic link")
+        if out.exists() and not out.is_dir():
+            raise InputError(out, option, "a folder for the outputs", "an existing file")
+        probe = out
+        while not probe.exists() and probe.parent != probe:
+            probe = probe.parent
+        if not probe.is_dir():
+            raise InputError(out, option, "a folder that can be created", f"{probe} is a file")
         fd, tmp = tempfile.mkstemp(prefix=".write-probe.", suffix=TMP_MARK, dir=probe)
         os.close(fd)
         os.unlink(tmp)
     except OSError as e:
         raise InputError(
-            out, option, "a folder quasisim may write into", f"no write access to {probe} ({e.strerror or e})"
+            out, option, "a folder quasisim may write into", f"no write access ({e.strerror or e}: {e.filename or out})"
         ) from None
 
 
@@ -242,12 +243,25 @@ def output_set(out: Path) -> Iterator[Path]:
         yield stage
         files = sorted(p.name for p in stage.iterdir() if p.is_file() and not p.name.startswith("."))
         digests = {n: file_sha256(stage / n) for n in files}
+        earlier = _manifest_names(out)
         (out / MANIFEST).unlink(missing_ok=True)
         for n in files:
             os.replace(stage / n, out / n)
+        for n in earlier - set(files):  # files of the earlier set that the new one does not have
+            if (out / n).is_file():
+                (out / n).unlink()
         save_json_atomic(out / MANIFEST, {"files": digests})
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _manifest_names(out: Path) -> set[str]:
+    """The plain file names an earlier manifest in ``out`` lists (none when it is missing or damaged)."""
+    try:
+        files = json.loads((out / MANIFEST).read_text())["files"]
+        return {n for n in files if isinstance(n, str) and n == Path(n).name and n not in (".", "..", MANIFEST)}
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
 
 
 def read_manifest(out: Path) -> dict[str, str] | None:

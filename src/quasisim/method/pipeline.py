@@ -367,8 +367,8 @@ def _identity(
     """What made the run (recorded in ``checkpoints/run.json`` and, hashed, in every checkpoint; a resumed run
     must match it): the demo (file and content), the hand (config and model files), the settings."""
     cur_settings = {k: v for k, v in dataclasses.asdict(cur).items() if k != "path"}
-    hand_files = hashlib.sha256()
-    for f in (Path(load_hand(spec.hand).config.path), load_hand(spec.hand).source):
+    hand, hand_files = load_hand(spec.hand), hashlib.sha256()
+    for f in (Path(hand.config.path), hand.source):
         hand_files.update(f.read_bytes())
     info = {
         "demo": demo.name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
