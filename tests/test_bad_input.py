@@ -451,6 +451,8 @@ OPTION_CASES = [
     Case("transfer-resume-overwrite", _nothing, TR + "--resume --overwrite", ("--resume", "--overwrite")),
     Case("transfer-hand", _nothing, TR + "--hand nohand", ("nohand", "allegro")),
     Case("demo-absent", _nothing, "retarget {d}/absent.npz --out {d}/out", ("absent.npz", "no such file")),
+    Case("demo-device", _nothing, "retarget /dev/null --out {d}/out", ("/dev/null", "regular file")),
+    Case("demo-name-too-long", _nothing, "retarget {d}/" + "y" * 300 + ".npz --out {d}/out", ("yyyy",)),
     Case("demo-folder", _nothing, "retarget {d}/meshes --out {d}/out", ("meshes", "a folder")),
 ]
 
@@ -467,9 +469,18 @@ OUT_PLACES = {
     "under-a-file": ("{d}/controls.npz/sub", ("controls.npz", "--out", "is a file")),
     "proc": ("/proc/quasisim_out", ("/proc/quasisim_out", "--out", "may write")),
     "sys": ("/sys/quasisim/out", ("/sys/quasisim/out", "--out")),
+    "dev-null": ("/dev/null", ("/dev/null", "--out", "existing file")),
+    "name-too-long": ("{d}/" + "x" * 300, ("xxxx", "--out")),
+    "broken-link": ("{d}/link", ("link", "--out", "broken symbolic link")),
 }
+
+
+def _broken_link(d: Path) -> None:
+    (d / "link").symlink_to(d / "nowhere" / "out")
+
+
 OUT_CASES = [
-    Case(f"{c}-out-{place}", _nothing, args.replace("{out}", out), words)
+    Case(f"{c}-out-{place}", _broken_link if place == "broken-link" else _nothing, args.replace("{out}", out), words)
     for c, args in OUT_COMMANDS.items()
     for place, (out, words) in OUT_PLACES.items()
 ]

@@ -12,14 +12,14 @@ from typing import Any, TypeVar
 import yaml
 
 from quasisim.errors import InputError
+from quasisim.files import check_input_file
 
 T = TypeVar("T")
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, None, "an existing YAML file", "no such file")
+    check_input_file(path, "YAML file")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:

@@ -84,6 +84,17 @@ def cache_dir() -> Path:
     return d
 
 
+def check_input_file(path: Path, what: str) -> None:
+    """:class:`InputError` unless ``path`` is an existing regular file (``what``: e.g. "YAML file")."""
+    try:
+        if path.is_file():
+            return
+        got = "no such file" if not path.exists() else "a folder" if path.is_dir() else "not a regular file"
+    except OSError as e:  # a name too long, a loop of links
+        got = e.strerror or str(e)
+    raise InputError(path, None, f"an existing {what}", got)
+
+
 ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a zip archive with members / an empty one
 NPY_MAGIC = b"\x93NUMPY"
 
@@ -91,9 +102,7 @@ NPY_MAGIC = b"\x93NUMPY"
 def open_npz(path: Path, fmt: str, what: str) -> np.lib.npyio.NpzFile:
     """Open ``path`` as a ``.npz`` archive (no pickles); :class:`~quasisim.errors.InputError` naming the file
     when it is missing (``what``: e.g. "controls .npz file") or not an archive of format ``fmt``."""
-    if not path.is_file():
-        got = "no such file" if not path.exists() else "a folder" if path.is_dir() else "not a regular file"
-        raise InputError(path, None, f"an existing {what}", got)
+    check_input_file(path, what)
     try:
         with open(path, "rb") as f:
             head = f.read(6)
