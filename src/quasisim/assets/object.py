@@ -414,14 +414,14 @@ def load_object(
     if not path.is_file():
         raise InputError(path, "mesh", "an existing mesh file (.obj, .ply, .stl, ...)", "no such file")
     st = path.stat()
-    return _load_object(path.resolve(), st.st_mtime_ns, st.st_size, name, float(density), mass)
+    fields = _read_object(path.resolve(), st.st_mtime_ns, st.st_size, float(density), mass)
+    return ObjectAsset(name=name or path.stem, **fields)  # a fresh asset (its own caches) every call
 
 
 @lru_cache(maxsize=16)
-def _load_object(
-    path: Path, mtime_ns: int, size: int, name: str | None, density: float, mass: float | None
-) -> ObjectAsset:
-    """:func:`load_object`, kept for the same file (path, modification time and size) and settings."""
+def _read_object(path: Path, mtime_ns: int, size: int, density: float, mass: float | None) -> dict[str, Any]:
+    """The checked mesh and its mass properties, kept for the same file (path, modification time, size) and
+    settings (arrays read-only: every asset of the file shares them)."""
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
     except Exception as e:
@@ -476,13 +476,11 @@ def _load_object(
     V = np.ascontiguousarray(mesh.vertices, np.float64)
     F = np.ascontiguousarray(mesh.faces, np.int64)
     digest = hashlib.sha256(V.tobytes() + F.tobytes()).hexdigest()
-    return ObjectAsset(
-        name=name or path.stem,
-        mesh_path=path,
-        vertices=V,
-        faces=F,
-        mass=float(mesh.mass),
-        com=np.asarray(mesh.center_mass, np.float64),
-        inertia=np.asarray(mesh.moment_inertia, np.float64),
-        content_hash=digest,
-    )
+    out = {
+        "mesh_path": path, "vertices": V, "faces": F, "mass": float(mesh.mass),
+        "com": np.asarray(mesh.center_mass, np.float64), "inertia": np.asarray(mesh.moment_inertia, np.float64),
+        "content_hash": digest,
+    }  # fmt: skip
+    for a in (V, F, out["com"], out["inertia"]):
+        a.flags.writeable = False
+    return out
