@@ -99,14 +99,13 @@ def main() -> None:
 @_friendly
 def example(out: Path, names: tuple[str, ...], frames: int, overwrite: bool) -> None:
     """Write the built-in synthetic example demo(s) (demo npz v1 + meshes/) to OUT."""
-    from quasisim.data.synthetic import EXAMPLES
+    from quasisim.data.synthetic import EXAMPLES, write_example
     from quasisim.errors import choice_error
 
     for n in names:
         if n not in EXAMPLES:
             raise choice_error("example", n, EXAMPLES)
     _outputs_free(out, tuple(f"{n}.npz" for n in names or EXAMPLES), overwrite)
-    from quasisim.data.synthetic import write_example
 
     for n in names or EXAMPLES:
         p = write_example(n, out, n_frames=frames)
