@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from quasisim.cli import main
+from quasisim.eval.evaluate import STABILITY_KEY
 from quasisim.eval.metrics import METRIC_KEYS, SUCCESS_KEYS
 
 
@@ -24,7 +25,8 @@ def _check_outputs(out: Path, demo_path: Path) -> dict:
     from quasisim.eval.metrics import evaluate_rollout
 
     m = json.loads((out / "metrics.json").read_text())
-    assert tuple(m) == METRIC_KEYS and tuple(m["success"]) == SUCCESS_KEYS
+    assert tuple(m) == (*METRIC_KEYS, STABILITY_KEY) and tuple(m["success"]) == SUCCESS_KEYS
+    assert m[STABILITY_KEY] is False
     assert all(isinstance(m[k], float) for k in METRIC_KEYS[:4])
     z = np.load(out / "rollout.npz")
     demo = load_demo(demo_path)
@@ -110,7 +112,7 @@ def test_real_clip_both_targets(tmp_path: Path, data_dir: Path) -> None:
 
 def _check_outputs_no_video(out: Path, demo: Path) -> dict:
     m = json.loads((out / "metrics.json").read_text())
-    assert tuple(m) == METRIC_KEYS
+    assert tuple(m) == (*METRIC_KEYS, STABILITY_KEY)
     assert np.load(out / "rollout.npz")["object_pos"].shape[1] == 3
     assert "Per-frame errors" in (out / "report.html").read_text()
     return m

@@ -9,18 +9,23 @@ import numpy as np
 import pytest
 
 from quasisim.data.demo import FORMAT, load_demo, save_demo
+from quasisim.data.synthetic import hand_keypoints
 from quasisim.errors import InputError
 
 
 def _write(tmp: Path, name: str = "clip", **override: object) -> Path:
     (tmp / "meshes").mkdir(parents=True, exist_ok=True)
-    (tmp / "meshes" / "box.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    (tmp / "meshes" / "box.obj").write_text(
+        "v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nv 0 0 0.1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    )
     T = 5
     q = np.tile([1.0, 0.0, 0.0, 0.0], (T, 1))
+    hand = hand_keypoints(np.zeros((5, 3))) + np.array([0.0, 0.0, 0.9])  # a human hand skeleton above the object
     arrays: dict[str, object] = dict(
         format=np.array(FORMAT), source=np.array("test"), name=np.array(name), fps=np.array(20.0, np.float32),
-        right_joints=np.zeros((T, 21, 3), np.float32), object_name=np.array("box"), object_mesh=np.array("box.obj"),
-        object_pos=np.zeros((T, 3), np.float32), object_quat=q.astype(np.float32),
+        right_joints=np.tile(hand, (T, 1, 1)).astype(np.float32), object_name=np.array("box"),
+        object_mesh=np.array("box.obj"), object_pos=np.tile([0.0, 0.0, 0.8], (T, 1)).astype(np.float32),
+        object_quat=q.astype(np.float32),
         support_height=np.array(0.8, np.float32),
     )  # fmt: skip
     for k, v in override.items():
@@ -54,7 +59,7 @@ def test_roundtrip(tmp_path: Path) -> None:
         ({"format": np.array("other-v0")}, "format", FORMAT),
         ({"object_mesh": np.array("missing.obj")}, "object_mesh", "mesh file"),
         ({"fps": None}, "fps", "present"),
-        ({"fps": np.array(-1.0)}, "fps", "positive"),
+        ({"fps": np.array(-1.0)}, "fps", "frame rate in [1, 1000] Hz"),
         ({"name": np.array(3.0)}, "name", "string"),
     ],
 )
@@ -68,6 +73,7 @@ def test_bad_fields(tmp_path: Path, override: dict, field: str, words: str) -> N
 
 def test_too_few_frames(tmp_path: Path) -> None:
     T1 = dict(right_joints=np.zeros((1, 21, 3)), object_pos=np.zeros((1, 3)), object_quat=np.array([[1.0, 0, 0, 0]]))
+
     with pytest.raises(InputError, match="at least 2 frames"):
         load_demo(_write(tmp_path, **T1))
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -29,21 +30,60 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
-        except QuasisimError as e:
-            click.echo(f"error: {e}", err=True)
+        except (QuasisimError, OSError) as e:  # OSError: a path the system refuses (too long, a loop, no space)
+            msg = f"{e.filename}: {e.strerror}" if isinstance(e, OSError) and e.filename and e.strerror else e
+            click.echo(f"error: {' '.join(str(msg).split())}", err=True)  # one line, whatever the names hold
             sys.exit(2)
 
     return wrapper
 
 
+class _OneLineErrors(click.Group):
+    """The top-level group: click's usage errors (bad or missing options) as one line on stderr, exit code 2."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.exceptions.NoArgsIsHelpError as e:
+            click.echo(e.ctx.get_help() if e.ctx else str(e), err=True)
+            sys.exit(2)
+        except click.ClickException as e:
+            where = f"{e.ctx.command_path}: " if getattr(e, "ctx", None) else ""
+            click.echo(f"error: {where}{' '.join(e.format_message().split())} (see --help)", err=True)
+            sys.exit(e.exit_code)
+        except click.Abort:
+            click.echo("Aborted!", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True) -> None:
+    """Before any work: ``out`` can be written and holds none of ``names`` (unless ``overwrite``)."""
+    from quasisim.files import check_out_dir, refuse_overwrite, remove_orphans
+
+    check_out_dir(out)
+    refuse_overwrite(out, names, overwrite)
+    remove_orphans(out)  # what a killed atomic write left there
+
+
+_OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
+
+
 def _setup_runtime() -> None:
-    """Environment and JAX settings of every command (before MuJoCo or JAX load)."""
+    """Environment and JAX settings of every command (before MuJoCo or JAX load); SIGTERM ends the command
+    like Ctrl-C, so atomic writes remove their temporary files."""
+    import signal
+
     from quasisim.runtime import configure
 
     configure()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=_OneLineErrors, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="quasisim")
 def main() -> None:
     """quasisim: turn human hand-object demonstrations into robot-hand controls that work in MuJoCo/PyBullet."""
@@ -52,11 +92,20 @@ def main() -> None:
 @main.command()
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--name", "names", multiple=True, help="Example to write (repeatable); default: all.")
-@click.option("--frames", default=60, show_default=True, help="Frames per example (20 fps).")
+@click.option(
+    "--frames", type=click.IntRange(12, 100_000), default=60, show_default=True, help="Frames per example (20 fps)."
+)
+@_OVERWRITE
 @_friendly
-def example(out: Path, names: tuple[str, ...], frames: int) -> None:
+def example(out: Path, names: tuple[str, ...], frames: int, overwrite: bool) -> None:
     """Write the built-in synthetic example demo(s) (demo npz v1 + meshes/) to OUT."""
     from quasisim.data.synthetic import EXAMPLES, write_example
+    from quasisim.errors import choice_error
+
+    for n in names:
+        if n not in EXAMPLES:
+            raise choice_error("example", n, EXAMPLES)
+    _outputs_free(out, tuple(f"{n}.npz" for n in names or EXAMPLES), overwrite)
 
     for n in names or EXAMPLES:
         p = write_example(n, out, n_frames=frames)
@@ -67,16 +116,19 @@ def example(out: Path, names: tuple[str, ...], frames: int) -> None:
 @click.argument("demo", type=click.Path(path_type=Path))
 @click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@_OVERWRITE
 @_friendly
-def retarget(demo: Path, hand: str, out: Path) -> None:
+def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
     """Kinematic retargeting of DEMO to a robot hand: writes OUT/kinematic.npz (PD targets per frame)."""
     _setup_runtime()
     from quasisim.assets.hand import load_hand
-    from quasisim.data.demo import load_demo
+    from quasisim.data.demo import load_demo, warn_long_clip
     from quasisim.method.retarget import kinematic_controls
 
     d = load_demo(demo)
     h = load_hand(hand)
+    _outputs_free(out, ("kinematic.npz",), overwrite)
+    warn_long_clip(d, 0.05, 1.0, "retargeting")
     t0 = time.perf_counter()
     c = kinematic_controls(h, d, hand, progress=True)
     path = c.save(out / "kinematic.npz")
@@ -92,18 +144,27 @@ def retarget(demo: Path, hand: str, out: Path) -> None:
 @click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
+@click.option("--force", is_flag=True, help="Replay controls made for another demo (a different content hash).")
+@_OVERWRITE
 @_friendly
-def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -> None:
+def evaluate(
+    demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, overwrite: bool
+) -> None:  # fmt: skip
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
-    from quasisim.assets.hand import load_hand
-    from quasisim.data.controls import load_controls
-    from quasisim.data.demo import load_demo
-    from quasisim.eval.evaluate import check_controls, evaluate_controls
+    from quasisim.data.controls import check_demo_hash, load_controls
+    from quasisim.data.demo import content_hash, load_demo, warn_long_clip
+    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hand_of
+    from quasisim.files import MANIFEST
 
     d = load_demo(demo)
     c = load_controls(controls)
-    check_controls(d, c, load_hand(c.hand), controls)
+    check_controls(d, c, hand_of(c, controls), controls)
+    note = check_demo_hash(c, content_hash(d), controls, force)
+    _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
+    if note:
+        click.echo(f"warning: {note}", err=True)
+    warn_long_clip(d, 0.2, 2.0, "evaluation" + (" with rendering" if render else ""))
     ev = evaluate_controls(d, c, target, out, render=render, progress=True)
     click.echo(json.dumps(ev.metrics))
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}, {out / 'report.html'}")
@@ -153,6 +214,9 @@ _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
 @click.option("--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--resume", is_flag=True, help="Continue the run in OUT from its last checkpoint.")
+@click.option(
+    "--overwrite", is_flag=True, help="Start afresh in OUT, replacing an earlier run's outputs and checkpoints."
+)
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
 @click.option(
     "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
@@ -161,7 +225,7 @@ _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
-    resume: bool, config_path: Path | None, sets: tuple[str, ...], render: bool,
+    resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -172,7 +236,9 @@ def transfer(
     spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, progress=True)
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
-    res = run_transfer(demo, out, spec, cfg, resume)
+    if resume and overwrite:
+        raise QuasisimError("options --resume (continue OUT) and --overwrite (replace it): expected one, got both")
+    res = run_transfer(demo, out, spec, cfg, resume, overwrite)
     click.echo(json.dumps(res.metrics))
     k = res.kinematic_metrics
     click.echo(f"kinematic replay in {target}: R_err {k['R_err_deg']:.1f} deg, T_err {k['T_err_cm']:.2f} cm")
@@ -215,6 +281,7 @@ def batch(
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
     reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.batch import run_batch_command
 
@@ -246,6 +313,7 @@ def bench() -> None:
 @_friendly
 def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool) -> None:
     """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.baseline import run_baseline
 
@@ -326,6 +394,7 @@ def bench_transfer(
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.batch import Settings
     from quasisim.bench.transfer import run_spec, run_transfer_bench
@@ -356,6 +425,7 @@ def bench_batch(
     out: Path,
 ) -> None:  # fmt: skip
     """Clips per hour of `quasisim batch` with 1 and 2 Ray workers on the same clips (same command)."""
+    _outputs_free(out)
     _setup_runtime()
     from quasisim.bench.batch import run_batch_bench
 
@@ -383,6 +453,7 @@ def bench_profile(
     demo: Path, stages: str, curriculum: str, budget: str, cold: bool, cprofile: bool, sets: tuple[str, ...], out: Path
 ) -> None:
     """Where one transfer's time goes: per piece, XLA compilation, MuJoCo, the rest (JAX execution, Python)."""
+    _outputs_free(out)
     _setup_runtime()
     import shutil
 
@@ -412,6 +483,7 @@ def bench_predict(
     mus: tuple[float, ...], hand: str, out: Path,
 ) -> None:  # fmt: skip
     """Open-loop prediction error of the quasi-physical simulators against MuJoCo (the fit of stage 3)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.predict import run_predict_bench
 
@@ -435,6 +507,7 @@ def bench_fit(
 ) -> None:
     """Stage 3's measure: held-out prediction error of the simulator fitted to MuJoCo (nominal, + S and
     constants, + residual networks) beside zero motion."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.fit import run_fit_bench
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -11,18 +12,20 @@ from typing import Any, TypeVar
 import yaml
 
 from quasisim.errors import InputError
+from quasisim.files import check_input_file
 
 T = TypeVar("T")
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, None, "an existing YAML file", "no such file")
+    check_input_file(path, "YAML file")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:
-        raise InputError(path, None, "valid YAML", str(e).replace("\n", " ")) from None
+        raise InputError(path, None, "valid YAML", " ".join(str(e).split())) from None
+    except (UnicodeDecodeError, OSError) as e:
+        raise InputError(path, None, "a readable UTF-8 YAML file", " ".join(str(e).split())[:160]) from None
     if not isinstance(data, dict):
         raise InputError(path, None, "a YAML mapping at the top level", type(data).__name__)
     return data
@@ -104,11 +107,13 @@ def _coerce(tp: Any, value: Any, path: str | Path | None, field: str) -> Any:
     if tp is float:
         if isinstance(value, str):  # PyYAML reads 4.0e4 (no sign in the exponent) as a string
             try:
-                return float(value)
+                value = float(value)
             except ValueError:
                 pass
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise InputError(path, field, "a number", repr(value))
+        if not math.isfinite(value):
+            raise InputError(path, field, "a finite number", repr(value))
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):

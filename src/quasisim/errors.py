@@ -24,7 +24,7 @@ class InputError(QuasisimError, ValueError):
         where = self.path or "<input>"
         msg = f"{where}: "
         if field:
-            msg += f"field '{field}': "
+            msg += f"{'option' if field.startswith('--') else 'field'} '{field}': "
         msg += f"expected {expected}"
         if got is not None:
             msg += f", got {got}"

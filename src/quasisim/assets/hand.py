@@ -119,8 +119,28 @@ class HandConfig:
                 raise InputError(self.path, f"keypoints[{i}]", "a 'body' or a 'site'", "neither")
             if kp.weight < 0:
                 raise InputError(self.path, f"keypoints[{i}].weight", "a non-negative weight", str(kp.weight))
-        if self.points.spacing <= 0 or self.points.offset < 0:
-            raise InputError(self.path, "points", "spacing > 0 and offset >= 0", str(self.points))
+        names = [k.name for k in self.keypoints]
+        if len(set(names)) != len(names):
+            dup = next(n for n in names if names.count(n) > 1)
+            raise InputError(self.path, "keypoints", "distinct keypoint names", f"{dup!r} more than once")
+        for i, kp in enumerate(self.keypoints):
+            if max(abs(v) for v in kp.pos) > 0.5:
+                raise InputError(
+                    self.path, f"keypoints[{i}].pos", "an offset within 0.5 m of its body (metres)", str(kp.pos)
+                )
+        if not (0.001 <= self.points.spacing <= 0.05 and 0 <= self.points.offset <= 0.02):
+            raise InputError(
+                self.path, "points", "spacing in [0.001, 0.05] m and offset in [0, 0.02] m", str(self.points)
+            )
+        pd = self.pd
+        for name, g in (("base_pos", pd.base_pos), ("base_rot", pd.base_rot), ("joint", pd.joint)):
+            if not (g.kp > 0 and g.kv >= 0):
+                raise InputError(self.path, f"pd.{name}", "kp > 0 and kv >= 0", f"kp {g.kp:g}, kv {g.kv:g}")
+        if not (pd.joint_damping >= 0 and pd.joint_armature >= 0 and pd.joint_force_limit > 0):
+            raise InputError(
+                self.path, "pd", "joint_damping >= 0, joint_armature >= 0 and joint_force_limit > 0",
+                f"{pd.joint_damping:g}, {pd.joint_armature:g}, {pd.joint_force_limit:g}",
+            )  # fmt: skip
         for i in self.wrist_fit_human:
             if i not in [k.human for k in self.keypoints]:
                 raise InputError(self.path, "wrist_fit_human", "human indices that have a robot keypoint", str(i))

@@ -17,6 +17,7 @@ import logging
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -33,6 +34,7 @@ from quasisim.files import (
 )
 
 DEFAULT_DENSITY = 500.0  # kg/m^3
+SIZE_RANGE = (0.005, 2.0)  # m, largest extent of a hand-held object's mesh (in metres)
 SDF_MAX_NODES = 600_000  # the grid is coarsened beyond this (bake ~10 s for a 30k-vertex mesh on 2 cores)
 COACD_MAX_FACES = 2000  # CoACD input is simplified (igl.qslim) to this many faces
 COACD_SETTINGS: dict[str, Any] = {  # measured: every dev mesh < 20 s, hulls cover the mesh (see tests)
@@ -411,6 +413,15 @@ def load_object(
     path = Path(mesh_path)
     if not path.is_file():
         raise InputError(path, "mesh", "an existing mesh file (.obj, .ply, .stl, ...)", "no such file")
+    st = path.stat()
+    fields = _read_object(path.resolve(), st.st_mtime_ns, st.st_size, float(density), mass)
+    return ObjectAsset(name=name or path.stem, **fields)  # a fresh asset (its own caches) every call
+
+
+@lru_cache(maxsize=16)
+def _read_object(path: Path, mtime_ns: int, size: int, density: float, mass: float | None) -> dict[str, Any]:
+    """The checked mesh and its mass properties, kept for the same file (path, modification time, size) and
+    settings (arrays read-only: every asset of the file shares them)."""
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
     except Exception as e:
@@ -442,6 +453,12 @@ def load_object(
                 "a watertight (closed) triangle mesh",
                 f"{_open_edges(mesh)} open edges after trimesh repair (fill_holes, fix_normals)",
             )
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    if not SIZE_RANGE[0] <= extent <= SIZE_RANGE[1]:
+        lo, hi = SIZE_RANGE
+        raise InputError(
+            path, "mesh", f"an object {lo * 1e3:g} mm to {hi:g} m across (vertices in metres)", f"{extent:.3g} m across"
+        )
     if mesh.volume < 0:
         mesh.invert()
     volume = float(mesh.volume)
@@ -459,13 +476,11 @@ def load_object(
     V = np.ascontiguousarray(mesh.vertices, np.float64)
     F = np.ascontiguousarray(mesh.faces, np.int64)
     digest = hashlib.sha256(V.tobytes() + F.tobytes()).hexdigest()
-    return ObjectAsset(
-        name=name or path.stem,
-        mesh_path=path,
-        vertices=V,
-        faces=F,
-        mass=float(mesh.mass),
-        com=np.asarray(mesh.center_mass, np.float64),
-        inertia=np.asarray(mesh.moment_inertia, np.float64),
-        content_hash=digest,
-    )
+    out = {
+        "mesh_path": path, "vertices": V, "faces": F, "mass": float(mesh.mass),
+        "com": np.asarray(mesh.center_mass, np.float64), "inertia": np.asarray(mesh.moment_inertia, np.float64),
+        "content_hash": digest,
+    }  # fmt: skip
+    for a in (V, F, out["com"], out["inertia"]):
+        a.flags.writeable = False
+    return out

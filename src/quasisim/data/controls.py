@@ -6,6 +6,7 @@ key            shape        meaning
 ``format``     ()           ``"quasisim-controls-v1"``
 ``hand``       ()           built-in hand name or path of the hand YAML
 ``demo``       ()           name of the demonstration
+``demo_hash``  ()           content hash of the demonstration (:func:`quasisim.data.demo.content_hash`)
 ``method``     ()           how the controls were made (``kinematic``, ``transfer``, ...)
 ``fps``        ()           control frame rate (Hz)
 ``base_rot``   (3, 3)       fixed frame of the base hinges
@@ -18,12 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from quasisim.data.demo import FPS_RANGE
 from quasisim.errors import InputError
-from quasisim.files import open_npz, save_npz_atomic
+from quasisim.files import npz_array, npz_member, npz_number, npz_str, open_npz, save_npz_atomic
 
 FORMAT = "quasisim-controls-v1"
 BASE_NAMES = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
@@ -39,6 +40,7 @@ class Controls:
     q_targets: np.ndarray
     joint_names: tuple[str, ...]
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    demo_hash: str = ""
 
     @property
     def n_frames(self) -> int:
@@ -51,6 +53,7 @@ class Controls:
             format=np.array(FORMAT),
             hand=np.array(self.hand),
             demo=np.array(self.demo),
+            demo_hash=np.array(self.demo_hash),
             method=np.array(self.method),
             fps=np.array(self.fps),
             base_rot=np.asarray(self.base_rot, dtype=np.float64),
@@ -68,29 +71,50 @@ def load_controls(path: str | Path) -> Controls:
         for key in ("format", "hand", "fps", "base_rot", "q_targets", "joint_names"):
             if key not in z.files:
                 raise InputError(path, key, "a key present in every controls file", "missing")
-        fmt = str(z["format"])
+        fmt = npz_str(z, "format", path)
         if fmt != FORMAT:
             raise InputError(path, "format", f"'{FORMAT}'", f"'{fmt}'")
-        q = np.asarray(z["q_targets"], dtype=np.float64)
-        names = tuple(str(s) for s in z["joint_names"])
-        base_rot = np.asarray(z["base_rot"], dtype=np.float64)
-        extras: dict[str, Any] = {k[6:]: z[k] for k in z.files if k.startswith("extra_")}
+        names = _joint_names(npz_member(z, "joint_names", path), path)
         c = Controls(
-            hand=str(z["hand"]),
-            demo=str(z["demo"]) if "demo" in z.files else "",
-            method=str(z["method"]) if "method" in z.files else "",
-            fps=float(z["fps"]),
-            base_rot=base_rot,
-            q_targets=q,
+            hand=npz_str(z, "hand", path),
+            demo=npz_str(z, "demo", path) if "demo" in z.files else "",
+            method=npz_str(z, "method", path) if "method" in z.files else "",
+            fps=npz_number(z, "fps", path, *FPS_RANGE),
+            base_rot=npz_array(z, "base_rot", path, (3, 3)),
+            q_targets=npz_array(z, "q_targets", path, ("T", 6 + len(names))),
             joint_names=names,
-            extras=extras,
+            extras={k[6:]: npz_member(z, k, path) for k in z.files if k.startswith("extra_")},
+            demo_hash=npz_str(z, "demo_hash", path) if "demo_hash" in z.files else "",
         )
-    if q.ndim != 2 or q.shape[1] != 6 + len(names) or q.shape[0] < 2:
-        raise InputError(path, "q_targets", f"shape (T >= 2, {6 + len(names)})", str(q.shape))
-    if not np.isfinite(q).all():
-        raise InputError(path, "q_targets", "finite values", "NaN or inf")
-    if base_rot.shape != (3, 3) or not np.allclose(base_rot @ base_rot.T, np.eye(3), atol=1e-5):
-        raise InputError(path, "base_rot", "a 3x3 rotation matrix", str(base_rot.round(4).tolist()))
-    if not c.fps > 0:
-        raise InputError(path, "fps", "a positive frame rate", str(c.fps))
+        for k in z.files:  # every member must be readable
+            npz_member(z, k, path)
+    if c.q_targets.shape[0] < 2:
+        raise InputError(path, "q_targets", f"shape (T >= 2, {6 + len(names)})", str(c.q_targets.shape))
+    R = c.base_rot
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0):
+        raise InputError(path, "base_rot", "a 3x3 rotation matrix", str(R.round(4).tolist()))
     return c
+
+
+def _joint_names(a: np.ndarray, path: Path) -> tuple[str, ...]:
+    if a.ndim != 1 or a.dtype.kind not in "US":
+        raise InputError(path, "joint_names", "a 1-d array of joint names", f"dtype {a.dtype} shape {a.shape}")
+    names = tuple(str(s) for s in a)
+    if len(set(names)) != len(names) or not all(names):
+        raise InputError(path, "joint_names", "distinct, non-empty joint names", ", ".join(names)[:120])
+    return names
+
+
+def check_demo_hash(controls: Controls, demo_hash: str, path: str | Path | None, force: bool) -> str | None:
+    """Refuse controls made for another demo (a different content hash) unless ``force``; returns a warning
+    when the controls carry no hash (written before hashes were recorded) or when forced past a mismatch."""
+    if not controls.demo_hash:
+        return f"{path}: field 'demo_hash' missing (controls written by an older version); the demo is not checked"
+    if controls.demo_hash == demo_hash:
+        return None
+    if not force:
+        raise InputError(
+            path, "demo_hash", f"{demo_hash} (the content hash of this demo; --force replays them anyway)",
+            f"{controls.demo_hash} (controls made for demo {controls.demo!r})",
+        )  # fmt: skip
+    return f"{path}: made for another demo ({controls.demo!r}, hash {controls.demo_hash}); replayed anyway (--force)"

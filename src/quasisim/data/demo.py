@@ -19,14 +19,16 @@ key                shape       unit  meaning
 
 from __future__ import annotations
 
+import hashlib
 import itertools
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from quasisim.errors import InputError
-from quasisim.files import open_npz, save_npz_atomic
+from quasisim.files import npz_array, npz_member, npz_number, npz_str, open_npz, save_npz_atomic
 
 FORMAT = "quasisim-demo-v1"
 N_KEYPOINTS = 21
@@ -57,6 +59,16 @@ REQUIRED_KEYS = (
     "support_height",
 )
 QUAT_TOL = 1e-3
+# Plausible ranges (SI units): a demo outside them is refused with a message naming the field.
+FPS_RANGE = (1.0, 1000.0)  # Hz
+COORD_MAX = 10.0  # m, |coordinate| of any keypoint or object position (the scene is a table top)
+SUPPORT_RANGE = (0.01, 5.0)  # m, table-top height above the floor
+BONE_RANGE = (0.005, 0.15)  # m, median length over the clip of each bone (GRAB hands: 15-95 mm)
+PALM_RATIO = 1.3  # median wrist-to-finger-base length over the longest median finger bone (reordered keypoints: < 1.1)
+MIN_HAND_EXTENT = 0.02  # m, wrist to the farthest keypoint in every frame (less: a collapsed skeleton)
+HAND_OBJECT_MAX = 1.0  # m, the hand (keypoint mean) must come this close to the object origin at some frame
+REST_GAP = (-0.01, 0.2)  # m, the object's lowest point at frame 0 relative to the table top (GRAB, ARCTIC: 0)
+LONG_CLIP = 1500  # frames; longer clips get a warning with an estimate of time and memory
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,35 +126,8 @@ class Demo:
         return d
 
 
-def _str_field(z: np.lib.npyio.NpzFile, key: str, path: Path) -> str:
-    a = z[key]
-    if a.shape != () or a.dtype.kind not in "US":
-        raise InputError(path, key, "a 0-d string array", f"dtype {a.dtype} shape {a.shape}")
-    return str(a)
-
-
-def _scalar_field(z: np.lib.npyio.NpzFile, key: str, path: Path) -> float:
-    a = z[key]
-    if a.shape != () or a.dtype.kind not in "fiu":
-        raise InputError(path, key, "a 0-d number", f"dtype {a.dtype} shape {a.shape}")
-    v = float(a)
-    if not np.isfinite(v):
-        raise InputError(path, key, "a finite number", str(v))
-    return v
-
-
-def _array_field(z: np.lib.npyio.NpzFile, key: str, path: Path, tail: tuple[int, ...]) -> np.ndarray:
-    a = z[key]
-    want = "(T, " + ", ".join(str(t) for t in tail) + ")"
-    if a.dtype.kind not in "fiu":
-        raise InputError(path, key, f"a numeric array of shape {want}", f"dtype {a.dtype}")
-    if a.ndim != 1 + len(tail) or tuple(a.shape[1:]) != tail:
-        raise InputError(path, key, f"shape {want}", f"shape {tuple(a.shape)}")
-    return np.asarray(a, dtype=np.float64)
-
-
 def validate_arrays(demo: Demo, path: str | Path | None) -> None:
-    """Check shapes, finiteness, frame counts and quaternion norms; raise :class:`InputError`."""
+    """Check shapes, finiteness, frame counts, quaternion norms and plausible scales; raise :class:`InputError`."""
     T = demo.right_joints.shape[0]
     if demo.right_joints.shape != (T, N_KEYPOINTS, 3):
         raise InputError(path, "right_joints", f"shape (T, {N_KEYPOINTS}, 3)", f"{demo.right_joints.shape}")
@@ -167,14 +152,103 @@ def validate_arrays(demo: Demo, path: str | Path | None) -> None:
         raise InputError(
             path, "object_quat", f"unit quaternions (|q| = 1 +- {QUAT_TOL:g})", f"|q| = {norms[t]:.4g} at frame {t}"
         )
-    if not (demo.fps > 0):
-        raise InputError(path, "fps", "a positive frame rate", str(demo.fps))
-    if not np.isfinite(demo.support_height):
-        raise InputError(path, "support_height", "a finite number", str(demo.support_height))
+    if not FPS_RANGE[0] <= demo.fps <= FPS_RANGE[1]:
+        raise InputError(path, "fps", f"a frame rate in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}] Hz", f"{demo.fps:g}")
+    if not SUPPORT_RANGE[0] <= demo.support_height <= SUPPORT_RANGE[1]:
+        lo, hi = SUPPORT_RANGE
+        raise InputError(
+            path, "support_height", f"a table-top height in [{lo:g}, {hi:g}] m", f"{demo.support_height:g}"
+        )
+    validate_scales(demo, path)
 
 
-def load_demo(path: str | Path) -> Demo:
-    """Read and validate a ``quasisim-demo-v1`` file.
+def validate_scales(demo: Demo, path: str | Path | None) -> None:
+    """Refuse coordinates far from a table top, a hand skeleton that is not a human hand's (collapsed
+    keypoints, bones far from human lengths, e.g. centimetres stored as metres) and a hand that never comes
+    near the object."""
+    for key, arr in (("right_joints", demo.right_joints), ("object_pos", demo.object_pos)):
+        big = np.abs(arr).reshape(len(arr), -1).max(axis=1)
+        if (big > COORD_MAX).any():
+            t = int(np.argmax(big > COORD_MAX))
+            raise InputError(
+                path, key, f"coordinates within +-{COORD_MAX:g} m (metres)", f"{big[t]:.3g} m at frame {t}"
+            )
+    j = demo.right_joints
+    bones = np.stack([np.linalg.norm(j[:, b] - j[:, a], axis=-1) for a, b in BONES], axis=1)
+    med = np.median(bones, axis=0)
+    lo, hi = BONE_RANGE
+    for k in np.flatnonzero((med < lo) | (med > hi)):
+        a, b = BONES[k]
+        raise InputError(
+            path, "right_joints", f"a human hand skeleton (median bone lengths {lo * 1e3:g}-{hi * 1e3:g} mm)",
+            f"bone {KEYPOINT_NAMES[a]}-{KEYPOINT_NAMES[b]} {med[k] * 1e3:.3g} mm",
+        )  # fmt: skip
+    palm = np.mean([med[BONES.index((0, k))] for k in (5, 9, 13, 17)])
+    finger = max(med[k] for k, (a, _) in enumerate(BONES) if a != 0)
+    if palm < PALM_RATIO * finger:
+        raise InputError(
+            path, "right_joints", f"keypoints in MediaPipe order (wrist to finger bases > {PALM_RATIO:g} x the longest "
+            "finger bone; GRAB and ARCTIC hands: 2.3-2.5 x)", f"{palm / finger:.2f} x (another keypoint order?)",
+        )  # fmt: skip
+    extent = np.linalg.norm(j - j[:, :1], axis=-1).max(axis=1)
+    if (extent < MIN_HAND_EXTENT).any():
+        t = int(np.argmax(extent < MIN_HAND_EXTENT))
+        raise InputError(
+            path, "right_joints", f"keypoints spread over at least {MIN_HAND_EXTENT * 1e3:g} mm in every frame",
+            f"a collapsed skeleton at frame {t} ({extent[t] * 1e3:.3g} mm)",
+        )  # fmt: skip
+    # a right hand: the thumb's MCP lies on the palm side of the plane wrist, index MCP, little MCP (every
+    # frame of every GRAB and ARCTIC clip); a left hand (or a mirrored recording) has it on the other side
+    palm = np.cross(j[:, 5] - j[:, 0], j[:, 17] - j[:, 0])
+    right = np.einsum("ti,ti->t", palm, j[:, 2] - j[:, 0]) > 0
+    if right.mean() < 0.5:
+        raise InputError(
+            path, "right_joints", "a right hand (thumb on the palm side)",
+            f"a left or mirrored hand in {100 * (1 - right.mean()):.0f}% of the frames",
+        )  # fmt: skip
+    gap = np.linalg.norm(j.mean(axis=1) - demo.object_pos, axis=-1)
+    if gap.min() > HAND_OBJECT_MAX:
+        raise InputError(
+            path, "object_pos", f"the object within {HAND_OBJECT_MAX:g} m of the hand at some frame",
+            f"{gap.min():.3g} m at the closest frame",
+        )  # fmt: skip
+
+
+def warn_long_clip(demo: Demo, s_per_frame: float, mb_per_frame: float, what: str) -> None:
+    """One line on stderr for a clip longer than :data:`LONG_CLIP` frames: an estimate of ``what``'s wall
+    time and memory (both linear in the frames)."""
+    T = demo.n_frames
+    if T > LONG_CLIP:
+        print(
+            f"warning: {demo.name}: {T} frames (more than {LONG_CLIP}); {what} will take about "
+            f"{T * s_per_frame / 60:.0f} min and {T * mb_per_frame / 1024:.1f} GB of memory",
+            file=sys.stderr,
+        )
+
+
+def content_hash(demo: Demo) -> str:
+    """16 hex digits of sha256 over what defines the demo: keypoints, object poses, fps, table height and the
+    mesh file's bytes (not its file name or compression, so a rewritten copy hashes the same)."""
+    h = hashlib.sha256()
+    for a in (demo.right_joints, demo.object_pos, demo.object_quat, np.array([demo.fps, demo.support_height])):
+        h.update(np.ascontiguousarray(a, np.float64).tobytes())
+    h.update(demo.object_mesh_path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _mesh_path(path: Path, mesh_name: str) -> Path:
+    """The mesh file named by ``object_mesh``, confined to the demo's ``meshes/`` folder."""
+    rel = Path(mesh_name)
+    if not mesh_name.strip() or rel.is_absolute() or ".." in rel.parts:
+        raise InputError(path, "object_mesh", "a file name inside the demo's meshes/ folder", repr(mesh_name))
+    mesh_path = (path.parent / "meshes").resolve() / rel
+    if not mesh_path.is_file():
+        raise InputError(path, "object_mesh", f"a mesh file at {mesh_path}", "no such file")
+    return mesh_path
+
+
+def load_demo(path: str | Path, check_mesh: bool = True) -> Demo:
+    """Read and validate a ``quasisim-demo-v1`` file (and its object mesh unless ``check_mesh`` is false).
 
     Raises:
         InputError: on any problem, naming the file, the field and what was expected.
@@ -184,33 +258,25 @@ def load_demo(path: str | Path) -> Demo:
         missing = [k for k in REQUIRED_KEYS if k not in z.files]
         if "format" in missing:
             raise InputError(path, "format", f"the key 'format' = '{FORMAT}'", "no such key")
-        try:
-            fmt = _str_field(z, "format", path)
-        except ValueError as e:  # object arrays need pickle
-            raise InputError(path, "format", "a 0-d string array", f"unreadable ({e})") from None
+        fmt = npz_str(z, "format", path)
         if fmt != FORMAT:
             raise InputError(path, "format", f"'{FORMAT}'", f"'{fmt}'")
         if missing:
             raise InputError(
                 path, missing[0], "a key present in every demo file", f"missing (keys: {', '.join(z.files)})"
             )
-        try:
-            name = _str_field(z, "name", path)
-            object_name = _str_field(z, "object_name", path)
-            mesh_name = _str_field(z, "object_mesh", path)
-            source = _str_field(z, "source", path) if "source" in z.files else ""
-            fps = _scalar_field(z, "fps", path)
-            support = _scalar_field(z, "support_height", path)
-            joints = _array_field(z, "right_joints", path, (N_KEYPOINTS, 3))
-            opos = _array_field(z, "object_pos", path, (3,))
-            oquat = _array_field(z, "object_quat", path, (4,))
-        except ValueError as e:
-            if isinstance(e, InputError):
-                raise
-            raise InputError(path, None, "arrays without pickled objects", str(e)) from None
-    mesh_path = (path.parent / "meshes" / mesh_name).resolve()
-    if not mesh_path.is_file():
-        raise InputError(path, "object_mesh", f"a mesh file at {mesh_path}", "no such file")
+        name = npz_str(z, "name", path)
+        object_name = npz_str(z, "object_name", path)
+        mesh_name = npz_str(z, "object_mesh", path)
+        source = npz_str(z, "source", path) if "source" in z.files else ""
+        fps = npz_number(z, "fps", path)
+        support = npz_number(z, "support_height", path)
+        joints = npz_array(z, "right_joints", path, ("T", N_KEYPOINTS, 3))
+        opos = npz_array(z, "object_pos", path, ("T", 3))
+        oquat = npz_array(z, "object_quat", path, ("T", 4))
+        for k in z.files:  # every member must be readable (a damaged or pickled extra is refused too)
+            npz_member(z, k, path)
+    mesh_path = _mesh_path(path, mesh_name)
     demo = Demo(
         name=name,
         fps=fps,
@@ -224,7 +290,25 @@ def load_demo(path: str | Path) -> Demo:
         path=path.resolve(),
     )
     validate_arrays(demo, path)
+    if check_mesh:
+        from quasisim.assets.object import load_object  # heavy imports (trimesh, JAX): only when a demo is read
+
+        obj = load_object(mesh_path, name=object_name)  # readable, watertight, plausible size; cached for later use
+        _check_resting(demo, obj.vertices, path)
     return demo
+
+
+def _check_resting(demo: Demo, vertices: np.ndarray, path: Path) -> None:
+    """The object starts on the table: its lowest point at frame 0 near ``support_height`` (not inside it)."""
+    from quasisim.rotations import np_quat_to_mat
+
+    low = float((vertices @ np_quat_to_mat(demo.object_quat[0]).T + demo.object_pos[0])[:, 2].min())
+    gap = low - demo.support_height
+    if not REST_GAP[0] <= gap <= REST_GAP[1]:
+        raise InputError(
+            path, "support_height", f"the table top under the object at frame 0 (its lowest point {low:.3f} m, "
+            f"{-REST_GAP[0] * 100:g} cm below to {REST_GAP[1] * 100:g} cm above)", f"{demo.support_height:.3f} m",
+        )  # fmt: skip
 
 
 def save_demo(demo: Demo, path: str | Path) -> Path:

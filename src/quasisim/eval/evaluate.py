@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 import weakref
 from dataclasses import dataclass
@@ -10,20 +11,22 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.assets.hand import HandModel, load_hand
+from quasisim.assets.hand import HandModel, builtin_hands, load_hand
 from quasisim.assets.object import DEFAULT_DENSITY, ObjectAsset, load_object
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo
-from quasisim.errors import InputError
+from quasisim.errors import InputError, QuasisimError
 from quasisim.eval.metrics import PerFrame, evaluate_rollout
 from quasisim.eval.render import render_side_by_side
 from quasisim.eval.report import write_report
-from quasisim.files import save_json_atomic
+from quasisim.files import output_set, save_json_atomic
 from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
 from quasisim.targets import TargetRollout, make_target
 from quasisim.targets.scene import PhysicsOptions, Scene, make_scene
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
+OUTPUTS = ("metrics.json", "rollout.npz", "report.html")
+STABILITY_KEY = "unstable"  # metrics.json: the metrics of eval.metrics plus this flag (see mark_stability)  # what evaluate writes (as one set, see files.output_set)
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,7 +60,21 @@ def robot_surface(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray) -> np
     return surface_points_over_time(hand, base_rot, qpos, pts)
 
 
+def hand_of(controls: Controls, path: str | Path | None) -> HandModel:
+    """The hand that ``controls`` (read from ``path``) were made for; an unknown hand names the controls file."""
+    try:
+        return load_hand(controls.hand)
+    except QuasisimError as e:
+        if isinstance(e, InputError):
+            raise
+        raise InputError(
+            path, "hand", f"a built-in hand ({', '.join(builtin_hands())}) or a hand YAML", repr(controls.hand)
+        ) from None
+
+
 def check_controls(demo: Demo, controls: Controls, hand: HandModel, path: str | Path | None = None) -> None:
+    if abs(controls.fps - demo.fps) > 1e-6 * demo.fps:
+        raise InputError(path, "fps", f"{demo.fps:g} (the frame rate of demo {demo.name})", f"{controls.fps:g}")
     if controls.n_frames != demo.n_frames:
         raise InputError(path, "q_targets", f"{demo.n_frames} frames (as demo {demo.name})", f"{controls.n_frames}")
     if tuple(controls.joint_names) != tuple(hand.joint_names):
@@ -79,7 +96,7 @@ def evaluate_controls(
     progress: bool = False,
 ) -> Evaluation:
     """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
-    ``metrics.json``, ``rollout.npz`` and ``report.html`` there."""
+    ``metrics.json``, ``rollout.npz`` and ``report.html`` there, as one set (with ``manifest.json``)."""
     hand = scene.hand if scene is not None else load_hand(controls.hand)
     check_controls(demo, controls, hand)
     scene = scene or scene_for(demo, hand, controls.base_rot)
@@ -87,10 +104,20 @@ def evaluate_controls(
     rollout = tgt.rollout(controls.q_targets)
     surf = robot_surface(hand, scene.base_rot, rollout.qpos)
     metrics, pf = evaluate_rollout(demo, rollout, surf)
-    ev = Evaluation(metrics, pf, rollout, scene)
+    ev = Evaluation(mark_stability(metrics, rollout.instability, f"{demo.name} in {target}"), pf, rollout, scene)
     if out_dir is not None:
-        write_outputs(ev, demo, controls, target, Path(out_dir), render, title, extra_info, extra_images, progress)
+        with output_set(Path(out_dir)) as stage:
+            write_outputs(ev, demo, controls, target, stage, render, title, extra_info, extra_images, progress)
     return ev
+
+
+def mark_stability(metrics: dict[str, Any], instability: str, what: str) -> dict[str, Any]:
+    """``metrics`` with ``unstable`` (true when the simulation blew up); an unstable rollout is a failure
+    (every success flag false), said in one line on stderr."""
+    if not instability:
+        return {**metrics, STABILITY_KEY: False}
+    print(f"warning: {what}: unstable simulation ({instability}); counted as a failure", file=sys.stderr)
+    return {**metrics, "success": dict.fromkeys(metrics["success"], False), STABILITY_KEY: True}
 
 
 def write_outputs(
@@ -105,11 +132,14 @@ def write_outputs(
     extra_images: dict[str, bytes] | None,
     progress: bool,
 ) -> None:
+    """Write :data:`OUTPUTS` into ``out_dir`` (a staging folder of :func:`~quasisim.files.output_set`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json_atomic(out_dir / "metrics.json", ev.metrics)
     ev.rollout.save(out_dir / "rollout.npz")
     frames = None
     notes = list(ev.scene.notes)
+    if ev.rollout.instability:
+        notes.insert(0, f"UNSTABLE simulation, counted as a failure: {ev.rollout.instability}")
     if render:
         t0 = time.perf_counter()
         try:

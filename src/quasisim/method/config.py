@@ -67,6 +67,7 @@ class TransferConfig:
                     raise InputError(path, f"budgets.{name}.{part}", "non-negative steps and learning rates", str(sb))
         if cfg.mpc.horizon < 1 or cfg.mpc.steps < 0 or cfg.soften_samples < 1:
             raise InputError(path, "mpc", "horizon >= 1, steps >= 0 and soften_samples >= 1", str(cfg.mpc))
+        _check_ranges(cfg, path)
         return cfg
 
     def budget(self, name: str) -> Budget:
@@ -88,3 +89,31 @@ class TransferConfig:
         if "sample" in stages:
             out["sample_target"] = dataclasses.asdict(self.sample_target)
         return out
+
+
+# settings that must be at least 1 (every other number of the config must be >= 0)
+_AT_LEAST_ONE = ("stage3.horizon", "stage3.capacity", "stage3.batch")
+
+
+def _check_ranges(cfg: TransferConfig, path: Path) -> None:
+    """No negative number anywhere in the config (weights, steps, learning rates, noise, ...), the counts of
+    :data:`_AT_LEAST_ONE` at least 1 and stage 3's held-out fraction in (0, 1)."""
+
+    def walk(x: Any, key: str) -> None:
+        if dataclasses.is_dataclass(x):
+            for f in dataclasses.fields(x):
+                walk(getattr(x, f.name), f"{key}.{f.name}" if key else f.name)
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                walk(v, f"{key}.{k}")
+        elif isinstance(x, tuple):
+            for i, v in enumerate(x):
+                walk(v, f"{key}[{i}]")
+        elif isinstance(x, int | float) and not isinstance(x, bool):
+            low = 1 if key in _AT_LEAST_ONE else 0
+            if x < low:
+                raise InputError(path, key, f"a number >= {low}", repr(x))
+
+    walk(cfg, "")
+    if not 0.0 < cfg.stage3.held_out < 1.0:
+        raise InputError(path, "stage3.held_out", "a fraction in (0, 1)", repr(cfg.stage3.held_out))

@@ -24,9 +24,11 @@ import numpy as np
 
 from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
-from quasisim.data.demo import load_demo
-from quasisim.method import stage1, stage2, stage3
-from quasisim.method.checkpoints import Checkpoints, trajectory_arrays, trajectory_from
+from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
+from quasisim.errors import InputError
+from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
+from quasisim.method import outputs, stage1, stage2, stage3
+from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.mpc import run_mpc
@@ -34,7 +36,7 @@ from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_o
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget
 from quasisim.method.sample_target import run_sample_target
-from quasisim.method.spec import TransferSpec
+from quasisim.method.spec import STAGES, TransferSpec
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
@@ -52,18 +54,23 @@ class Plan:
 
 def run_transfer(
     demo_path: str | Path, out: str | Path, spec: TransferSpec | None = None, config: TransferConfig | None = None,
-    resume: bool = False,
+    resume: bool = False, overwrite: bool = False,
 ) -> TransferResult:  # fmt: skip
     """Transfer one demonstration (see the module docstring); writes ``OUT/controls.npz``,
-    ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``."""
+    ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``.
+    An ``out`` holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (start afresh)."""
     spec = (spec or TransferSpec()).checked()
     cfg = config or TransferConfig.from_yaml()
     bud, cur, out = cfg.budget(spec.budget), load_curriculum(spec.curriculum), Path(out)
     demo, hand = load_demo(demo_path), load_hand(spec.hand)
-    ck = Checkpoints(out / "checkpoints", _identity(demo_path, demo.name, spec, cur, cfg), resume)
+    _check_run_dir(out, resume, overwrite)
+    warn_long_clip(demo, *_cost_per_frame(cfg, spec), f"transfer ({spec.budget} budget)")
+    info = _identity(demo_path, demo, spec, cur, cfg)
+    ck = Checkpoints(out / "checkpoints", info, resume, overwrite, lambda name: _piece_scope(info, name))
     progress, record = Progress(spec.progress), RunRecord()
 
-    kin = _timed(ck, "kinematic", lambda: _kinematic(hand, demo, progress))
+    T, J = demo.n_frames, hand.n_joints
+    kin = _timed(ck, "kinematic", lambda: _kinematic(hand, demo, progress), {"q": (T, 6 + J), "base_rot": (3, 3)})
     record.seconds["retarget"] = float(kin["wall_s"])
     prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates)
     plan = Plan(Trajectory.from_q(kin["q"], prob.model.n_points), SysID.init())
@@ -90,6 +97,7 @@ def run_transfer(
     controls = Controls(
         hand=spec.hand, demo=demo.name, method=f"{label}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
         fps=demo.fps, base_rot=prob.base_rot, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
+        demo_hash=content_hash(demo),
     )  # fmt: skip
     settings = {
         "label": label,
@@ -116,6 +124,7 @@ def _stage1(
         lambda: stage1.human_point_set(
             prob.demo, prob.obj, bud.substeps, bud.n_candidates, contact, cfg.weights, bud.human, progress, label
         ),
+        {"points": (prob.demo.n_frames, None, 3), "losses": (None,), "wall_s": ()},
     )
     human_points = np.asarray(hp["points"], np.float32)
     record.curves["1b human point set"] = list(hp.get("losses", []))
@@ -130,7 +139,7 @@ def _stage1(
         )
         return trajectory_arrays(traj, plan.sysid, log, log.wall_s)
 
-    rp = ck.get("stage1_robot", robot)
+    rp = ck.get("stage1_robot", robot, _traj_expect(prob, losses=(None,)))
     traj, sysid = trajectory_from(rp)
     record.curves[f"1d robot point set ({label})"] = list(rp.get("losses", []))
     record.seconds["stage1_human"], record.seconds["stage1_robot"] = float(hp["wall_s"]), float(rp["wall_s"])
@@ -157,6 +166,7 @@ def _stage2(
             lambda p=p, label=label, alt=alternatives, start=plan: stage2.run_simulator(
                 vg, start.traj, start.sysid, p, w2, sb, progress, label, alt
             ),
+            _traj_expect(prob, losses=(None,), n_sysid=(), start_losses="str"),
         )
         plan = Plan(*trajectory_from(d))
         _record_simulator(record, cur, i, d, plan.sysid.describe(prob.obj.mass), progress)
@@ -216,7 +226,7 @@ def _stage3(
         )
         return {**d, "wall_s": np.array(time.perf_counter() - t0)}
 
-    d = ck.get("stage3", run)
+    d = ck.get("stage3", run, {"fit": (8,), "losses": (None,), "held_out_before": (3,), "held_out_after": (3,)})
     record.seconds["stage3"] = float(d["wall_s"])
     record.curves["stage 3 fit (minibatch loss)"] = [float(x) for x in d["losses"]]
     f = stage3.SimFit.from_array(d["fit"])
@@ -239,7 +249,7 @@ def _closed_loop(
         r = run_mpc(prob.demo, prob.scene, prob.model, params, traj.q_targets, opts, cfg.weights, spec.progress)
         return {"q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s)}
 
-    d = ck.get("mpc", mpc)
+    d = ck.get("mpc", mpc, _q_expect(prob))
     record.seconds["mpc"] = float(d["wall_s"])
     record.curves["mpc window loss per frame"] = [float(x) for x in d["window_loss"]]
     progress.write(f"mpc done in {record.seconds['mpc']:.0f} s")
@@ -262,7 +272,7 @@ def _sample_in_target(
             "n_physics_steps": np.array(r.n_physics_steps),
         }  # fmt: skip
 
-    d = ck.get("sample", sample)
+    d = ck.get("sample", sample, _q_expect(prob))
     record.seconds["sample"] = float(d["wall_s"])
     record.curves["sampling window loss per frame"] = [float(x) for x in d["window_loss"]]
     progress.write(f"sampling in {spec.target} done in {record.seconds['sample']:.0f} s")
@@ -275,26 +285,98 @@ def _kinematic(hand: Any, demo: Any, progress: Progress) -> dict[str, Any]:
     return {"q": rt.q, "base_rot": rt.base_rot}
 
 
-def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-    """``ck.get(name, fn)`` recording ``fn``'s wall time as ``wall_s``."""
+def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]], expect: Expect) -> dict[str, Any]:
+    """``ck.get(name, fn, expect)`` recording ``fn``'s wall time as ``wall_s``."""
 
     def run() -> dict[str, Any]:
         t0 = time.perf_counter()
         d = fn()
         return {**d, "wall_s": np.array(time.perf_counter() - t0)}
 
-    return ck.get(name, run)
+    return ck.get(name, run, {**expect, "wall_s": ()})
+
+
+def _traj_expect(prob: Problem, **more: Any) -> Expect:
+    return trajectory_expect(prob.demo.n_frames, prob.hand.n_joints, prob.model.n_points, **more)
+
+
+def _q_expect(prob: Problem) -> Expect:
+    return {"q_targets": (prob.demo.n_frames, 6 + prob.hand.n_joints), "window_loss": (None,), "wall_s": ()}
+
+
+# Seconds per frame of each stage with the fast budget (BENCHMARKS.md: 60-frame clips, default curriculum, 2 CPU
+# cores) and memory per frame (a 10,000-frame clip took about 4 GB): the clip-length warning's estimate.
+STAGE_S_PER_FRAME = {"retarget": 0.05, "1": 2.9, "2": 8.0, "3": 2.0, "mpc": 1.5, "sample": 0.25}
+MB_PER_FRAME = 0.4
+
+
+def _cost_per_frame(cfg: TransferConfig, spec: TransferSpec) -> tuple[float, float]:
+    """(seconds, MB) per frame of ``spec``'s run: the fast budget's figures scaled by substeps and Adam steps."""
+    b = cfg.budget(spec.budget)
+    f = cfg.budgets.get("fast", b)
+    sub = b.substeps / f.substeps
+    steps = {
+        "1": (b.human.control_steps + b.robot_points.control_steps)
+        / max(1, f.human.control_steps + f.robot_points.control_steps),
+        "2": (b.sim.control_steps + b.sim.sysid_steps) / max(1, f.sim.control_steps + f.sim.sysid_steps),
+    }
+    s = STAGE_S_PER_FRAME["retarget"] + sum(
+        STAGE_S_PER_FRAME[st] * (sub * steps[st] if st in steps else 1.0) for st in spec.stages
+    )
+    return s, MB_PER_FRAME * sub
+
+
+def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse an output folder that cannot be written, or one holding the outputs of a run whose checkpoints
+    are gone (they would be replaced without a trace) unless ``resume`` or ``overwrite``."""
+    check_out_dir(out)
+    remove_orphans(out)
+    found = existing_outputs(out, (*outputs.OUTPUTS, MANIFEST))
+    has_checkpoints = any((out / "checkpoints").glob("*.npz")) if (out / "checkpoints").is_dir() else False
+    if found and not has_checkpoints and not (resume or overwrite):
+        raise InputError(
+            out, "--out", "a folder without the outputs of an earlier run (pass --overwrite to replace them)",
+            ", ".join(found),
+        )  # fmt: skip
+
+
+# the run settings that concern single stages (the rest, e.g. demo, hand, curriculum, budget, concern every piece)
+_STAGE_KEYS = {"stages": None, "method": None, "mpc": "mpc", "stage3": "3", "sample_target": "sample"}
+
+
+def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
+    """What determines checkpoint ``name``: the settings every piece shares, the stages that run before its
+    stage and its stage's own settings (a ``+mpc`` run reuses the stage-1/2 checkpoints of its curriculum's)."""
+    stage = {"kinematic": "", "stage1": "1", "stage2": "2", "stage3": "3", "mpc": "mpc", "sample": "sample"}[
+        name.split("_")[0]
+    ]
+    shared = {k: v for k, v in info.items() if k not in _STAGE_KEYS}
+    if not stage:
+        return shared
+    before = [s for s in info["stages"] if STAGES.index(s) < STAGES.index(stage)]
+    own = {k: info[k] for k, st in _STAGE_KEYS.items() if st == stage and k in info}
+    if stage == "mpc":
+        own["method"] = info["method"]  # mpc-soften samples softened simulators
+    return {**shared, "stage": stage, "before": before, **own}
 
 
 def _identity(
-    demo_path: str | Path, demo_name: str, spec: TransferSpec, cur: Curriculum, cfg: TransferConfig
+    demo_path: str | Path, demo: Demo, spec: TransferSpec, cur: Curriculum, cfg: TransferConfig
 ) -> dict[str, Any]:
-    """What made the run (recorded in ``checkpoints/run.json``; a resumed run must match it)."""
-    return {
-        "demo": demo_name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
+    """What made the run (recorded in ``checkpoints/run.json`` and, hashed, in every checkpoint; a resumed run
+    must match it): the demo (file and content), the hand (config and model files), the settings."""
+    cur_settings = {k: v for k, v in dataclasses.asdict(cur).items() if k != "path"}
+    hand, hand_files = load_hand(spec.hand), hashlib.sha256()
+    for f in (Path(hand.config.path), hand.source):
+        hand_files.update(f.read_bytes())
+    info = {
+        "demo": demo.name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
         "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
         "method": spec.method, **cfg.identity(spec.budget, spec.stages),
+        "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
+        "curriculum_settings": cur_settings,
     }  # fmt: skip
+    return json.loads(json.dumps(info))  # as run.json holds it (lists, not tuples)
 
 
 def _json(x: np.ndarray) -> Any:

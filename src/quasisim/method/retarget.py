@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from quasisim.assets.hand import HandModel
 from quasisim.data.controls import Controls
-from quasisim.data.demo import Demo
+from quasisim.data.demo import Demo, content_hash
 from quasisim.rotations import chordal_mean_rotation, euler_xyz_to_mat, kabsch, np_mat_to_euler_xyz
 from quasisim.sim.kinematics import forward_kinematics, keypoints
 
@@ -152,4 +152,5 @@ def kinematic_controls(
         q_targets=res.q,
         joint_names=hand.joint_names,
         extras={"retarget_keypoint_error": res.keypoint_error},
+        demo_hash=content_hash(demo),
     )

@@ -15,6 +15,9 @@ from quasisim.errors import choice_error
 from quasisim.files import save_npz_atomic
 
 TARGETS = ("mujoco", "pybullet")
+# A rollout faster than this is a numerical blow-up, not a manipulation (a dropped object reaches ~4 m/s).
+MAX_OBJECT_SPEED = 10.0  # m/s, object origin between two frames
+MAX_HAND_SPEED = 30.0  # m/s, any robot keypoint between two frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,6 +31,7 @@ class TargetRollout:
         keypoints: (T, K, 3) all robot keypoints of the hand config (m).
         kp_human: (K,) human keypoint index of each robot keypoint.  kp_metric: (K,) used in MPJPE.
         dt: physics step (s); substeps: physics steps per control frame; wall_s: wall time of the rollout.
+        extras: ``sim_warnings`` (name -> count) where the simulator reports numerical trouble (MuJoCo).
     """
 
     target: str
@@ -51,6 +55,25 @@ class TargetRollout:
     def human_keypoint_index(self) -> np.ndarray:
         return self.kp_human[self.kp_metric]
 
+    @property
+    def instability(self) -> str:
+        """Why this rollout is numerically unstable (the simulator's warnings, NaN or inf, an energy blow-up:
+        speeds no hand or held object reaches), or "" when it is not."""
+        warned = {k: int(n) for k, n in self.extras.get("sim_warnings", {}).items() if n}
+        if warned:
+            return f"{self.target} warned: " + ", ".join(f"{k} x{n}" for k, n in warned.items())
+        for name, a in (("hand qpos", self.qpos), ("object pose", self.object_pos), ("keypoints", self.keypoints)):
+            if not np.isfinite(a).all():
+                return f"NaN or inf in the {name} from frame {int(np.argwhere(~np.isfinite(a))[0][0])}"
+        frame_dt = self.dt * self.substeps
+        v_obj = np.linalg.norm(np.diff(self.object_pos, axis=0), axis=-1) / frame_dt
+        v_kp = np.linalg.norm(np.diff(self.keypoints, axis=0), axis=-1).max(axis=-1, initial=0.0) / frame_dt
+        for what, v, vmax in (("object", v_obj, MAX_OBJECT_SPEED), ("hand keypoint", v_kp, MAX_HAND_SPEED)):
+            if len(v) and v.max() > vmax:
+                t = int(np.argmax(v > vmax))
+                return f"energy blow-up: {what} speed {v[t]:.3g} m/s (limit {vmax:g}) at frame {t + 1}"
+        return ""
+
     def save(self, path: str | Path) -> Path:
         """``rollout.npz``: object_pos, object_quat, robot_keypoints, human_keypoint_index (+ full state)."""
         return save_npz_atomic(
@@ -65,6 +88,7 @@ class TargetRollout:
             all_human_keypoint_index=self.kp_human.astype(np.int64),
             dt=np.array(self.dt),
             substeps=np.array(self.substeps),
+            instability=np.array(self.instability),
         )
 
 

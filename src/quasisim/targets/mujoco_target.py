@@ -28,6 +28,8 @@ from quasisim.targets.scene import Scene
 HAND_PREFIX = "hand/"
 # collision bits: hand (type 2, affinity 1) touches object/table (type 1, affinity 3), not itself.
 HAND_CONTYPE, HAND_CONAFFINITY = 2, 1
+# MuJoCo's warnings that mean the simulation went wrong (counted per run in ``data.warning``)
+UNSTABLE_WARNINGS = ("BADQPOS", "BADQVEL", "BADQACC", "BADCTRL", "CONTACTFULL", "CNSTRFULL")
 WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
 
 
@@ -356,4 +358,10 @@ class MujocoSession:
             dt=float(self.target.mm.model.opt.timestep),
             substeps=self.target.substeps,
             wall_s=wall_s,
+            extras={"sim_warnings": self.warnings()},
         )
+
+    def warnings(self) -> dict[str, int]:
+        """How often MuJoCo raised each warning of :data:`UNSTABLE_WARNINGS` in this run."""
+        w = self.data.warning
+        return {k: int(w[int(getattr(mujoco.mjtWarning, f"mjWARN_{k}"))].number) for k in UNSTABLE_WARNINGS}
