@@ -200,7 +200,8 @@ _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
     default=",".join(_SPEC.stages),
     show_default=True,
     help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo with the "
-    "quasi-physical model, sample: sampling MPC in the target).",
+    "quasi-physical model, sample: sampling MPC in the target, select: keep the best trajectory seen, judged in "
+    "the target).",
 )
 @click.option(
     "--method",

@@ -23,8 +23,8 @@ from quasisim.method.curriculum import load_curriculum
 from quasisim.method.spec import TransferSpec
 
 RUN_KINDS = (
-    "CURRICULUM (stages 1,2), CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+mpc+sample (those stages after 1,2), "
-    "mpc-base, mpc-soften, sample-target"
+    "CURRICULUM (stages 1,2), CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+mpc+sample, ...+select (those stages "
+    "after 1,2), mpc-base, mpc-soften, sample-target"
 )
 
 
@@ -33,20 +33,23 @@ def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferS
     if run in ("mpc-base", "mpc-soften", "sample-target"):
         return dataclasses.replace(base, method=run, curriculum="none").checked()
     cur, *extra = run.split("+")
-    if not set(extra) <= {"mpc", "sample"} or len(set(extra)) < len(extra):
+    if not set(extra) <= {"mpc", "sample", "select"} or len(set(extra)) < len(extra):
         raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
     load_curriculum(cur)
     return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, *extra)).checked()
 
 
 def jobs(paths: list[Path], specs: dict[str, TransferSpec]) -> list[Job]:
-    """One batch job per clip: its runs, each ``CURRICULUM+...`` run after (and seeded by the stage-1/2
-    checkpoints of) its curriculum's run when that run is asked for too."""
-    order = sorted(specs, key=lambda r: "+" in r)
-    runs = tuple(
-        Run(r, specs[r], specs[r].curriculum if "+" in r and specs[r].curriculum in specs else None) for r in order
-    )
-    return [Job(p, runs) for p in paths]
+    """One batch job per clip: its runs, each ``CURRICULUM+A+B`` run after (and seeded by the checkpoints of)
+    the longest of ``CURRICULUM+A``, ``CURRICULUM`` asked for too (checkpoints are reused only where they
+    match, piece by piece)."""
+    order = sorted(specs, key=lambda r: r.count("+"))
+    return [Job(p, tuple(Run(r, specs[r], _seed(r, specs)) for r in order)) for p in paths]
+
+
+def _seed(run: str, specs: dict[str, TransferSpec]) -> str | None:
+    parts = run.split("+")
+    return next((p for p in ("+".join(parts[:n]) for n in range(len(parts) - 1, 0, -1)) if p in specs), None)
 
 
 def _rows(r: dict[str, Any], run_dir: Path, demo_path: Path, judge: str | None, target: str) -> list[dict[str, Any]]:

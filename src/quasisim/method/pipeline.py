@@ -36,6 +36,7 @@ from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_o
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget
 from quasisim.method.sample_target import run_sample_target
+from quasisim.method.select import best_in_target
 from quasisim.method.spec import STAGES, TransferSpec
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import TrackingObjective
@@ -91,6 +92,8 @@ def run_transfer(
     if "sample" in spec.stages:
         extras["sample_nominal_q"] = q_out
         q_out = _sample_in_target(prob, cfg, spec, ck, q_out, progress, record)
+    if "select" in spec.stages:
+        q_out = _select_in_target(prob, cfg, spec, q_out, plan, extras, progress, record)
     if {"1", "2", "3", "mpc"} & set(spec.stages):
         extras["sim_qpos"] = sim_qpos(prob, model_params, plan.traj)
     label = {"ours": "transfer"}.get(spec.method, spec.method)
@@ -277,6 +280,26 @@ def _sample_in_target(
     record.curves["sampling window loss per frame"] = [float(x) for x in d["window_loss"]]
     progress.write(f"sampling in {spec.target} done in {record.seconds['sample']:.0f} s")
     return np.asarray(d["q_targets"], np.float64)
+
+
+def _select_in_target(
+    prob: Problem, cfg: TransferConfig, spec: TransferSpec, q_out: np.ndarray, plan: Plan, extras: dict[str, Any],
+    progress: Progress, record: RunRecord,
+) -> np.ndarray:  # fmt: skip
+    """The best trajectory seen, judged in the target (:mod:`quasisim.method.select`): the last stage's,
+    the curriculum's plan, the MPC's nominal and the kinematic retarget."""
+    t0 = time.perf_counter()
+    seen = {"last stage": q_out, "sampling nominal": extras.get("sample_nominal_q"), "plan": extras.get("plan_q"),
+            "curriculum": np.asarray(plan.traj.q_targets), "kinematic": extras["kinematic_q"]}  # fmt: skip
+    candidates = {k: np.asarray(v, np.float64) for k, v in seen.items() if v is not None}
+    best, costs = best_in_target(prob.demo, prob.scene, spec.target, candidates, cfg.weights)
+    extras["selected"], extras["selection_costs"] = np.array(best), np.array(json.dumps(costs))
+    record.seconds["select"] = time.perf_counter() - t0
+    record.notes.append(
+        f"kept '{best}' (objective in {spec.target}: " + ", ".join(f"{k} {v:.4f}" for k, v in costs.items()) + ")"
+    )
+    progress.write(record.notes[-1])
+    return candidates[best]
 
 
 def _kinematic(hand: Any, demo: Any, progress: Progress) -> dict[str, Any]:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.targets import TARGETS
 
-STAGES = ("1", "2", "3", "mpc", "sample")
+STAGES = ("1", "2", "3", "mpc", "sample", "select")
 METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
 
 
