@@ -26,7 +26,7 @@ W = TransferConfig.from_yaml().weights  # the shipped objective weights
 
 OPTS = SamplingOptions(
     samples=8, horizon=4, knots=3, noise_base_pos=0.004, noise_base_rot=0.04, noise_joints=0.08,
-    noise_scales=(0.5, 1.0, 2.0), mode="predictive", temperature=0.003, seed=0, threads=2,
+    noise_scales=(0.5, 1.0, 2.0), mode="predictive", temperature=0.003, seed=0, threads=2, kinematic_alternative=False,
 )  # fmt: skip
 ZERO = dataclasses.replace(OPTS, noise_base_pos=0.0, noise_base_rot=0.0, noise_joints=0.0)
 
@@ -233,6 +233,23 @@ def test_deterministic_for_a_seed(real) -> None:
     np.testing.assert_array_equal(a.window_loss, b.window_loss)
     np.testing.assert_array_equal(a.rollout.object_pos, b.rollout.object_pos)
     assert not np.array_equal(a.q_targets, c.q_targets)
+
+
+def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:
+    """A plan 12 cm above the cube never grasps it; with the kinematic retarget as an alternative, zero-noise
+    sampling switches to it at the first frame and then follows it exactly (its windows cost less)."""
+    demo, plan, scene = synth
+    high = plan.copy()
+    high[1:, 2] += 0.12
+    alone = run_sample_target(demo, scene, high, ZERO, W, progress=False)
+    both = run_sample_target(demo, scene, high, ZERO, W, progress=False, alternatives=(plan,))
+    np.testing.assert_array_equal(alone.q_targets, high)  # zero noise, no alternative: a replay of the plan
+    np.testing.assert_array_equal(both.q_targets, plan)
+    assert both.window_loss.sum() < alone.window_loss.sum()
+    same = run_sample_target(demo, scene, plan, OPTS, W, progress=False, alternatives=())
+    np.testing.assert_array_equal(
+        same.q_targets, run_sample_target(demo, scene, plan, OPTS, W, progress=False).q_targets
+    )
 
 
 def test_mppi_applies_the_weighted_mean(synth) -> None:

@@ -91,7 +91,7 @@ def run_transfer(
         q_out = _closed_loop(prob, cfg, spec, ck, plan.traj, model_params, progress, record)
     if "sample" in spec.stages:
         extras["sample_nominal_q"] = q_out
-        q_out = _sample_in_target(prob, cfg, spec, ck, q_out, progress, record)
+        q_out = _sample_in_target(prob, cfg, spec, ck, q_out, extras["kinematic_q"], progress, record)
     if "select" in spec.stages:
         q_out = _select_in_target(prob, cfg, spec, q_out, plan, extras, progress, record)
     if {"1", "2", "3", "mpc"} & set(spec.stages):
@@ -260,16 +260,21 @@ def _closed_loop(
 
 
 def _sample_in_target(
-    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, nominal: np.ndarray, progress: Progress,
-    record: RunRecord,
+    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, nominal: np.ndarray,
+    alternative: np.ndarray, progress: Progress, record: RunRecord,
 ) -> np.ndarray:  # fmt: skip
     """Sampling MPC in the target itself around the ``nominal`` PD targets (the result of the stages before
-    it; the kinematic retarget for the ``sample-target`` baseline)."""
+    it; the kinematic retarget for the ``sample-target`` baseline) and, with ``kinematic_alternative``,
+    around the kinematic retarget ``alternative`` too."""
+
+    planned = bool({"1", "2", "mpc"} & set(spec.stages))  # else the nominal is the kinematic retarget itself
+    kin = alternative if cfg.sample_target.kinematic_alternative and planned else None
 
     def sample() -> dict[str, Any]:
         r = run_sample_target(
-            prob.demo, prob.scene, nominal, cfg.sample_target, cfg.weights, spec.target, spec.progress
-        )
+            prob.demo, prob.scene, nominal, cfg.sample_target, cfg.weights, spec.target, spec.progress,
+            () if kin is None else (kin,),
+        )  # fmt: skip
         return {
             "q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s),
             "n_physics_steps": np.array(r.n_physics_steps),

@@ -20,6 +20,9 @@ At every control frame ``t`` of a clip with ``T`` frames:
    ``obj_rot (1 - |q . q_ref|)`` and ``hand`` x mean metric-keypoint distance (m), plus ``smooth`` x the
    mean squared second differences of the window's base and joint targets (the window includes frame
    ``t``). Frames past the clip's end reuse the last reference frame and are masked out of the means;
+   With ``alternatives`` (other nominal plans, e.g. the kinematic retarget beside the curriculum's plan),
+   ``samples`` more windows are drawn around each alternative's window (its frame 0 replaced by the
+   targets the step starts from), so a step can switch to another plan;
 5. ``predictive``: keep the cheapest window as the plan; ``mppi``: the plan becomes the
    ``softmax(-cost / temperature)``-weighted mean of the windows. Apply the plan's first frame
    (``t -> t+1``) in the target, record the frame, shift the window by one and repeat.
@@ -38,6 +41,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       noise_base_rot: 0.04     # rad
       noise_joints: 0.08       # rad (m for slide joints)
       noise_scales: [0.5, 1.0, 2.0]  # per-candidate multipliers of the noise std, cycled
+      kinematic_alternative: true  # stage sample after other stages: also sample around the kinematic retarget
       mode: predictive         # predictive | mppi
       temperature: 0.003       # mppi only: softmax temperature, in cost units
       seed: 0
@@ -74,6 +78,8 @@ class SamplingOptions:
             noise std per dof group.  noise_scales: per-candidate std multipliers, cycled.
         mode: ``"predictive"`` (take the best window) or ``"mppi"`` (softmax-weighted mean).
         temperature: MPPI softmax temperature (cost units).  seed: noise seed.  threads: rollout threads.
+        kinematic_alternative: in stage ``sample`` after other stages, also sample ``samples`` windows around
+            the kinematic retarget at every frame (no effect when the plan is the kinematic retarget).
     """
 
     samples: int
@@ -87,6 +93,7 @@ class SamplingOptions:
     temperature: float
     seed: int
     threads: int
+    kinematic_alternative: bool
 
     def __post_init__(self) -> None:
         self.validate()
@@ -106,6 +113,10 @@ class SamplingOptions:
         sc = self.noise_scales
         if not isinstance(sc, tuple) or not sc or not all(_is_number(s) and s >= 0 for s in sc):
             raise QuasisimError(f"sampling option 'noise_scales' must be a non-empty tuple of numbers >= 0, got {sc!r}")
+        if not isinstance(self.kinematic_alternative, bool):
+            raise QuasisimError(
+                f"sampling option 'kinematic_alternative' must be true or false, got {self.kinematic_alternative!r}"
+            )
         if self.mode not in MODES:
             raise choice_error("sampling mode", self.mode, MODES)
         if not (_is_number(self.temperature) and self.temperature > 0):
@@ -437,21 +448,25 @@ def run_sample_target(
     weights: Weights,
     target: str = "mujoco",
     progress: bool = True,
+    alternatives: tuple[np.ndarray, ...] = (),
 ) -> SampleResult:
     """Predictive-sampling MPC of ``demo`` in ``target`` from the nominal PD-target ``plan`` (T, 6 + J),
-    e.g. the kinematic retarget; ``weights`` (:class:`~quasisim.optim.objective.Weights`) gives ``obj_pos``,
-    ``obj_rot``, ``hand`` and ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring."""
+    e.g. the kinematic retarget, with windows also sampled around each of ``alternatives`` (T, 6 + J);
+    ``weights`` (:class:`~quasisim.optim.objective.Weights`) gives ``obj_pos``, ``obj_rot``, ``hand`` and
+    ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring."""
     plan = _check_plan(demo, scene, plan)
+    alts = tuple(padded(_check_plan(demo, scene, a), opts.horizon) for a in alternatives)
     runner = make_runner(target, scene, opts)
     try:
-        return _control_loop(demo, scene, plan, opts, weights, runner, progress)
+        return _control_loop(demo, scene, plan, opts, weights, runner, progress, alts)
     finally:
         runner.close()
 
 
 def _control_loop(
-    demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, runner: Runner, progress: bool
-) -> SampleResult:
+    demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, runner: Runner, progress: bool,
+    alts: tuple[np.ndarray, ...],
+) -> SampleResult:  # fmt: skip
     T, H, fps, hand = len(plan), opts.horizon, float(demo.fps), scene.hand
     ref_pos, ref_quat, ref_kp = window_references(demo, hand.kp_human, np.flatnonzero(hand.kp_metric), H)
     lo = np.where(hand.joint_limited, hand.joint_range[:, 0], -np.inf)
@@ -464,6 +479,9 @@ def _control_loop(
     t0 = time.perf_counter()
     for t in tqdm(range(T - 1), desc="sample-target", unit="frame", disable=not progress, leave=False):
         wins = sample_windows(rng, work[t : t + H + 1], opts, lo, hi)
+        for alt in alts:  # windows around another plan, from the targets this step starts from
+            nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
+            wins = np.concatenate([wins, sample_windows(rng, nominal, opts, lo, hi)])
         pred = runner.predict(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
