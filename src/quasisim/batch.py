@@ -18,6 +18,8 @@ aside and renamed) with ``clip.json`` (the clip's metrics and settings) in it, a
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import json
 import os
 import resource
@@ -83,10 +85,25 @@ class Settings:
 
 def identity(run: Run, s: Settings) -> dict[str, Any]:
     """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
-    match it), as JSON would give it back."""
+    match it), as JSON would give it back: the run, its spec and the content of the transfer config."""
     spec = {k: v for k, v in dataclasses.asdict(run.spec).items() if k != "progress"}
-    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config": s.config_path, "overrides": s.overrides}
+    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config_sha256": config_hash(s)}
     return json.loads(json.dumps(d))
+
+
+@functools.cache
+def _config_hash(path: str | None, overrides: str) -> str:
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+
+    cfg = TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides))
+    content = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "path"}
+    return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def config_hash(s: Settings) -> str:
+    """Hash of the transfer config's values (the YAML with the overrides applied; rollout threads aside,
+    they do not change results)."""
+    return _config_hash(s.config_path, json.dumps(s.overrides, sort_keys=True))
 
 
 # ---- the worker's side -------------------------------------------------------------------------------
