@@ -166,6 +166,9 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
             ck.mkdir(parents=True)
             for f in (scratch / "runs" / (r.seed_from or "_") / "checkpoints").glob("*.npz"):
                 shutil.copy2(f, ck / f.name)
+        # every checkpoint carries the identity of what made it: pieces made with other settings (an earlier
+        # batch) are recomputed, the others reused, so the run's own record of its settings is not needed
+        (ck / "run.json").unlink(missing_ok=True)
         t0 = time.perf_counter()
         spec = dataclasses.replace(r.spec, progress=False)
         res = run_transfer(demo, run_dir, spec, cfg, resume=ck.is_dir())

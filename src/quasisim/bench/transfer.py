@@ -81,7 +81,10 @@ def run_transfer_bench(
     if report_only:
         results = [row for j in js for row in finished_runs(out, j, s).values()]
     else:
-        results = run_batch(js, out, s).rows
+        res = run_batch(js, out, s)
+        results = res.rows
+        for clip, err in sorted(res.failures.items()):
+            print(f"failed: {clip}: {err}")
     by_clip = {p.stem: p for p in paths}
     rows: list[dict[str, Any]] = []
     for r in sorted(results, key=lambda r: (r["clip"], runs.index(r["run"]))):
