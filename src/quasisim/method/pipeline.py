@@ -334,7 +334,7 @@ def _q_expect(prob: Problem) -> Expect:
 
 # Seconds per frame of each stage with the fast budget (BENCHMARKS.md: 60-frame clips, default curriculum, 2 CPU
 # cores) and memory per frame (a 10,000-frame clip took about 4 GB): the clip-length warning's estimate.
-STAGE_S_PER_FRAME = {"retarget": 0.05, "1": 2.9, "2": 8.0, "3": 2.0, "mpc": 1.5, "sample": 0.25}
+STAGE_S_PER_FRAME = {"retarget": 0.05, "1": 2.9, "2": 8.0, "3": 2.0, "mpc": 1.5, "sample": 0.25, "select": 0.1}
 MB_PER_FRAME = 0.4
 
 
