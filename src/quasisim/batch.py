@@ -340,7 +340,7 @@ def _flat(r: dict[str, Any], which: str) -> dict[str, Any]:
     """A result row as a table row of the run (``method``) or of its kinematic replay."""
     m = r["metrics"] if which == "method" else r["kinematic_metrics"]
     name = r["run"] if which == "method" else "kinematic"
-    wall = r["wall_s"] if which == "method" else r["seconds"].get("retarget", 0.0)
+    wall = method_seconds(r["seconds"]) if which == "method" else r["seconds"].get("retarget", 0.0)
     return {"clip": r["clip"], "method": name, **m, "wall_s": wall, "lifted": m.get("lifted", False)}
 
 
@@ -379,6 +379,15 @@ def throughput(res: BatchResult) -> dict[str, Any]:
         "clips_per_hour": 3600.0 * res.n_run / res.wall_s if res.n_run and res.wall_s > 0 else None,
         "peak_rss_mb_per_worker": res.peak_rss_mb,
     }  # fmt: skip
+
+
+STAGE_KEYS = ("retarget", "stage1", "stage2", "stage3", "mpc", "sample", "select")
+
+
+def method_seconds(seconds: dict[str, float]) -> float:
+    """A run's compute time from its stages' own timings (``summary.json`` ``seconds``; stages read back from
+    checkpoints keep the time they took), so a resumed or seeded run counts what its result cost."""
+    return float(sum(seconds.get(k, 0.0) for k in STAGE_KEYS))
 
 
 def _order(r: dict[str, Any]) -> tuple[str, bool, str]:
