@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import json
 import sys
 import time
 from collections.abc import Callable
@@ -34,6 +33,13 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
             sys.exit(2)
 
     return wrapper
+
+
+def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
+    """The human summary that ends ``evaluate`` and ``transfer`` (strict first; metrics.json has the numbers)."""
+    from quasisim.eval.summary import summary_lines
+
+    click.echo("\n" + "\n".join(summary_lines(title, runs, report if report.is_file() else None)))
 
 
 def _setup_runtime() -> None:
@@ -105,8 +111,8 @@ def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -
     c = load_controls(controls)
     check_controls(d, c, load_hand(c.hand), controls)
     ev = evaluate_controls(d, c, target, out, render=render, progress=True)
-    click.echo(json.dumps(ev.metrics))
-    click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}, {out / 'report.html'}")
+    click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
+    _summary(f"{d.name}: {c.method} in {target}", {c.method: ev.metrics}, out / "report.html")
 
 
 def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
@@ -173,10 +179,10 @@ def transfer(
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     res = run_transfer(demo, out, spec, cfg, resume)
-    click.echo(json.dumps(res.metrics))
-    k = res.kinematic_metrics
-    click.echo(f"kinematic replay in {target}: R_err {k['R_err_deg']:.1f} deg, T_err {k['T_err_cm']:.2f} cm")
-    click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'report.html'}, {out / 'summary.json'}")
+    click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'summary.json'}")
+    label = method if method != "ours" else f"ours (stages {stages})"
+    runs = {label: res.metrics, "kinematic replay": res.kinematic_metrics}
+    _summary(f"{demo.stem}: {label} in {target}, beside the kinematic replay", runs, out / "report.html")
 
 
 @main.group()

@@ -13,7 +13,8 @@ import imageio.v3 as iio
 import numpy as np
 from matplotlib.figure import Figure
 
-from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, PerFrame
+from quasisim.eval.metrics import MOVE_FRACTION, PAPER_KEYS, STRICT_CM, STRICT_DEG, PerFrame
+from quasisim.eval.summary import lifted_text, yes_no
 from quasisim.files import save_text_atomic
 
 
@@ -88,14 +89,21 @@ def loss_plot(curves: dict[str, Sequence[float]], title: str = "optimisation los
 
 
 def _metrics_table(metrics: dict[str, Any]) -> str:
+    s, mo = metrics["success"], metrics["object_motion"]
     rows = [
-        ("object rotation error R_err", f"{metrics['R_err_deg']:.2f} deg"),
-        ("object translation error T_err", f"{metrics['T_err_cm']:.2f} cm"),
-        ("hand keypoint error MPJPE", f"{metrics['MPJPE_mm']:.1f} mm"),
-        ("hand Chamfer distance CD", f"{metrics['CD_mm']:.1f} mm"),
-    ]
-    rows += [(f"success {k}", "yes" if v else "no") for k, v in metrics["success"].items()]
-    body = "".join(f"<tr><td>{html.escape(a)}</td><td><b>{html.escape(b)}</b></td></tr>" for a, b in rows)
+        ("success strict", yes_no(s["strict"]), f"the object within {STRICT_CM:g} cm and {STRICT_DEG:g} deg of the demo at every frame"),
+        *[(f"success {k} (paper's threshold)", yes_no(s[k]), "mean R_err <= {0} deg, T_err <= {0} cm, MPJPE <= {0} cm".format(k.split("deg")[0])) for k in PAPER_KEYS],
+        ("object lifted as in the demo", lifted_text(mo), f"the rollout's object rose at least {MOVE_FRACTION:.0%} as high as the demo's"),
+        ("object moved as in the demo", yes_no(mo["as_demo"]), f"lifted, and at the demo's farthest frame displaced like it (off by {mo['displacement_error_cm']:.1f} of {mo['demo_displacement_cm']:.1f} cm); every success above requires it"),
+        ("object rotation error R_err", f"{metrics['R_err_deg']:.2f} deg", "mean over frames"),
+        ("object translation error T_err", f"{metrics['T_err_cm']:.2f} cm", "mean over frames"),
+        ("hand keypoint error MPJPE", f"{metrics['MPJPE_mm']:.1f} mm", "mean over frames and metric keypoints"),
+        ("hand Chamfer distance CD", f"{metrics['CD_mm']:.1f} mm", "mean over frames, hand surfaces"),
+    ]  # fmt: skip
+    body = "".join(
+        f"<tr><td>{html.escape(a)}</td><td><b>{html.escape(b)}</b></td><td>{html.escape(c)}</td></tr>"
+        for a, b, c in rows
+    )
     return f"<table>{body}</table>"
 
 
