@@ -39,3 +39,27 @@ def scene_with(hand, obj=None, base_rot=None, object_pos=(0.0, 0.0, 0.825), tabl
         object_quat0=np.array([1.0, 0.0, 0.0, 0.0]),
         fps=fps,
     )
+
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+def chromium_check(page) -> tuple[float, list[str], list[str]] | None:
+    """Load ``page`` in headless Chromium: (video duration written into the DOM by the page's script,
+    the page's own error list, console messages); None when Chromium is not installed."""
+    import os
+    import re
+    import subprocess
+
+    if not os.access(CHROMIUM, os.X_OK):
+        return None
+    cmd = [
+        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--mute-audio", "--enable-logging=stderr",
+        "--v=0", "--virtual-time-budget=5000", "--dump-dom", page.resolve().as_uri(),
+    ]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = re.search(r'data-video-duration="([^"]+)"', r.stdout)
+    errors = re.findall(r"<li>(.*?)</li>", re.search(r"<ul id=\"qs-errors\"[^>]*>(.*?)</ul>", r.stdout, re.S)[1])
+    console = [line for line in r.stderr.splitlines() if ":CONSOLE" in line]
+    return (float(m[1]) if m else 0.0), errors, console

@@ -112,7 +112,18 @@ def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -
     check_controls(d, c, load_hand(c.hand), controls)
     ev = evaluate_controls(d, c, target, out, render=render, progress=True)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
-    _summary(f"{d.name}: {c.method} in {target}", {c.method: ev.metrics}, out / "report.html")
+    label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
+    _summary(f"{d.name}: {c.method} in {target}", {label: ev.metrics}, out / "report.html")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@_friendly
+def view(run_dir: Path) -> None:
+    """Play RUN_DIR's result (scene.xml + trajectory.npz, written by evaluate and transfer) in MuJoCo's viewer."""
+    from quasisim.eval.export import view as play
+
+    play(run_dir)
 
 
 def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:

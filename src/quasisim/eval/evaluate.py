@@ -15,8 +15,9 @@ from quasisim.assets.object import DEFAULT_DENSITY, ObjectAsset, load_object
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo
 from quasisim.errors import InputError
+from quasisim.eval.export import export_mujoco
 from quasisim.eval.metrics import PerFrame, evaluate_rollout
-from quasisim.eval.render import render_side_by_side
+from quasisim.eval.render import annotate, render_side_by_side
 from quasisim.eval.report import write_report
 from quasisim.files import save_json_atomic
 from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
@@ -79,7 +80,8 @@ def evaluate_controls(
     progress: bool = False,
 ) -> Evaluation:
     """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
-    ``metrics.json``, ``rollout.npz`` and ``report.html`` there."""
+    ``metrics.json``, ``rollout.npz``, ``report.html`` (+ ``video.mp4``), ``scene.xml`` and ``trajectory.npz``
+    there."""
     hand = scene.hand if scene is not None else load_hand(controls.hand)
     check_controls(demo, controls, hand)
     scene = scene or scene_for(demo, hand, controls.base_rot)
@@ -108,6 +110,7 @@ def write_outputs(
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json_atomic(out_dir / "metrics.json", ev.metrics)
     ev.rollout.save(out_dir / "rollout.npz")
+    export_mujoco(ev.scene, ev.rollout, out_dir)
     frames = None
     notes = list(ev.scene.notes)
     if render:
@@ -115,6 +118,7 @@ def write_outputs(
         try:
             r = ev.rollout
             frames = render_side_by_side(ev.scene, demo, r.qpos, r.object_pos, r.object_quat, progress=progress)
+            frames = annotate(frames, ("reference (demo)", f"result ({target})"), demo.fps)
         except Exception as e:  # no GL context on this machine: keep the report, say why
             notes.append(f"rendering unavailable ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
         render_s = time.perf_counter() - t0
