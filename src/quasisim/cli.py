@@ -126,6 +126,39 @@ def view(run_dir: Path) -> None:
     play(run_dir)
 
 
+@main.group()
+def convert() -> None:
+    """Bring your own data in: write a quasisim-demo-v1 clip (docs/demo_format.md)."""
+
+
+@convert.command("landmarks")
+@click.argument("landmarks", type=click.Path(path_type=Path))
+@click.argument("poses", type=click.Path(path_type=Path))
+@click.argument("mesh", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Demo .npz to write.")
+@click.option("--units", default="m", show_default=True, help="Length unit of all three inputs: m, cm or mm.")
+@click.option("--up", default="z", show_default=True, help="The inputs' up axis: z, y, -y, x, -x or -z.")
+@click.option("--quat-order", default="wxyz", show_default=True, help="Quaternion order in POSES: wxyz or xyzw.")
+@click.option("--fps", type=float, default=None, help="Frame rate (default: the landmark file's 'fps').")
+@click.option(
+    "--support-height", type=float, help="Table top z (m, z up; default: the object's lowest point at frame 0)."
+)
+@click.option("--key", default=None, help="Landmark array in an .npz (default: the only (T, 21, 3) or (T, 63) one).")
+@click.option("--name", default=None, help="Clip name (default: OUT's file name).")
+@_friendly
+def convert_landmarks(
+    landmarks: Path, poses: Path, mesh: Path, out: Path, units: str, up: str, quat_order: str, fps: float | None,
+    support_height: float | None, key: str | None, name: str | None,
+) -> None:  # fmt: skip
+    """21 hand LANDMARKS per frame (MediaPipe order; .npz, .csv or .json), the object's POSES per frame
+    (position + quaternion, or 4x4) and its MESH (object frame) -> OUT (demo npz) and meshes/ beside it.
+    File layouts: docs/demo_format.md."""
+    from quasisim.data import convert as cv
+
+    opts = cv.ConvertOptions(units, up, quat_order, fps, support_height, key, name)
+    click.echo(str(cv.convert_landmarks(landmarks, poses, mesh, out, opts)))
+
+
 def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
     """``--set a.b=1.5`` options -> {"a.b": 1.5} (values parsed as YAML scalars)."""
     import yaml
