@@ -113,7 +113,7 @@ def evaluate(demo: Path, controls: Path, target: str, out: Path, render: bool) -
     ev = evaluate_controls(d, c, target, out, render=render, progress=True)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
-    _summary(f"{d.name}: {c.method} in {target}", {label: ev.metrics}, out / "report.html")
+    _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")
 
 
 @main.command()
