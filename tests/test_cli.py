@@ -66,6 +66,14 @@ def test_example_retarget_evaluate(tmp_path: Path) -> None:
     assert checked is None or checked == (pytest.approx(24 / 20, abs=0.06), [], [])
 
 
+def test_help_names_the_examples_and_commands() -> None:
+    from quasisim.data.synthetic import EXAMPLES
+
+    assert all(n in _run(["example", "--help"]) for n in EXAMPLES)
+    top = _run(["--help"])
+    assert all(c in top for c in ("view", "convert", "transfer", "evaluate"))
+
+
 def test_evaluate_rejects_mismatched_controls(tmp_path: Path) -> None:
     _run(["example", "--out", str(tmp_path), "--name", "cube_lift", "--frames", "40"])
     _run(["example", "--out", str(tmp_path / "b"), "--name", "cube_lift", "--frames", "30"])

@@ -57,7 +57,9 @@ def main() -> None:
 
 @main.command()
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
-@click.option("--name", "names", multiple=True, help="Example to write (repeatable); default: all.")
+@click.option(
+    "--name", "names", multiple=True, help="Example to write (repeatable): cube_lift, cylinder_lift_turn; default: all."
+)
 @click.option("--frames", default=60, show_default=True, help="Frames per example (20 fps).")
 @_friendly
 def example(out: Path, names: tuple[str, ...], frames: int) -> None:
