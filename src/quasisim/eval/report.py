@@ -122,8 +122,13 @@ def svg_plot(y: np.ndarray, title: str, unit: str, limit: float | None) -> str:
     fin = y[np.isfinite(y)]
     ticks = MaxNLocator(nbins=3).tick_values(0.0, max(float(fin.max()) if fin.size else 1.0, limit or 0.0, 1e-3))
     top = float(ticks[-1])
-    x = lambda i: PAD_L + (SVG_W - PAD_L - PAD_R) * i / max(n - 1, 1)  # noqa: E731
-    yy = lambda v: SVG_H - PAD_B - (SVG_H - PAD_B - PAD_T) * v / top  # noqa: E731
+
+    def x(i: float) -> float:  # frame -> SVG x
+        return PAD_L + (SVG_W - PAD_L - PAD_R) * i / max(n - 1, 1)
+
+    def yy(v: float) -> float:  # value -> SVG y
+        return SVG_H - PAD_B - (SVG_H - PAD_B - PAD_T) * v / top
+
     out = [
         f"<svg class='plot' viewBox='0 0 {SVG_W} {SVG_H}' width='{SVG_W}' height='{SVG_H}' "
         f"data-x0='{x(0):.2f}' data-x1='{x(n - 1):.2f}'>",
