@@ -70,9 +70,16 @@ def test_report_without_frames_drops_an_old_video(tmp_path: Path) -> None:
 
 
 def test_report_plays_in_chromium(tmp_path: Path) -> None:
-    res = chromium_check(_write(tmp_path, _frames()))
-    if res is None:
+    page = _write(tmp_path, _frames())
+    start = chromium_check(page)
+    if start is None:
         pytest.skip(f"{CHROMIUM} not found (apt-get install chromium to check reports in a browser)")
-    duration, errors, console = res
-    assert duration == pytest.approx(T / FPS, abs=0.06)
-    assert errors == [] and console == []
+    assert start["duration"] == pytest.approx(T / FPS, abs=0.06)
+    assert start["errors"] == [] and start["console"] == []
+    assert start["readout"].startswith(f"frame 0 / {T - 1}") and len(start["cursors"]) == 4
+    # the page seeks the video to a frame (as a click on a plot does); the cursors and readout follow it
+    later = chromium_check(page, "frame=12")
+    assert later["readout"].startswith(f"frame 12 / {T - 1} (0.60 s): object rotation error 12.0 deg")
+    x0, x1 = 42.0, 320.0  # the plot's first and last frame (PAD_L, SVG_W - PAD_R)
+    assert later["cursors"] == pytest.approx([x0 + (x1 - x0) * 12 / (T - 1)] * 4, abs=0.01)
+    assert later["errors"] == [] and later["console"] == []

@@ -171,7 +171,8 @@ svg .tick{font-size:10px;fill:#555}svg .axis{stroke:#888}svg .series{fill:none;s
 svg .limit{stroke:#d62728;stroke-dasharray:4 3}svg .limit-label{fill:#d62728}svg .cursor{stroke:#000;stroke-width:1.2}
 #qs-errors{color:#b00}.verdict{font-size:1.1em}"""
 
-# Keeps the plots' cursors and the readout on the video's frame; a click on a plot seeks the video there.
+# Keeps the plots' cursors and the readout on the video's frame; a click on a plot seeks the video there;
+# report.html#frame=N opens at frame N.
 # Writes the video's duration into body[data-video-duration] and any page error into #qs-errors (the
 # report test reads both in headless Chromium).
 SCRIPT = """(function () {
@@ -216,7 +217,8 @@ SCRIPT = """(function () {
       if (e.key === ',') seek(current - 1); else if (e.key === '.') seek(current + 1);
     });
   }
-  show(0);
+  var linked = /frame=(\\d+)/.exec(location.hash);  // report.html#frame=30 opens at frame 30
+  if (linked) seek(+linked[1]); else show(0);
 })();"""
 
 
