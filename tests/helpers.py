@@ -39,3 +39,34 @@ def scene_with(hand, obj=None, base_rot=None, object_pos=(0.0, 0.0, 0.825), tabl
         object_quat0=np.array([1.0, 0.0, 0.0, 0.0]),
         fps=fps,
     )
+
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+def chromium_check(page, fragment: str = "") -> dict | None:
+    """Load ``page`` (+ ``#fragment``) in headless Chromium and read back what the page's script wrote:
+    ``duration`` of the video, the page's own ``errors``, ``console`` messages, the frame ``readout`` and
+    the plots' ``cursors`` (x positions); None when Chromium is not installed."""
+    import os
+    import re
+    import subprocess
+
+    if not os.access(CHROMIUM, os.X_OK):
+        return None
+    url = page.resolve().as_uri() + (f"#{fragment}" if fragment else "")
+    cmd = [
+        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--mute-audio", "--enable-logging=stderr",
+        "--v=0", "--virtual-time-budget=5000", "--dump-dom", url,
+    ]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    dom = r.stdout
+    m = re.search(r'data-video-duration="([^"]+)"', dom)
+    return {
+        "duration": float(m[1]) if m else 0.0,
+        "errors": re.findall(r"<li>(.*?)</li>", re.search(r"<ul id=\"qs-errors\"[^>]*>(.*?)</ul>", dom, re.S)[1]),
+        "console": [line for line in r.stderr.splitlines() if ":CONSOLE" in line],
+        "readout": re.search(r'<div id="qs-readout">(.*?)</div>', dom, re.S)[1],
+        "cursors": [float(x) for x in re.findall(r'<line class="cursor" x1="([^"]+)"', dom)],
+    }

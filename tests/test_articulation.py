@@ -12,6 +12,7 @@ from helpers import scene_with
 from quasisim.sim.articulation import bias_forces, body_jacobians, mass_matrix
 
 
+@pytest.mark.slow  # > 20 s on 2 cores (make test-fast stays under 2 minutes)
 @pytest.mark.parametrize("hand_fixture", ["shadow", "allegro"])
 def test_mass_matrix_and_bias_match_mujoco(hand_fixture: str, request: pytest.FixtureRequest) -> None:
     import mujoco
@@ -49,6 +50,7 @@ def test_mass_matrix_and_bias_match_mujoco(hand_fixture: str, request: pytest.Fi
             np.testing.assert_allclose(np.asarray(b), d.qfrc_bias[mm.hand_dof], atol=1e-9)
 
 
+@pytest.mark.slow  # > 20 s on 2 cores (make test-fast stays under 2 minutes)
 def test_point_jacobian_matches_autodiff(shadow) -> None:
     """The geometric Jacobian of a body origin equals d(position)/dq by forward-mode autodiff."""
     from quasisim.sim.kinematics import forward_kinematics

@@ -13,5 +13,5 @@ def test_quickstart(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setattr(sys, "argv", ["quickstart.py", str(tmp_path)])
     ns = runpy.run_path(str(EXAMPLES / "quickstart.py"))
     metrics = ns["main"](tmp_path)
-    assert set(metrics) == {"R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "success", "unstable"}
+    assert set(metrics) == {"R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "object_motion", "success", "unstable"}
     assert (tmp_path / "mujoco" / "report.html").is_file()

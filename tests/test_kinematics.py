@@ -48,6 +48,7 @@ def test_shadow_model(shadow) -> None:
     assert not any("forearm" in n for n in shadow.body_names)
 
 
+@pytest.mark.slow  # > 20 s on 2 cores (make test-fast stays under 2 minutes)
 def test_fk_gradient_matches_finite_differences(shadow) -> None:
     import jax
 

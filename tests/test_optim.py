@@ -89,6 +89,7 @@ def test_sysid_describe_round_trips() -> None:
     assert d["lin_damp"] == pytest.approx(0.5, rel=1e-4) and d["ang_damp"] == pytest.approx(0.2, rel=1e-4)
 
 
+@pytest.mark.slow  # > 20 s on 2 cores (make test-fast stays under 2 minutes)
 def test_identification_recovers_damping(shadow, tmp_path) -> None:
     """S from a rollout: an object falls with linear damping 3/s while the hand holds still far away;
     identification starting from 0.1/s recovers it through the simulator's gradient."""

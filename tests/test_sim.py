@@ -224,6 +224,7 @@ def _fd_check(f, x0: np.ndarray, eps: float, rtol: float = 2e-3, atol: float = 1
     np.testing.assert_allclose(g, fd, rtol=rtol, atol=atol + rtol * np.abs(fd).max())
 
 
+@pytest.mark.slow  # > 20 s on 2 cores (make test-fast stays under 2 minutes)
 def test_gradients_match_finite_differences(shadow, cube) -> None:
     """One substep w.r.t. joint forces; one frame w.r.t. root velocity, k_n and object mass (float64)."""
     from quasisim.sim.step import Points

@@ -93,7 +93,7 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     assert (ck / "stage2_sim03.npz").is_file() and not (ck / "stage2_sim04.npz").exists()  # residual sim: stage 3
 
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics) == {"R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "success", "unstable"}
+    assert set(metrics) == {"R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "object_motion", "success", "unstable"}
     assert set(metrics["success"]) == {"10deg_10cm", "15deg_15cm", "20deg_20cm", "strict"}
     assert metrics == res.metrics
     summary = json.loads((out / "summary.json").read_text())

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import json
 import sys
 import threading
 import time
@@ -71,6 +70,13 @@ def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True
 _OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
 
 
+def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
+    """The human summary that ends ``evaluate`` and ``transfer`` (strict first; metrics.json has the numbers)."""
+    from quasisim.eval.summary import summary_lines
+
+    click.echo("\n" + "\n".join(summary_lines(title, runs, report if report.is_file() else None)))
+
+
 def _setup_runtime() -> None:
     """Environment and JAX settings of every command (before MuJoCo or JAX load); SIGTERM ends the command
     like Ctrl-C, so atomic writes remove their temporary files."""
@@ -91,7 +97,9 @@ def main() -> None:
 
 @main.command()
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
-@click.option("--name", "names", multiple=True, help="Example to write (repeatable); default: all.")
+@click.option(
+    "--name", "names", multiple=True, help="Example to write (repeatable): cube_lift, cylinder_lift_turn; default: all."
+)
 @click.option(
     "--frames", type=click.IntRange(12, 100_000), default=60, show_default=True, help="Frames per example (20 fps)."
 )
@@ -166,8 +174,52 @@ def evaluate(
         click.echo(f"warning: {note}", err=True)
     warn_long_clip(d, 0.2, 2.0, "evaluation" + (" with rendering" if render else ""))
     ev = evaluate_controls(d, c, target, out, render=render, progress=True)
-    click.echo(json.dumps(ev.metrics))
-    click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}, {out / 'report.html'}")
+    click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
+    label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
+    _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@_friendly
+def view(run_dir: Path) -> None:
+    """Play RUN_DIR's result (scene.xml + trajectory.npz, written by evaluate and transfer) in MuJoCo's viewer."""
+    from quasisim.eval.export import view as play
+
+    play(run_dir)
+
+
+@main.group()
+def convert() -> None:
+    """Bring your own data in: write a quasisim-demo-v1 clip (docs/demo_format.md)."""
+
+
+@convert.command("landmarks")
+@click.argument("landmarks", type=click.Path(path_type=Path))
+@click.argument("poses", type=click.Path(path_type=Path))
+@click.argument("mesh", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Demo .npz to write.")
+@click.option("--units", default="m", show_default=True, help="Length unit of all three inputs: m, cm or mm.")
+@click.option("--up", default="z", show_default=True, help="The inputs' up axis: z, y, -y, x, -x or -z.")
+@click.option("--quat-order", default="wxyz", show_default=True, help="Quaternion order in POSES: wxyz or xyzw.")
+@click.option("--fps", type=float, default=None, help="Frame rate (default: the landmark file's 'fps').")
+@click.option(
+    "--support-height", type=float, help="Table top z (m, z up; default: the object's lowest point at frame 0)."
+)
+@click.option("--key", default=None, help="Landmark array in an .npz (default: the only (T, 21, 3) or (T, 63) one).")
+@click.option("--name", default=None, help="Clip name (default: OUT's file name).")
+@_friendly
+def convert_landmarks(
+    landmarks: Path, poses: Path, mesh: Path, out: Path, units: str, up: str, quat_order: str, fps: float | None,
+    support_height: float | None, key: str | None, name: str | None,
+) -> None:  # fmt: skip
+    """21 hand LANDMARKS per frame (MediaPipe order; .npz, .csv or .json), the object's POSES per frame
+    (position + quaternion, or 4x4) and its MESH (object frame) -> OUT (demo npz) and meshes/ beside it.
+    File layouts: docs/demo_format.md."""
+    from quasisim.data import convert as cv
+
+    opts = cv.ConvertOptions(units, up, quat_order, fps, support_height, key, name)
+    click.echo(str(cv.convert_landmarks(landmarks, poses, mesh, out, opts)))
 
 
 def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
@@ -240,10 +292,10 @@ def transfer(
     if resume and overwrite:
         raise QuasisimError("options --resume (continue OUT) and --overwrite (replace it): expected one, got both")
     res = run_transfer(demo, out, spec, cfg, resume, overwrite)
-    click.echo(json.dumps(res.metrics))
-    k = res.kinematic_metrics
-    click.echo(f"kinematic replay in {target}: R_err {k['R_err_deg']:.1f} deg, T_err {k['T_err_cm']:.2f} cm")
-    click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'report.html'}, {out / 'summary.json'}")
+    click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'summary.json'}")
+    label = method if method != "ours" else f"ours (stages {stages})"
+    runs = {label: res.metrics, "kinematic replay": res.kinematic_metrics}
+    _summary(f"{demo.stem}: {label} in {target}, beside the kinematic replay", runs, out / "report.html")
 
 
 @main.command()

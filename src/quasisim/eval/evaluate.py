@@ -16,8 +16,9 @@ from quasisim.assets.object import DEFAULT_DENSITY, ObjectAsset, load_object
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo
 from quasisim.errors import InputError, QuasisimError
+from quasisim.eval.export import export_mujoco
 from quasisim.eval.metrics import PerFrame, evaluate_rollout
-from quasisim.eval.render import render_side_by_side
+from quasisim.eval.render import annotate, render_side_by_side
 from quasisim.eval.report import write_report
 from quasisim.files import output_set, save_json_atomic
 from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
@@ -25,7 +26,7 @@ from quasisim.targets import TargetRollout, make_target
 from quasisim.targets.scene import PhysicsOptions, Scene, make_scene
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
-OUTPUTS = ("metrics.json", "rollout.npz", "report.html")
+OUTPUTS = ("metrics.json", "rollout.npz", "report.html", "video.mp4", "scene.xml", "trajectory.npz")
 STABILITY_KEY = "unstable"  # metrics.json: the metrics of eval.metrics plus this flag (see mark_stability)  # what evaluate writes (as one set, see files.output_set)
 
 
@@ -96,7 +97,8 @@ def evaluate_controls(
     progress: bool = False,
 ) -> Evaluation:
     """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
-    ``metrics.json``, ``rollout.npz`` and ``report.html`` there, as one set (with ``manifest.json``)."""
+    ``metrics.json``, ``rollout.npz``, ``report.html`` (+ ``video.mp4``), ``scene.xml`` and ``trajectory.npz``
+    there, as one set (with ``manifest.json``)."""
     hand = scene.hand if scene is not None else load_hand(controls.hand)
     check_controls(demo, controls, hand)
     scene = scene or scene_for(demo, hand, controls.base_rot)
@@ -136,6 +138,7 @@ def write_outputs(
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json_atomic(out_dir / "metrics.json", ev.metrics)
     ev.rollout.save(out_dir / "rollout.npz")
+    export_mujoco(ev.scene, ev.rollout, out_dir)
     frames = None
     notes = list(ev.scene.notes)
     if ev.rollout.instability:
@@ -145,6 +148,7 @@ def write_outputs(
         try:
             r = ev.rollout
             frames = render_side_by_side(ev.scene, demo, r.qpos, r.object_pos, r.object_quat, progress=progress)
+            frames = annotate(frames, ("reference (demo)", f"result ({target})"), demo.fps)
         except Exception as e:  # no GL context on this machine: keep the report, say why
             notes.append(f"rendering unavailable ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
         render_s = time.perf_counter() - t0

@@ -10,6 +10,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 from tqdm import tqdm
 
 from quasisim.data.demo import BONES, Demo
@@ -134,3 +135,24 @@ def render_side_by_side(
         return out
     finally:
         r.close()
+
+
+def annotate(frames: list[np.ndarray], labels: tuple[str, ...], fps: float) -> list[np.ndarray]:
+    """Burn a label into each of the equally wide panels of every frame (e.g. ``("reference (demo)",
+    "result (mujoco)")``) and the frame number and time into the top-right corner."""
+    h, w = frames[0].shape[:2]
+    font = ImageFont.load_default(size=max(12, h // 20))
+    panel = w // len(labels)
+    out = []
+    for t, frame in enumerate(frames):
+        img = Image.fromarray(frame)
+        draw = ImageDraw.Draw(img, "RGBA")
+        texts = [((i * panel + 6, 6), lab) for i, lab in enumerate(labels)]
+        stamp = f"frame {t} / {len(frames) - 1}   {t / fps:.2f} s"  # top right: the player's controls cover the bottom
+        texts.append(((w - 6 - draw.textlength(stamp, font=font), 6), stamp))
+        for xy, text in texts:
+            box = draw.textbbox(xy, text, font=font)
+            draw.rectangle((box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3), fill=(20, 20, 20, 170))
+            draw.text(xy, text, font=font, fill=(255, 255, 255, 255))
+        out.append(np.asarray(img))
+    return out
