@@ -66,3 +66,12 @@ def test_fk_matches_mujoco_target(name: str) -> None:
         poses = fk_full(hand, jnp.asarray(base_rot), jnp.asarray(q))
         assert np.abs(np.asarray(poses.pos) - d.xpos[mm.hand_body]).max() < 1e-5
         assert np.abs(np.asarray(keypoints(hand, poses)) - d.site_xpos[mm.kp_site]).max() < 1e-5
+
+
+@pytest.mark.parametrize("name", ["shadow-left", "shadow-short-thumb"])
+def test_pybullet_link_frames_match_fk(name: str) -> None:
+    """PyBullet's hand, assembled from the edited hand model, has the links where the JAX kinematics puts them."""
+    pytest.importorskip("pybullet")
+    from test_pybullet_target import _check_fk
+
+    _check_fk(load_hand(name))
