@@ -197,7 +197,8 @@ class HandModel:
 
     Body 0 is the root; its frame is the hand frame driven by the floating base. Every other body ``b``
     has ``body_parent[b] < b``, a pose relative to its parent (``body_pos``, ``body_quat``, w x y z) and
-    zero or more joints applied in order, as in MuJoCo.
+    zero or more joints applied in order, as in MuJoCo. ``source`` is the model file the hand was read
+    from; the arrays are those of the model after the config's ``edits``.
     """
 
     config: HandConfig
