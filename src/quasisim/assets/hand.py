@@ -5,10 +5,15 @@ frames) and then copied into :class:`HandModel`, plain numpy arrays that the JAX
 quasi-physical simulator and both target simulators (MuJoCo, PyBullet) are built from. The hand's root
 body becomes the child of a floating 6-DoF base; joints of the root body itself (e.g. Shadow's wrist
 joint WRJ0) and everything above it (forearm) are dropped.
+
+A hand YAML may build its model from another one by edits (:mod:`quasisim.assets.model_edit`): a mirror
+image (a left hand from a right-hand model, :mod:`quasisim.assets.mirror`) or a scaled subtree (a short
+thumb); ``base:`` takes every field it does not set from another hand YAML. The format: docs/hands.md.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import os
 from dataclasses import dataclass
@@ -19,6 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from quasisim.assets.model_edit import ModelEdit, apply_edits, compile_spec, read_spec
 from quasisim.config import apply_overrides, build, read_yaml
 from quasisim.errors import InputError, QuasisimError, choice_error
 
@@ -27,6 +33,7 @@ ROBOT_PATH_ENV = "QUASISIM_ROBOT_PATH"
 
 HINGE, SLIDE = 0, 1
 GEOM_TYPES = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+SIDES = ("right", "left")
 
 
 @dataclass(frozen=True)
@@ -87,13 +94,21 @@ class PointSetConfig:
 
 @dataclass(frozen=True)
 class HandConfig:
-    """Per-hand configuration, loaded from YAML (see ``assets/hands/shadow.yaml``)."""
+    """Per-hand configuration, loaded from YAML (field by field: docs/hands.md).
+
+    Attributes (besides the documented YAML fields): ``side``: which hand the model is once ``edits`` are
+    applied; ``mirror_axis``: the axis of the model's frames normal to the plane that turns it into the
+    other side (see :meth:`for_side`); ``edits``: model edits applied in order after loading ``model``.
+    """
 
     name: str
     model: str
     root_body: str
     keypoints: tuple[KeypointSpec, ...]
     description: str = ""
+    side: str = "right"
+    mirror_axis: str = "x"
+    edits: tuple[ModelEdit, ...] = ()
     pd: PDConfig = PDConfig()
     points: PointSetConfig = PointSetConfig()
     exclude_geoms: tuple[str, ...] = ()
@@ -103,11 +118,22 @@ class HandConfig:
     @classmethod
     def from_yaml(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> HandConfig:
         path = Path(path)
-        data = apply_overrides(read_yaml(path), overrides)
+        data = apply_overrides(_read_hand_yaml(path), overrides)
         data["path"] = str(path.resolve())
         cfg = build(cls, data, path)
         cfg.validate()
         return cfg
+
+    def for_side(self, side: str) -> HandConfig:
+        """This hand for ``side`` (``right`` or ``left``): itself, or its mirror image named
+        ``<name>-<side>`` (a trailing ``-right``/``-left`` of the name replaced)."""
+        if side not in SIDES:
+            raise choice_error("hand side", side, SIDES)
+        if side == self.side:
+            return self
+        stem = self.name.removesuffix(f"-{self.side}")
+        edits = (*self.edits, ModelEdit(mirror=self.mirror_axis))
+        return dataclasses.replace(self, name=f"{stem}-{side}", side=side, edits=edits)
 
     def validate(self) -> None:
         if not self.keypoints:
@@ -144,6 +170,29 @@ class HandConfig:
         for i in self.wrist_fit_human:
             if i not in [k.human for k in self.keypoints]:
                 raise InputError(self.path, "wrist_fit_human", "human indices that have a robot keypoint", str(i))
+        if self.side not in SIDES:
+            raise InputError(self.path, "side", f"one of {', '.join(SIDES)}", repr(self.side))
+        if self.mirror_axis not in ("x", "y", "z"):
+            raise InputError(self.path, "mirror_axis", "one of x, y, z", repr(self.mirror_axis))
+        for i, edit in enumerate(self.edits):
+            edit.validate(self.path, f"edits[{i}]")
+
+
+def _read_hand_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The mapping of a hand YAML with its ``base:`` resolved: the base hand's (a built-in name or a YAML
+    path relative to this file) top-level fields, replaced by the ones this file sets."""
+    data = read_yaml(path)
+    if "base" not in data:
+        return data
+    base = data.pop("base")
+    if not isinstance(base, str) or not base:
+        raise InputError(path, "base", "a built-in hand name or the path of a hand YAML", repr(base))
+    base_path = HANDS_DIR / f"{base}.yaml" if base in builtin_hands() else (path.parent / base).resolve()
+    if base_path.resolve() in (path.resolve(), *seen):
+        raise InputError(path, "base", "a chain of bases without a cycle", str(base_path))
+    if not base_path.is_file():
+        raise InputError(path, "base", f"one of {', '.join(builtin_hands())} or a hand YAML", base)
+    return {**_read_hand_yaml(base_path, (*seen, path.resolve())), **data}
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,7 +217,8 @@ class HandModel:
 
     Body 0 is the root; its frame is the hand frame driven by the floating base. Every other body ``b``
     has ``body_parent[b] < b``, a pose relative to its parent (``body_pos``, ``body_quat``, w x y z) and
-    zero or more joints applied in order, as in MuJoCo.
+    zero or more joints applied in order, as in MuJoCo. ``source`` is the model file the hand was read
+    from; the arrays are those of the model after the config's ``edits``.
     """
 
     config: HandConfig
@@ -233,7 +283,7 @@ def builtin_hands() -> list[str]:
 
 
 def resolve_hand_config(hand: str | Path, overrides: dict[str, Any] | None = None) -> HandConfig:
-    """A built-in hand name (``shadow``, ``allegro``) or a path to a hand YAML."""
+    """A built-in hand name (``shadow``, ``allegro``, ... : :func:`builtin_hands`) or a path to a hand YAML."""
     p = Path(hand)
     if p.suffix in (".yaml", ".yml"):
         return HandConfig.from_yaml(p, overrides)
@@ -277,30 +327,30 @@ def resolve_model_path(cfg: HandConfig) -> Path:
     )
 
 
-def _compile(path: Path) -> Any:
-    try:
-        spec = mujoco.MjSpec.from_file(str(path))
-    except Exception as e:
-        raise InputError(path, None, "an MJCF or URDF file MuJoCo can parse", str(e).replace("\n", " ")) from None
-    spec.compiler.balanceinertia = True
-    spec.compiler.fusestatic = False
-    spec.compiler.discardvisual = False
-    try:
-        return spec.compile()
-    except Exception as e:
-        raise InputError(path, None, "a model MuJoCo can compile", str(e).replace("\n", " ")) from None
+def compile_hand_model(cfg: HandConfig) -> tuple[Any, Path]:
+    """The compiled MuJoCo model of ``cfg``'s hand (its ``edits`` applied) and the model file it comes from."""
+    src = resolve_model_path(cfg)
+    spec = read_spec(src)
+    if cfg.edits:
+        apply_edits(spec, cfg.edits, cfg.path)
+    return compile_spec(spec, src), src
 
 
-def load_hand(hand: str | Path | HandConfig, overrides: dict[str, Any] | None = None) -> HandModel:
-    """Load a hand by built-in name, YAML path or config; results are cached per config."""
+def load_hand(
+    hand: str | Path | HandConfig, overrides: dict[str, Any] | None = None, side: str | None = None
+) -> HandModel:
+    """Load a hand by built-in name, YAML path or config; results are cached per config.
+
+    ``side`` (``right``/``left``): the hand for that side, the mirror image of the model when the hand
+    is of the other side (e.g. ``load_hand("shadow", side="left")`` is the built-in ``shadow-left``).
+    """
     cfg = hand if isinstance(hand, HandConfig) else resolve_hand_config(hand, overrides)
-    return _load_hand_cached(cfg)
+    return _load_hand_cached(cfg if side is None else cfg.for_side(side))
 
 
 @cache
 def _load_hand_cached(cfg: HandConfig) -> HandModel:
-    src = resolve_model_path(cfg)
-    m = _compile(src)
+    m, src = compile_hand_model(cfg)
     body_names_all = [_name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(m.nbody)]
     if cfg.root_body not in body_names_all:
         raise InputError(cfg.path, "root_body", f"one of the bodies {', '.join(body_names_all[1:])}", cfg.root_body)
