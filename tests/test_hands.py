@@ -15,7 +15,7 @@ THUMB = ("robot0:thbase", "robot0:thproximal", "robot0:thhub", "robot0:thmiddle"
 
 
 def _rest_keypoints(hand) -> dict[str, np.ndarray]:
-    q = np.concatenate([np.zeros(6), hand.rest_q()])
+    q = np.concatenate([np.zeros(6), hand.rest_q()]).astype(np.float32)
     kp = np.asarray(keypoints(hand, fk_full(hand, np.eye(3), q)), dtype=np.float64)
     return dict(zip(hand.kp_names, kp, strict=True))
 

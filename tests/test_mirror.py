@@ -94,7 +94,7 @@ def _chirality(hand_name: str, side: str) -> float:
     from quasisim.sim.kinematics import fk_full, keypoints
 
     hand = load_hand(hand_name, side=side)
-    q = np.concatenate([np.zeros(6), hand.rest_q()])
+    q = np.concatenate([np.zeros(6), hand.rest_q()]).astype(np.float32)
     kp = np.asarray(keypoints(hand, fk_full(hand, np.eye(3), q)))
     at = {int(h): kp[i] for i, h in enumerate(hand.kp_human)}
     wrist, thumb, index = at[0], at[4], at[5]
