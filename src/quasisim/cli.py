@@ -122,7 +122,12 @@ def example(out: Path, names: tuple[str, ...], frames: int, overwrite: bool) -> 
 
 @main.command()
 @click.argument("demo", type=click.Path(path_type=Path))
-@click.option("--hand", default="shadow", show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option(
+    "--hand",
+    default="shadow",
+    show_default=True,
+    help="Built-in hand (shadow, shadow-left, shadow-short-thumb, allegro) or a hand YAML (docs/hands.md).",
+)
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @_OVERWRITE
 @_friendly
@@ -240,7 +245,12 @@ _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
 
 @main.command()
 @click.argument("demo", type=click.Path(path_type=Path))
-@click.option("--hand", default=_SPEC.hand, show_default=True, help="Built-in hand (shadow, allegro) or a hand YAML.")
+@click.option(
+    "--hand",
+    default=_SPEC.hand,
+    show_default=True,
+    help="Built-in hand (shadow, shadow-left, shadow-short-thumb, allegro) or a hand YAML (docs/hands.md).",
+)
 @click.option(
     "--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True, help="Simulator that judges the result."
 )
