@@ -4,6 +4,9 @@ retried, results identical to a single transfer."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -35,19 +38,27 @@ def _jobs(d: Path) -> list[Job]:
     return [Job(p, (Run("", SPEC),)) for p in sorted(d.glob("*.npz"))]
 
 
-def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_path: Path, monkeypatch) -> None:
+def _batch_cli(clips_dir: Path, out: Path, *extra: str, fault: str = "") -> subprocess.CompletedProcess:
+    """``quasisim batch`` in a subprocess (Ray's in-process core worker stays out of the test process)."""
+    env = {**os.environ, FAULT_ENV: fault}
+    sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
+    cmd = [sys.executable, "-m", "quasisim.cli", "batch", str(clips_dir), "--out", str(out), "--method", "sample-target",
+           "--workers", "2", "--threads", "1", *sets, *extra]  # fmt: skip
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_path: Path) -> None:
     from quasisim.method.config import TransferConfig
     from quasisim.method.pipeline import run_transfer
 
     out = tmp_path / "out"
     good = sorted(p.stem for p in clips_dir.glob("*.npz") if p.stem != "broken")
-    monkeypatch.setenv(FAULT_ENV, good[0])  # the first attempt of this clip kills its worker
-    s = Settings(workers=2, threads=1, overrides=FAST)
-    res = run_batch(_jobs(clips_dir), out, s)
-
-    assert sorted(r["clip"] for r in res.rows) == good
-    assert list(res.failures) == ["broken"] and "broken.npz" in res.failures["broken"]
-    assert (out / ".work" / good[0]).exists() is False  # scratch removed once the clip is persisted
+    r = _batch_cli(clips_dir, out, fault=good[0])  # the first attempt of this clip kills its worker
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((out / "batch.json").read_text())
+    assert sorted(row["clip"] for row in res["rows"]) == good
+    assert list(res["failures"]) == ["broken"] and "broken.npz" in res["failures"]["broken"]
+    assert not (out / ".work" / good[0]).exists()  # scratch removed once the clip is persisted
     for c in good:
         d = json.loads((out / c / "clip.json").read_text())
         assert d["runs"][""]["row"]["metrics"] == json.loads((out / c / "metrics.json").read_text())
@@ -61,15 +72,16 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
 
     # resumed: finished clips are not redone (files untouched), the broken clip is tried and reported again
     stamp = (out / good[0] / "controls.npz").stat().st_mtime_ns
-    again = run_batch(_jobs(clips_dir), out, s)
-    assert again.n_run == 1 and list(again.failures) == ["broken"]
+    assert _batch_cli(clips_dir, out).returncode == 0
+    again = json.loads((out / "batch.json").read_text())
+    assert again["clips_run"] == 1 and list(again["failures"]) == ["broken"]
     assert (out / good[0] / "controls.npz").stat().st_mtime_ns == stamp
-    assert sorted(r["clip"] for r in again.rows) == good
+    assert sorted(row["clip"] for row in again["rows"]) == good
 
     # without retries the injected kill is a failure of that clip alone: the retry above was real
-    lone = [j for j in _jobs(clips_dir) if j.clip == good[0]]
-    dead = run_batch(lone, tmp_path / "no_retry", Settings(workers=1, threads=1, overrides=FAST, max_retries=0))
-    assert list(dead.failures) == [good[0]] and not dead.rows
+    r = _batch_cli(clips_dir, tmp_path / "no_retry", "--clips", good[0], "--retries", "0", fault=good[0])
+    dead = json.loads((tmp_path / "no_retry" / "batch.json").read_text())
+    assert r.returncode == 0 and list(dead["failures"]) == [good[0]] and not dead["rows"]
 
 
 def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path) -> None:

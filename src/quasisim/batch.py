@@ -346,7 +346,7 @@ def _flat(r: dict[str, Any], which: str) -> dict[str, Any]:
 
 def run_batch_command(
     data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec, out: Path, ray_address: str | None,
-    workers: int, threads: int, config_path: Path | None, overrides: dict[str, Any],
+    workers: int, threads: int, config_path: Path | None, overrides: dict[str, Any], retries: int = 2,
 ) -> BatchResult:  # fmt: skip
     """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput."""
     from quasisim.bench.tables import clips
@@ -356,7 +356,8 @@ def run_batch_command(
     paths = clips(data_dir, pattern, names)
     if not paths:
         raise QuasisimError(f"no clips matching {pattern!r} in {data_dir}")
-    s = Settings(ray_address, workers, threads, None, str(config_path) if config_path else None, overrides).resolved()
+    cfg_path = str(config_path) if config_path else None
+    s = Settings(ray_address, workers, threads, None, cfg_path, overrides, max_retries=retries).resolved()
     jobs = [Job(p, (Run("", spec),)) for p in paths]
     meta = {"data_dir": str(data_dir), "spec": dataclasses.asdict(spec), "workers": s.workers, "threads": s.threads,
             "ray": ray_address or "local"}  # fmt: skip

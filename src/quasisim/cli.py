@@ -333,13 +333,16 @@ def transfer(
 )
 @click.option("--workers", default=0, show_default=True, help="Clips at once (0: one per core).")
 @click.option("--threads", default=0, show_default=True, help="Cores per worker (0: cores / workers).")
+@click.option(
+    "--retries", default=2, show_default=True, type=click.IntRange(0, 10), help="Retries of a clip whose worker died."
+)
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
 @click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
 @click.option("--render/--no-render", default=False, show_default=True, help="Render each clip's video.")
 @_friendly
 def batch(
     data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
-    pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, config_path: Path | None,
+    pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
     sets: tuple[str, ...], render: bool,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
@@ -353,7 +356,7 @@ def batch(
     ).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
-        data_dir, names, pattern, spec, out, ray_address, workers, threads, config_path, _parse_sets(sets)
+        data_dir, names, pattern, spec, out, ray_address, workers, threads, config_path, _parse_sets(sets), retries
     )
 
 
