@@ -12,9 +12,17 @@ DATA = Path(os.environ.get("QUASISIM_DATA") or REPO.parent / "shared" / "data")
 ROBOTS = Path(os.environ.get("QUASISIM_ROBOT_PATH") or REPO.parent / "shared" / "robots")
 os.environ.setdefault("QUASISIM_ROBOT_PATH", str(ROBOTS))
 
-from quasisim.runtime import configure  # noqa: E402
+from quasisim.runtime import configure, free_compiled_programs  # noqa: E402
 
 configure()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Each test module's compiled programs are dropped after it: the whole suite in one process otherwise
+    reaches the kernel's memory-mapping limit and XLA's next compilation aborts (see quasisim.runtime)."""
+    yield
+    free_compiled_programs(force=True)
 
 
 @pytest.fixture(scope="session")

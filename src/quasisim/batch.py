@@ -150,9 +150,10 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
     files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.method.pipeline import run_transfer
-    from quasisim.runtime import configure
+    from quasisim.runtime import configure, free_compiled_programs
 
     configure()
+    free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
     _inject_fault(job.clip, scratch)
     cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sample_target.threads": s.threads, **s.overrides})
     _write_tree(scratch / "input", files)

@@ -23,6 +23,7 @@ from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
 from quasisim.method.problem import make_problem
 from quasisim.method.retarget import retarget
+from quasisim.runtime import free_compiled_programs
 from quasisim.sim.residual import ResidualConfig
 
 VARIANTS = ("nominal", "+S, constants", "+residual local", "+residual global", "+residual both")
@@ -76,6 +77,7 @@ def run_fit_bench(
     settings = {"stage3": dataclasses.asdict(cfg.stage3), "residual": residual, "hand": hand_name}
     rows: list[dict[str, Any]] = []
     for p in tqdm(paths, desc="clips", unit="clip"):
+        free_compiled_programs()
         done = out / "clips" / f"{p.stem}.json"  # a finished clip is read back (same settings), never redone
         cached = json.loads(done.read_text()) if done.is_file() else None
         if cached is None or cached["settings"] != settings:

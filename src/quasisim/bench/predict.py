@@ -18,6 +18,7 @@ from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import make_problem
 from quasisim.method.retarget import retarget
+from quasisim.runtime import free_compiled_programs
 
 
 def _simulators(cur: Curriculum, sims: tuple[int, ...], mus: tuple[float, ...]) -> list[tuple[int, float]]:
@@ -49,6 +50,7 @@ def run_predict_bench(
     hand = load_hand(hand_name)
     rows: list[dict[str, Any]] = []
     for p in tqdm(paths, desc="clips", unit="clip"):
+        free_compiled_programs()
         demo = load_demo(p)
         rt = retarget(hand, demo)
         prob = make_problem(demo, hand, rt.base_rot, bud.substeps, bud.n_candidates)
