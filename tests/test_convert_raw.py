@@ -322,3 +322,28 @@ def test_arctic_bad_inputs(tmp_path: Path, mano_dir: Path) -> None:
     np.save(seq, np.zeros((3, 7)))  # an array where the dict of hands belongs
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 2 and "box_grab_01.mano.npy" in r.output and "'right'" in r.output
+
+
+def test_arctic_hinge_warning_wrong_left_model_and_open_mesh(tmp_path: Path, mano_dir: Path) -> None:
+    seq = _arctic_tree(tmp_path / "a")
+    obj = np.load(seq.with_name("box_grab_01.object.npy"))
+    obj[:, 0] = np.linspace(0, 0.5, len(obj))  # the lid opens during the clip
+    np.save(seq.with_name("box_grab_01.object.npy"), obj)
+    args = ["convert", "arctic", str(seq), "--out", str(tmp_path / "o" / "b.npz")]
+    r = CliRunner().invoke(main, [*args, "--mano-dir", str(mano_dir)])
+    assert r.exit_code == 0 and "warning: box_grab_01: the hinge moves 0.25 rad" in r.output
+    assert (tmp_path / "o" / "meshes" / "box_hinge0250mrad.obj").is_file()
+    # a right-hand model given as MANO_LEFT.pkl: the left keypoints are not a left hand
+    wrong = tmp_path / "wrong"
+    write_model(wrong / "MANO_RIGHT.pkl", _model_arrays())
+    write_model(wrong / "MANO_LEFT.pkl", _model_arrays())
+    r = CliRunner().invoke(main, [*args[:3], "--out", str(tmp_path / "w" / "b.npz"), "--mano-dir", str(wrong)])
+    assert r.exit_code == 2 and "field 'left_joints'" in r.output and "mirrored" in r.output, r.output
+    assert not (tmp_path / "w" / "b.npz").exists()
+    # an open object mesh is refused at conversion, naming the template folder
+    d = tmp_path / "a" / "meta" / "object_vtemplates" / "box"
+    top = trimesh.load(d / "top.obj", process=False, force="mesh")
+    top.update_faces(np.arange(len(top.faces)) < 6)  # half the box: three sides (fill_holes cannot close it)
+    top.export(d / "top.obj")
+    r = CliRunner().invoke(main, [*args[:3], "--out", str(tmp_path / "x" / "b.npz"), "--mano-dir", str(mano_dir)])
+    assert r.exit_code == 2 and "object_vtemplates/box" in r.output and "watertight" in r.output, r.output

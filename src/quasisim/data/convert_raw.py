@@ -158,10 +158,19 @@ def _load_mesh(path: Path, field: str, scale: float = 1.0) -> Any:
     return m
 
 
-def _write_mesh(m: Any, out: Path, stem: str) -> Path:
+def _write_mesh(m: Any, out: Path, stem: str, source: Path) -> Path:
+    """``meshes/<stem>.obj`` beside ``out``, checked as the demo loader will check it (closed after repair,
+    plausible size); an :class:`InputError` names the ``source`` mesh."""
+    from quasisim.assets.object import load_object  # heavy (JAX): only when converting
+
     mesh_path = out.parent / "meshes" / f"{stem}.obj"
     with atomic_path(mesh_path) as tmp:
         m.export(tmp, file_type="obj")
+    try:
+        load_object(mesh_path)
+    except InputError as e:
+        mesh_path.unlink()
+        raise InputError(source, "mesh", e.expected, e.got) from None
     return mesh_path
 
 
@@ -175,7 +184,8 @@ def _mirror_check(demo: Demo, left: np.ndarray, out: Path) -> None:
         validate_arrays(mirrored, out)
     except InputError as e:
         field = "left_joints" if e.field == "right_joints" else e.field
-        raise InputError(e.path, field, f"{e.expected} (left hand, checked mirrored x -> -x)", e.got) from None
+        expected = f"a left hand: mirrored (x -> -x), {e.expected}"
+        raise InputError(e.path, field, expected, e.got) from None
 
 
 def save_clip(demo: Demo, out: Path, left: np.ndarray | None) -> Path:
@@ -185,10 +195,11 @@ def save_clip(demo: Demo, out: Path, left: np.ndarray | None) -> Path:
     the key is checked here (mirrored, with the right-hand checks) and added to the written file; after the
     merge this becomes ``save_demo(replace(demo, left_joints=left), out)``.
     """
-    save_demo(demo, out)
     if left is None:
-        return out
+        return save_demo(demo, out)
+    validate_arrays(demo, out)
     _mirror_check(demo, left, out)
+    save_demo(demo, out)
     with np.load(out, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     arrays["left_joints"] = np.asarray(left, dtype=np.float32)
@@ -265,8 +276,11 @@ def convert_grab(seq: str | Path, mano_dir: str | Path, out: str | Path, grab_ro
     n = _frames({"object.params.global_orient": rot, "object.params.transl": pos, **hands}, seq)
     tl = timeline(n, src_fps, opts, seq)
     used = tl.used
-    kp = {key: tl.lerp(_grab_keypoints(seq, root, parts[key], key, mano.load_mano(mano.find_model(mano_dir, side)),
-                                       used), used) for key, side in (("rhand", "right"), ("lhand", "left")) if key in parts}  # fmt: skip
+    kp = {}
+    for key, side in (("rhand", "right"), ("lhand", "left")):
+        if key in parts:
+            model = mano.load_mano(mano.find_model(mano_dir, side))
+            kp[key] = tl.lerp(_grab_keypoints(seq, root, parts[key], key, model, used), used)
     R = tl.slerp(np.swapaxes(mano.rodrigues(rot[used]), -1, -2), used)  # GRAB: v @ R + t, i.e. R^T v + t
     if "object_mesh" in parts["object"]:
         rel = str(parts["object"]["object_mesh"])
@@ -274,9 +288,9 @@ def convert_grab(seq: str | Path, mano_dir: str | Path, out: str | Path, grab_ro
         rel = f"tools/object_meshes/contact_meshes/{mano.load_npz_member(seq, 'obj_name')}.ply"
     m = _load_mesh(root / rel, "object.object_mesh")
     obj_name = Path(rel).stem
+    mesh_path = _write_mesh(m, out, obj_name, root / rel)
     demo = _demo(
-        opts.name or out.stem, opts.fps or src_fps, kp["rhand"], obj_name, _write_mesh(m, out, obj_name), R,
-        tl.lerp(pos[used], used), np.asarray(m.vertices), f"GRAB {seq.parent.name}/{seq.name} source frames "
+        opts.name or out.stem, opts.fps or src_fps, kp["rhand"], obj_name, mesh_path, R, tl.lerp(pos[used], used), np.asarray(m.vertices), f"GRAB {seq.parent.name}/{seq.name} source frames "
         f"{tl.s[0]:g}..{tl.s[-1]:g} step {tl.step:g} at {src_fps:g} fps (quasisim convert grab)",
     )  # fmt: skip
     return save_clip(demo, out, kp.get("lhand"))
@@ -363,16 +377,20 @@ def convert_arctic(seq: str | Path, mano_dir: str | Path, out: str | Path, arcti
         )
     tl = timeline(len(obj), opts.source_fps, opts, obj_file)
     used = tl.used
-    kp = {side: tl.lerp(_arctic_keypoints(params[side], mano.load_mano(mano.find_model(mano_dir, side)), used), used)
-          for side in ("right", "left")}  # fmt: skip
+    kp = {}
+    for side in ("right", "left"):
+        model = mano.load_mano(mano.find_model(mano_dir, side))
+        kp[side] = tl.lerp(_arctic_keypoints(params[side], model, used), used)
     arti = tl.lerp(obj[used, 0], used)
     angle = round(float(np.median(arti)), 3)
-    if np.abs(arti - angle).max() > HINGE_WARN:
-        print(f"warning: {base.name}: the hinge moves {np.abs(arti - angle).max():.2f} rad from the baked angle "
-              f"{angle:.3f} rad within the clip (rigid route; choose --start/--frames where it rests)", file=sys.stderr)  # fmt: skip
+    dev = float(np.abs(arti - angle).max())
+    if dev > HINGE_WARN:
+        msg = f"the hinge moves {dev:.2f} rad from the baked {angle:.3f} rad (rigid route; pick --start/--frames)"
+        print(f"warning: {base.name}: {msg}", file=sys.stderr)
     obj_name = base.name.split("_")[0]
     m = _arctic_mesh(root, obj_name, angle)
-    mesh_path = _write_mesh(m, out, f"{obj_name}_hinge{round(angle * 1000):04d}mrad")
+    mesh_dir = root / "meta" / "object_vtemplates" / obj_name
+    mesh_path = _write_mesh(m, out, f"{obj_name}_hinge{round(angle * 1000):04d}mrad", mesh_dir)
     R = tl.slerp(mano.rodrigues(obj[used, 1:4]), used)
     demo = _demo(
         opts.name or out.stem, opts.fps or opts.source_fps, kp["right"], obj_name, mesh_path, R,

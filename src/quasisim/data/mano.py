@@ -146,13 +146,15 @@ def _reconstructor(cls: type, base: type, state: Any) -> Any:
 
 
 def _numpy_attr(name: str) -> Any:
+    """numpy's array reconstruction helpers, wherever this numpy version keeps them."""
     try:
-        from numpy._core import multiarray
+        from numpy._core import multiarray, numeric
     except ImportError:  # numpy < 2
-        from numpy.core import multiarray  # type: ignore[no-redef]
-    if name == "scalar":
-        return multiarray.scalar
-    return getattr(multiarray, name, None) or getattr(np, name)
+        from numpy.core import multiarray, numeric  # type: ignore[no-redef]
+    for mod in (multiarray, numeric, np):
+        if hasattr(mod, name):
+            return getattr(mod, name)
+    raise pickle.UnpicklingError(f"numpy has no {name}")
 
 
 def unwrap(obj: Any) -> Any:
