@@ -141,6 +141,32 @@ def test_mano_pickle_rest_pose_and_rigid_motion(mano_dir: Path) -> None:
     )
 
 
+def test_bending_one_joint_turns_its_finger_about_it(mano_dir: Path) -> None:
+    """The kinematic chain and skinning against a direct construction: index MCP (MANO joint 1) bent by R
+    turns joints 2, 3 and the index tip about joint 1; every other keypoint stays."""
+    m = mano.load_mano(mano_dir / "MANO_RIGHT.pkl")
+    pose = np.zeros((1, 16, 3))
+    pose[0, 1] = [0.0, 0.0, 1.1]
+    R = mano.rodrigues(pose[0, 1])
+    joints, tips = mano.forward(m, pose)
+    feat = (mano.rodrigues(pose[0, 1:]) - np.eye(3)).reshape(-1)
+    np.testing.assert_allclose(joints[0, 2:4], REST[1] + (REST[2:4] - REST[1]) @ R.T, atol=1e-12)
+    np.testing.assert_allclose(joints[0, [0, 1, *range(4, 16)]], REST[[0, 1, *range(4, 16)]], atol=1e-12)
+    tip = TIPS[1] + m.posedirs[mano.TIP_VERTS[1]] @ feat  # index tip with its pose blend shape
+    np.testing.assert_allclose(tips[0, 1], REST[1] + R @ (tip - REST[1]), atol=1e-12)
+
+
+@pytest.mark.parametrize("fmt", ["csc", "csr", "coo"])
+def test_sparse_stand_ins(tmp_path: Path, fmt: str) -> None:
+    a = np.zeros((4, 6))
+    a[[0, 1, 3, 3], [5, 0, 2, 4]] = [1.0, 2.0, 3.0, 4.0]
+    f = tmp_path / "m.pkl"
+    for protocol in (1, 2, 4):
+        f.write_bytes(pickle.dumps({"J_regressor": getattr(sp, f"{fmt}_matrix")(a)}, protocol=protocol))
+        with open(f, "rb") as fh:
+            np.testing.assert_array_equal(mano.safe_load_pickle(fh, f)["J_regressor"], a)
+
+
 def test_rodrigues_matches_scipy() -> None:
     from scipy.spatial.transform import Rotation
 
