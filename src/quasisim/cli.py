@@ -227,6 +227,59 @@ def convert_landmarks(
     click.echo(str(cv.convert_landmarks(landmarks, poses, mesh, out, opts)))
 
 
+def _raw_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """The options `convert grab` and `convert arctic` share."""
+    for opt in reversed((
+        click.option("--mano-dir", type=click.Path(path_type=Path), required=True,
+                     help="Folder with your MANO_RIGHT.pkl / MANO_LEFT.pkl (or its mano/ subfolder); https://mano.is.tue.mpg.de."),
+        click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Demo .npz to write."),
+        click.option("--fps", type=float, default=20.0, show_default=True, help="Clip frame rate (0: the source rate)."),
+        click.option("--start", type=int, default=0, show_default=True, help="Source frame of clip frame 0."),
+        click.option("--frames", type=int, default=None, help="Clip frames (default: to the end of the sequence)."),
+        click.option("--name", default=None, help="Clip name (default: OUT's file name)."),
+    )):  # fmt: skip
+        fn = opt(fn)
+    return fn
+
+
+@convert.command("grab")
+@click.argument("seq", type=click.Path(path_type=Path))
+@click.option("--grab-root", type=click.Path(path_type=Path), default=None,
+              help="Folder holding grab/ and tools/ (default: three levels above SEQ).")  # fmt: skip
+@click.option("--left", is_flag=True, help="Also write the left hand as left_joints (needs MANO_LEFT.pkl).")
+@_raw_options
+@_friendly
+def convert_grab(
+    seq: Path, grab_root: Path | None, left: bool, mano_dir: Path, out: Path, fps: float, start: int,
+    frames: int | None, name: str | None,
+) -> None:  # fmt: skip
+    """A GRAB sequence (grab/<subject>/<object>_<intent>.npz) -> OUT (demo npz, right hand) and meshes/ beside
+    it. docs/demo_format.md, "From GRAB / ARCTIC"."""
+    from quasisim.data import convert_raw as cr
+
+    opts = cr.RawOptions(fps=fps or None, start=start, frames=frames, name=name, left=left)
+    click.echo(str(cr.convert_grab(seq, mano_dir, out, grab_root, opts)))
+
+
+@convert.command("arctic")
+@click.argument("seq", type=click.Path(path_type=Path))
+@click.option("--arctic-root", type=click.Path(path_type=Path), default=None,
+              help="Folder holding raw_seqs/ and meta/ (default: three levels above SEQ).")  # fmt: skip
+@click.option("--source-fps", type=float, default=30.0, show_default=True, help="ARCTIC's frame rate.")
+@_raw_options
+@_friendly
+def convert_arctic(
+    seq: Path, arctic_root: Path | None, source_fps: float, mano_dir: Path, out: Path, fps: float, start: int,
+    frames: int | None, name: str | None,
+) -> None:  # fmt: skip
+    """An ARCTIC raw sequence (raw_seqs/<subject>/<seq>.mano.npy and .object.npy) -> OUT (demo npz, both
+    hands) and a rigid mesh (hinge at the clip's median angle) in meshes/. docs/demo_format.md."""
+    from quasisim.data import convert_raw as cr
+
+    opts = cr.RawOptions(fps=fps or None, start=start, frames=frames, name=name, source_fps=source_fps)
+    click.echo(str(cr.convert_arctic(seq, mano_dir, out, arctic_root, opts)))
+
+
 def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
     """``--set a.b=1.5`` options -> {"a.b": 1.5} (values parsed as YAML scalars)."""
     import yaml
