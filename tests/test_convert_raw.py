@@ -288,7 +288,9 @@ def _arctic_tree(root: Path, parts_json: bool = False) -> Path:
     d = root / "meta" / "object_vtemplates" / "box"
     d.mkdir(parents=True)
     bottom = trimesh.creation.box([100, 100, 40], trimesh.transformations.translation_matrix([0, 0, 20]))
-    top = trimesh.creation.box([100, 60, 10], trimesh.transformations.translation_matrix([0, 20, 45]))
+    top = trimesh.creation.box(
+        [100, 60, 14], trimesh.transformations.translation_matrix([0, 20, 43])
+    )  # 4 mm into the base
     if parts_json:
         trimesh.util.concatenate([bottom, top]).export(d / "mesh.obj")
         (d / "parts.json").write_text(json.dumps([0] * len(bottom.vertices) + [1] * len(top.vertices)))
@@ -323,6 +325,10 @@ def test_arctic_to_two_hand_clip(tmp_path: Path, mano_dir: Path, parts_json: boo
     v = np.asarray(trimesh.load(d.object_mesh_path, process=False, force="mesh").vertices)
     lid_corner = mano.rodrigues(np.array([0, 0, -ANGLE])) @ np.array([0.05, 0.05, 0.05])  # ARCTIC: Rz(-angle)
     assert np.linalg.norm(v - lid_corner, axis=1).min() < 1e-6
+    mesh = trimesh.load(d.object_mesh_path, force="mesh")
+    parts_volume = (100 * 100 * 40 + 100 * 60 * 14) * 1e-9  # m^3, the overlap counted twice
+    assert mesh.is_watertight and len(mesh.split(only_watertight=False)) == 1  # one body: the parts' union
+    assert 0.99 * parts_volume - 100 * 60 * 4 * 1e-9 < mesh.volume < parts_volume - 1e-7  # the overlap once
     m = mano.load_mano(mano_dir / "MANO_RIGHT.pkl")
     pose = mano.full_pose(m, np.zeros((1, 3)), np.zeros((1, 45)))  # pose 0 = MANO's mean hand (flat_hand_mean off)
     j, tips = mano.forward(m, pose)

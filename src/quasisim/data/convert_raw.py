@@ -324,17 +324,34 @@ def _arctic_keypoints(params: dict[str, np.ndarray], model: mano.ManoModel, used
     return mano.keypoints(model, rot, pose, trans, betas=shape, flat_hand_mean=False)
 
 
-def _arctic_mesh(root: Path, obj_name: str, angle: float) -> Any:
-    """The object's two parts (mm -> m) as one rigid mesh, the top turned by ``angle`` about the hinge:
-    ``top.obj`` + ``bottom.obj`` where present, else ``mesh.obj`` split by ``parts.json`` (1: top)."""
+def _union(bottom: Any, top: Any, where: Path) -> Any:
+    """The boolean union of the two closed parts (trimesh with the manifold3d engine), so that where they
+    overlap the volume, mass and inertia count once."""
     import trimesh
+
+    want = "two closed (watertight) parts whose union is one closed mesh"
+    for name, part in (("bottom", bottom), ("top", top)):
+        if not part.is_watertight:
+            raise InputError(where, f"{name} part", want, "an open mesh (not watertight)")
+    try:
+        u = trimesh.boolean.union([bottom, top], engine="manifold")
+    except (ValueError, RuntimeError) as e:
+        raise InputError(where, "bottom and top parts", want, str(e)) from e
+    if not u.is_watertight or len(u.faces) == 0:
+        raise InputError(where, "bottom and top parts", want, "a union that is not watertight")
+    return u
+
+
+def _arctic_mesh(root: Path, obj_name: str, angle: float) -> Any:
+    """The object's two parts (mm -> m) as one rigid mesh (their union), the top turned by ``angle`` about the hinge:
+    ``top.obj`` + ``bottom.obj`` where present, else ``mesh.obj`` split by ``parts.json`` (1: top)."""
 
     d = root / "meta" / "object_vtemplates" / obj_name
     hinge = mano.rodrigues(np.array([0.0, 0.0, -angle]))
     if (d / "top.obj").is_file() and (d / "bottom.obj").is_file():
         top, bottom = _load_mesh(d / "top.obj", "top.obj", 1e-3), _load_mesh(d / "bottom.obj", "bottom.obj", 1e-3)
         top.vertices = np.asarray(top.vertices) @ hinge.T
-        return trimesh.util.concatenate([bottom, top])
+        return _union(bottom, top, d)
     m = _load_mesh(d / "mesh.obj", "mesh.obj", 1e-3)
     parts_file = d / "parts.json"
     if not parts_file.is_file():
@@ -345,7 +362,9 @@ def _arctic_mesh(root: Path, obj_name: str, angle: float) -> Any:
     v = np.asarray(m.vertices).copy()
     v[parts] = v[parts] @ hinge.T
     m.vertices = v
-    return m
+    on_top = parts[np.asarray(m.faces)].all(axis=1)
+    bottom, top = m.submesh([np.flatnonzero(~on_top)], append=True), m.submesh([np.flatnonzero(on_top)], append=True)
+    return _union(bottom, top, d)
 
 
 def convert_arctic(seq: str | Path, mano_dir: str | Path, out: str | Path, arctic_root: str | Path | None = None,
