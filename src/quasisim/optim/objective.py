@@ -229,8 +229,9 @@ def padded(x: np.ndarray, horizon: int) -> np.ndarray:
 
 def window_references(demo: Demo, kp_human: np.ndarray, kp_index: np.ndarray, horizon: int) -> list[np.ndarray]:
     """The references of MPC windows, padded by ``horizon`` frames: object positions (T + H, 3), quaternions
-    (T + H, 4) and the human keypoints of robot keypoints ``kp_index`` (T + H, K, 3)."""
-    kp = demo.right_joints[:, kp_human[kp_index]]
+    (T + H, 4) and the human keypoints of robot keypoints ``kp_index`` (T + H, K, 3); ``kp_human`` indexes
+    the keypoints of all the demo's hands (``Demo.human_joints``)."""
+    kp = demo.human_joints[:, kp_human[kp_index]]
     return [padded(x, horizon) for x in (demo.object_pos, demo.object_quat, kp)]
 
 

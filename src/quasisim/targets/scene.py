@@ -1,9 +1,15 @@
-"""The evaluation scene shared by every target simulator: hand on a floating base, object, finite table.
+"""The evaluation scene shared by every target simulator: hand(s) on floating bases, object, finite table.
+
+A scene holds one hand (the demo's right hand) or two (right, then the mirrored left hand of a demo with
+``left_joints``). Everything indexed over hands follows that order: the control vector is the
+concatenation ``[right (6 + J), left (6 + J)]`` (:attr:`Scene.dof_slices`) and robot keypoints index the
+human keypoints ``[right_joints, left_joints]`` (:attr:`Scene.kp_human`: left-hand indices 21..41).
 
 The table is a box from the floor (z = 0) up to ``support_height``. Its footprint is sized from the demo:
-it covers the object's initial footprint with a margin and contains no human keypoint (of any frame)
-that is below the table top, with a clearance. In GRAB clips the hand rises from below the table top
-beside the table, so an infinite support plane would collide with it.
+it covers the object's initial footprint with a margin and contains no human keypoint (of any frame, of
+either hand) that is below the table top, with a clearance. In GRAB clips the hand rises from below the
+table top beside the table, and ARCTIC's objects start on a small stand with hands passing below its
+top beside it, so an infinite support plane would collide with them.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from quasisim.assets.hand import HandModel
-from quasisim.data.demo import Demo
+from quasisim.data.demo import N_KEYPOINTS, Demo
 from quasisim.rotations import np_quat_to_mat
 
 if TYPE_CHECKING:
@@ -60,8 +66,9 @@ class Scene:
     """Everything a target needs to build the same world.
 
     Attributes:
-        hand: parsed hand model.
+        hand: parsed hand model (the right hand of a two-hand scene).
         base_rot: (3, 3) fixed frame of the base hinges (see :mod:`quasisim.sim.kinematics`).
+        left: the second hand of a two-hand scene and its base frame (3, 3), or None (one hand).
         obj: object asset (mesh, mass, inertia, convex parts).
         table: the support box.
         object_pos0, object_quat0: initial object pose (m; w x y z).
@@ -79,6 +86,56 @@ class Scene:
     fps: float
     physics: PhysicsOptions = PhysicsOptions()
     notes: tuple[str, ...] = field(default=())
+    left: tuple[HandModel, np.ndarray] | None = None
+
+    @property
+    def hands(self) -> tuple[HandModel, ...]:
+        """The hands in control order: ``(hand,)`` or ``(hand, left hand)``."""
+        return (self.hand,) if self.left is None else (self.hand, self.left[0])
+
+    @property
+    def base_rots(self) -> tuple[np.ndarray, ...]:
+        """(3, 3) base frame of each hand of :attr:`hands`."""
+        return (self.base_rot,) if self.left is None else (self.base_rot, np.asarray(self.left[1], np.float64))
+
+    @property
+    def prefixes(self) -> tuple[str, ...]:
+        """Name prefix of each hand in the simulators' models: ``hand/`` alone, ``rhand/`` and ``lhand/``."""
+        return ("hand/",) if self.left is None else ("rhand/", "lhand/")
+
+    @property
+    def dof_slices(self) -> tuple[slice, ...]:
+        """Columns of each hand (6 base + J joints) in the control vector."""
+        out, start = [], 0
+        for h in self.hands:
+            out.append(slice(start, start + 6 + h.n_joints))
+            start += 6 + h.n_joints
+        return tuple(out)
+
+    @property
+    def n_dof(self) -> int:
+        """Length of the control vector: sum over hands of 6 + J."""
+        return self.dof_slices[-1].stop
+
+    @property
+    def kp_human(self) -> np.ndarray:
+        """(K,) for every robot keypoint of every hand, its index into the human keypoints of all hands
+        (``Demo.human_joints``: hand ``i``'s keypoints are offset by 21 i)."""
+        return np.concatenate([h.kp_human + N_KEYPOINTS * i for i, h in enumerate(self.hands)])
+
+    @property
+    def kp_metric(self) -> np.ndarray:
+        """(K,) whether each robot keypoint (all hands) counts in MPJPE and the hand term."""
+        return np.concatenate([h.kp_metric for h in self.hands])
+
+    def joint_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(D,) lower and upper bounds of the control vector: -inf/inf for the base coordinates and
+        unlimited joints, the joint limits otherwise."""
+        lo, hi = [], []
+        for h in self.hands:
+            lo += [np.full(6, -np.inf), np.where(h.joint_limited, h.joint_range[:, 0], -np.inf)]
+            hi += [np.full(6, np.inf), np.where(h.joint_limited, h.joint_range[:, 1], np.inf)]
+        return np.concatenate(lo), np.concatenate(hi)
 
 
 def size_table(
@@ -106,7 +163,7 @@ def size_table(
     rect = np.array([c[0] - max_half, c[0] + max_half, c[1] - max_half, c[1] + max_half])
     rect = np.array([min(rect[0], need[0]), max(rect[1], need[1]), min(rect[2], need[2]), max(rect[3], need[3])])
     notes: list[str] = []
-    pts = demo.right_joints.reshape(-1, 3)
+    pts = demo.human_joints.reshape(-1, 3)  # every hand's keypoints
     below = pts[pts[:, 2] < top - below_tol][:, :2]
     order = np.argsort(np.linalg.norm(below - c, axis=1))
     for x, y in below[order]:
@@ -144,7 +201,13 @@ def make_scene(
     base_rot: np.ndarray,
     obj: ObjectAsset,
     physics: PhysicsOptions | None = None,
+    left: tuple[HandModel, np.ndarray] | None = None,
 ) -> Scene:
+    """The scene of ``demo`` with ``hand`` on base frame ``base_rot`` (3, 3) and, for a demo with
+    ``left_joints``, the left hand and its base frame ``left`` (required then, refused otherwise)."""
+    if (left is None) != (demo.left_joints is None):
+        have = "no left hand" if left is None else "a left hand"
+        raise ValueError(f"make_scene: demo {demo.name} has {len(demo.sides)} hand(s), the scene was given {have}")
     table, notes = size_table(demo, obj)
     return Scene(
         hand=hand,
@@ -156,4 +219,5 @@ def make_scene(
         fps=float(demo.fps),
         physics=physics or PhysicsOptions(),
         notes=notes,
+        left=None if left is None else (left[0], np.asarray(left[1], dtype=np.float64)),
     )

@@ -1,0 +1,103 @@
+"""Two-handed demos: the two-hand MuJoCo scene (layout, keypoints as the retarget computes them, the left
+hand the mirror image of the right), controls, refusals of methods that handle one hand only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from helpers import box_object, scene_with
+
+M = np.diag([-1.0, 1.0, 1.0])  # Shadow's mirror_axis is x; base frames chosen so the root frame's x is world x
+
+
+@pytest.fixture(scope="module")
+def two_hand_scene(shadow):
+    from quasisim.assets.hand import load_hand
+
+    left = load_hand("shadow", side="left")
+    sc = scene_with(shadow, box_object(), object_pos=(2.0, 0.0, 0.825))
+    B = _rot(0.3, -0.2, 0.5)
+    return sc.__class__(**{**sc.__dict__, "base_rot": B, "left": (left, M @ B @ M)})
+
+
+def _rot(a: float, b: float, c: float) -> np.ndarray:
+    from quasisim.rotations import euler_xyz_to_mat
+
+    return np.asarray(euler_xyz_to_mat(np.array([a, b, c])), np.float64)
+
+
+def _retarget_kp(hand, base_rot: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Keypoints (K, 3) as the kinematic retarget computes them (its forward kinematics)."""
+    import jax.numpy as jnp
+
+    from quasisim.rotations import euler_xyz_to_mat
+    from quasisim.sim.kinematics import forward_kinematics, keypoints
+
+    q = jnp.asarray(q)
+    R = jnp.asarray(base_rot) @ euler_xyz_to_mat(q[3:6])
+    return np.asarray(keypoints(hand, forward_kinematics(hand, q[:3], R, q[6:])), np.float64)
+
+
+def _random_q(hand, rng: np.random.Generator) -> np.ndarray:
+    lo, hi = hand.joint_range[:, 0], hand.joint_range[:, 1]
+    return np.r_[rng.uniform(-0.3, 0.3, 3) + np.array([0, 0, 1.2]), rng.uniform(-0.5, 0.5, 3), rng.uniform(lo, hi)]
+
+
+def test_two_hand_scene_layout(two_hand_scene, shadow) -> None:
+    import mujoco
+
+    from quasisim.targets.mujoco_target import MujocoModel
+
+    sc = two_hand_scene
+    J = shadow.n_joints
+    assert sc.prefixes == ("rhand/", "lhand/") and sc.n_dof == 2 * (6 + J)
+    assert sc.dof_slices == (slice(0, 6 + J), slice(6 + J, 12 + 2 * J))
+    K = len(shadow.kp_names)
+    np.testing.assert_array_equal(sc.kp_human, np.r_[shadow.kp_human, shadow.kp_human + 21])
+    mm = MujocoModel(sc, visual=False)
+    m = mm.model
+    assert m.nq == 2 * (6 + J) + 7 and m.nu == 2 * 2 * (6 + J) and len(mm.kp_site) == 2 * K
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)]
+    assert names[0] == "rhand/base_tx" and names[6 + J] == "lhand/base_tx" and names[-1] == "object_free"
+    np.testing.assert_array_equal(mm.hand_qpos, np.arange(2 * (6 + J)))  # [right (6 + J), left (6 + J)]
+
+
+def test_keypoints_match_the_retarget_and_left_is_the_mirror_image(two_hand_scene) -> None:
+    import mujoco
+
+    from quasisim.targets.mujoco_target import MujocoModel
+
+    sc = two_hand_scene
+    mm = MujocoModel(sc, visual=False)
+    d = mujoco.MjData(mm.model)
+    rng = np.random.default_rng(0)
+    right, left = sc.hands
+    q_r = _random_q(right, rng)
+    # the mirrored pose: base position reflected, base angles (a, b, c) -> (a, -b, -c), the same joint angles
+    q_l = np.r_[M @ q_r[:3], q_r[3], -q_r[4], -q_r[5], q_r[6:]]
+    mm.set_state(d, np.r_[q_r, q_l], sc.object_pos0, sc.object_quat0)
+    kp = d.site_xpos[mm.kp_site]
+    K = len(right.kp_names)
+    np.testing.assert_allclose(kp[:K], _retarget_kp(right, sc.base_rots[0], q_r), atol=2e-5)
+    np.testing.assert_allclose(kp[K:], _retarget_kp(left, sc.base_rots[1], q_l), atol=2e-5)
+    np.testing.assert_allclose(kp[K:], kp[:K] @ M.T, atol=1e-9)  # the left hand is the reflection
+    assert np.abs(kp[K:] - kp[:K]).max() > 0.05  # and not the same hand
+
+
+def test_two_hand_rollout_records_both_hands(two_hand_scene) -> None:
+    from quasisim.targets import make_target
+
+    sc = two_hand_scene
+    q = np.tile(np.r_[_random_q(sc.hands[0], np.random.default_rng(1))], (5, 1))
+    q = np.concatenate([q, q * np.r_[-1, np.ones(sc.n_dof // 2 - 1)]], axis=1)  # left hand at mirrored x
+    r = make_target("mujoco", sc).rollout(q)
+    K = len(sc.hands[0].kp_names)
+    assert r.qpos.shape == (5, sc.n_dof) and r.keypoints.shape == (5, 2 * K, 3)
+    assert r.human_keypoint_index.max() > 21 and r.human_keypoint_index.min() < 21
+    with pytest.raises(ValueError, match=str(sc.n_dof)):
+        make_target("mujoco", sc).rollout(q[:, : sc.n_dof // 2])
+    from quasisim.errors import InputError
+
+    with pytest.raises(InputError, match="two-hand demos run in --target mujoco"):
+        make_target("pybullet", sc)
