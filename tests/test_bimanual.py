@@ -101,3 +101,66 @@ def test_two_hand_rollout_records_both_hands(two_hand_scene) -> None:
 
     with pytest.raises(InputError, match="two-hand demos run in --target mujoco"):
         make_target("pybullet", sc)
+
+
+# ---- the command line: a synthetic two-hand clip, refusals ---------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_hand_clip(tmp_path_factory):
+    from quasisim.data.synthetic import write_example
+
+    return write_example("cube_lift", tmp_path_factory.mktemp("two"), n_frames=12, two_hands=True)
+
+
+def _cli(*args: str):
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    return CliRunner().invoke(main, list(args))
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("--method", "ours"), "--method ours (two-hand demos run with --method kinematic or sample-target)"),
+        (("--method", "mpc-base"), "--method mpc-base (two-hand demos run with --method kinematic or sample-target)"),
+        (("--method", "ours", "--stages", "sample"), "--method ours (two-hand demos run with --method kinematic"),
+        (("--method", "sample-target", "--target", "pybullet"), "--target pybullet (two-hand demos run in"),
+    ],
+)
+def test_transfer_refuses_what_handles_one_hand(two_hand_clip, tmp_path, args, words) -> None:
+    r = _cli("transfer", str(two_hand_clip), "--out", str(tmp_path / "o"), *args)
+    assert r.exit_code == 2 and "Traceback" not in r.output
+    assert "field 'left_joints'" in r.output and words in r.output and len(r.output.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()  # refused before any work
+
+
+def test_kinematic_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
+    """retarget -> evaluate (MuJoCo) of the synthetic two-hand clip; one-hand controls refused for it."""
+    from quasisim.data.controls import load_controls
+
+    r = _cli("retarget", str(two_hand_clip), "--out", str(tmp_path / "rt"))
+    assert r.exit_code == 0, r.output
+    c = load_controls(tmp_path / "rt" / "kinematic.npz")
+    assert c.sides == ("right", "left") and c.q_targets.shape == (12, 2 * (6 + 22))
+    r = _cli("evaluate", str(two_hand_clip), str(tmp_path / "rt" / "kinematic.npz"), "--out", str(tmp_path / "ev"),
+             "--no-render")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    z = np.load(tmp_path / "ev" / "rollout.npz")
+    idx = z["human_keypoint_index"]
+    assert z["robot_keypoints"].shape == (12, len(idx), 3) and len(idx) == 16
+    np.testing.assert_array_equal(idx[8:], idx[:8] + 21)  # the left hand's: 21..41
+    import json
+
+    m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"], m["CD_mm"]]).all()
+    assert m["MPJPE_mm"] < 30.0  # both hands retargeted to their own keypoints (the mirrored one too)
+    r = _cli("evaluate", str(two_hand_clip), str(tmp_path / "rt" / "kinematic.npz"), "--out", str(tmp_path / "pb"),
+             "--target", "pybullet")  # fmt: skip
+    assert r.exit_code == 2 and "two-hand demos run in --target mujoco" in r.output
+    one = c.__class__(**{**c.__dict__, "left_base_rot": None, "q_targets": c.q_targets[:, :28]})
+    one.save(tmp_path / "one.npz")
+    r = _cli("evaluate", str(two_hand_clip), str(tmp_path / "one.npz"), "--out", str(tmp_path / "o1"))
+    assert r.exit_code == 2 and "field 'left_base_rot'" in r.output and "controls for 2 hand(s)" in r.output

@@ -21,6 +21,7 @@ import numpy as np
 
 from quasisim.assets.hand import HandModel
 from quasisim.data.demo import N_KEYPOINTS, Demo
+from quasisim.errors import QuasisimError
 from quasisim.rotations import np_quat_to_mat
 
 if TYPE_CHECKING:
@@ -205,9 +206,14 @@ def make_scene(
 ) -> Scene:
     """The scene of ``demo`` with ``hand`` on base frame ``base_rot`` (3, 3) and, for a demo with
     ``left_joints``, the left hand and its base frame ``left`` (required then, refused otherwise)."""
-    if (left is None) != (demo.left_joints is None):
-        have = "no left hand" if left is None else "a left hand"
-        raise ValueError(f"make_scene: demo {demo.name} has {len(demo.sides)} hand(s), the scene was given {have}")
+    if left is not None and demo.left_joints is None:
+        raise ValueError(f"make_scene: demo {demo.name} has one hand, the scene was given a left hand")
+    if left is None and demo.left_joints is not None:  # a one-hand code path reached with a two-hand demo
+        raise QuasisimError(
+            f"{demo.path or demo.name}: a demo with two hands (left_joints); this command handles one-hand demos "
+            "only (two hands: quasisim retarget, quasisim evaluate --target mujoco, quasisim transfer --method "
+            "kinematic or sample-target)"
+        )
     table, notes = size_table(demo, obj)
     return Scene(
         hand=hand,
