@@ -164,3 +164,36 @@ def test_kinematic_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     one.save(tmp_path / "one.npz")
     r = _cli("evaluate", str(two_hand_clip), str(tmp_path / "one.npz"), "--out", str(tmp_path / "o1"))
     assert r.exit_code == 2 and "field 'left_base_rot'" in r.output and "controls for 2 hand(s)" in r.output
+
+
+# ---- a real bimanual clip (ARCTIC, research-only: read from $QUASISIM_DATA/arctic, never copied) ---------
+
+
+@pytest.fixture(scope="module")
+def arctic_clip():
+    from conftest import DATA
+
+    p = DATA / "arctic" / "arctic_s2_box_grab_01.npz"
+    if not p.is_file():
+        pytest.skip(f"ARCTIC clip not found at {p} (set QUASISIM_DATA to the folder that holds arctic/)")
+    return p
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["kinematic", "sample-target"])
+def test_arctic_transfer_end_to_end(arctic_clip, tmp_path, method) -> None:
+    import json
+
+    out = tmp_path / method
+    more = ("--set", "sample_target.samples=4") if method == "sample-target" else ()
+    r = _cli("transfer", str(arctic_clip), "--method", method, "--out", str(out), "--no-render", *more)
+    assert r.exit_code == 0, r.output
+    for f in ("controls.npz", "metrics.json", "rollout.npz", "report.html", "summary.json", "manifest.json"):
+        assert (out / f).is_file(), f
+    z = np.load(out / "rollout.npz")
+    idx = z["human_keypoint_index"]
+    assert idx.min() < 21 <= idx.max() <= 41 and z["robot_keypoints"].shape == (60, len(idx), 3)
+    assert set(idx.tolist()) == set((idx[idx < 21]).tolist()) | set((idx[idx < 21] + 21).tolist())
+    m = json.loads((out / "metrics.json").read_text())
+    assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"], m["CD_mm"]]).all() and not m["unstable"]
+    assert json.loads((out / "summary.json").read_text())["hand"] == "shadow + shadow-left"
