@@ -103,6 +103,37 @@ def test_two_hand_rollout_records_both_hands(two_hand_scene) -> None:
         make_target("pybullet", sc)
 
 
+def test_sampling_over_both_hands() -> None:
+    """Noise and bounds per column of both hands; the smoothness term averages both bases, then all joints."""
+    import dataclasses
+
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.sample_target import Prediction, SamplingOptions, noise_std, sample_windows, window_costs
+
+    opts = SamplingOptions(
+        samples=300, horizon=3, knots=2, noise_base_pos=0.004, noise_base_rot=0.04, noise_joints=0.5,
+        noise_scales=(1.0,), mode="predictive", temperature=0.003, seed=0, threads=1, kinematic_alternative=False,
+    )  # fmt: skip
+    std = noise_std(opts, (2, 2))
+    np.testing.assert_allclose(std, [0.004] * 3 + [0.04] * 3 + [0.5] * 2 + [0.004] * 3 + [0.04] * 3 + [0.5] * 2)
+    lo = np.r_[np.full(6, -np.inf), -1.0, -1.0, np.full(6, -np.inf), 0.0, 0.0]
+    hi = -lo
+    hi[14:] = 0.2  # the left hand's joints within [0, 0.2]
+    w = sample_windows(np.random.default_rng(0), np.zeros((4, 16)), opts, lo, hi, std)
+    assert w[:, :, 14:].min() == 0.0 and w[:, :, 14:].max() == 0.2 and w[:, :, 6:8].min() == -1.0
+    assert np.abs(w[:, :, 8:11]).max() < 0.05  # the left base position gets base noise, not the joints'
+    # smoothness: a second difference 0.1 in the left hand's base x (column 8) counts as a base column
+    wins = np.zeros((1, 4, 16))
+    wins[0, 2, 8] = 0.1
+    pred = Prediction(np.zeros((1, 3, 16)), np.zeros((1, 3, 3)), np.tile([1.0, 0, 0, 0], (1, 3, 1)),
+                      np.zeros((1, 3, 2, 3)), 0)  # fmt: skip
+    W = dataclasses.replace(TransferConfig.from_yaml().weights, smooth=1.0)
+    ref = (np.zeros((3, 3)), np.tile([1.0, 0, 0, 0], (3, 1)), np.zeros((3, 2, 3)), np.ones(3))
+    c = window_costs(wins, pred, *ref, W, base_cols=np.r_[0:6, 8:14])
+    c0 = window_costs(np.zeros_like(wins), pred, *ref, W, base_cols=np.r_[0:6, 8:14])  # the tracking terms
+    np.testing.assert_allclose(c - c0, [(0.01 + 0.04) / (2 * 12)], rtol=1e-5)  # mean over the 12 base columns
+
+
 # ---- the command line: a synthetic two-hand clip, refusals ---------------------------------------------
 
 

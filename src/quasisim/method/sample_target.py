@@ -222,18 +222,26 @@ def window_costs(
     ref_kp: np.ndarray,
     frame_w: np.ndarray,
     weights: Weights,
+    base_cols: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N,) the MPC window objective of every candidate, measured in the target
     (:func:`quasisim.optim.objective.window_costs`, the objective of the gradient-based MPC).
 
     Args:
-        wins: (N, H + 1, 6 + J) candidate windows.  pred: their rollouts at frames 1..H of the window.
+        wins: (N, H + 1, D) candidate windows.  pred: their rollouts at frames 1..H of the window.
         ref_pos: (H, 3) m, ref_quat: (H, 4), ref_kp: (H, K_metric, 3) m: references of those frames.
         frame_w: (H,) 1 for frames inside the clip, 0 past its end.  weights: objective weights.
+        base_cols: the base-coordinate columns of every hand (two hands: 12 of D); None: one hand, the first
+            6 columns. The smoothness term averages the base columns and the joint columns separately.
     """
+    n_base = 6
+    if base_cols is not None:
+        joints = np.setdiff1d(np.arange(wins.shape[-1]), base_cols)
+        wins, n_base = wins[..., np.r_[base_cols, joints]], len(base_cols)
     costs = objective.window_costs(
-        pred.obj_pos, pred.obj_quat, pred.keypoints, wins, ref_pos, ref_quat, ref_kp, frame_w, weights.arrays()
-    )
+        pred.obj_pos, pred.obj_quat, pred.keypoints, wins, ref_pos, ref_quat, ref_kp, frame_w, weights.arrays(),
+        n_base=n_base,
+    )  # fmt: skip
     return np.asarray(costs, np.float64)
 
 
@@ -480,6 +488,8 @@ def _control_loop(
     ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
     lo, hi = scene.joint_bounds()  # every column of every hand (the base unbounded)
     std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
+    base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
+    base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
     work = padded(plan, H)  # the plan, shifted as we go
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
@@ -494,7 +504,7 @@ def _control_loop(
         pred = runner.predict(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-        costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights)
+        costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
         win, best = choose(wins, costs, opts)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
