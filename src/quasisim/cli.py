@@ -172,10 +172,8 @@ def evaluate(
     from quasisim.data.demo import content_hash, load_demo, warn_long_clip
     from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hand_of
     from quasisim.files import MANIFEST
-    from quasisim.targets import check_target_hands
 
     d = load_demo(demo)
-    check_target_hands(target, len(d.sides), demo)
     c = load_controls(controls)
     check_controls(d, c, hand_of(c, controls), controls)
     note = check_demo_hash(c, content_hash(d), controls, force)

@@ -12,14 +12,13 @@ from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, clips, head
 from quasisim.data.demo import load_demo
 from quasisim.eval.evaluate import demo_hands, evaluate_controls, load_object_for, scene_of_hands
 from quasisim.method.retarget import kinematic_controls
-from quasisim.targets import TWO_HAND_TARGETS
 
 
 def run_baseline(
     data_dir: Path, hand_name: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool
 ) -> str:
     """Kinematic retargeting replayed with PD control in each target, on every clip (two-hand clips: both
-    hands, in the targets that simulate two hands)."""
+    hands)."""
     rows: list[dict[str, Any]] = []
     paths = clips(data_dir, pattern)
     for p in tqdm(paths, desc="clips", unit="clip"):
@@ -31,8 +30,6 @@ def run_baseline(
         obj = load_object_for(demo)
         scene = scene_of_hands(demo, hands, controls.base_rots, obj)
         for tgt in targets:
-            if len(hands) > 1 and tgt not in TWO_HAND_TARGETS:
-                continue
             t1 = time.perf_counter()
             ev = evaluate_controls(demo, controls, tgt, out / demo.name / tgt if render else None, render, scene=scene)
             rows.append(

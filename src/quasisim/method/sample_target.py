@@ -62,7 +62,7 @@ from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
-from quasisim.targets import TARGETS, TargetRollout, check_target_hands
+from quasisim.targets import TARGETS, TargetRollout
 from quasisim.targets.scene import Scene
 
 MODES = ("predictive", "mppi")
@@ -388,7 +388,7 @@ class PybulletRunner:
 
         self.target = PybulletTarget(scene)
         self.substeps = self.target.substeps
-        self.metric = np.flatnonzero(scene.hand.kp_metric)
+        self.metric = np.flatnonzero(scene.kp_metric)
         self._rec: list[tuple[np.ndarray, ...]] = []
 
     def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None:
@@ -434,7 +434,6 @@ class PybulletRunner:
 
 def make_runner(target: str, scene: Scene, opts: SamplingOptions) -> Runner:
     """The runner of target simulator ``target`` (one of :data:`quasisim.targets.TARGETS`)."""
-    check_target_hands(target, len(scene.hands))
     if target == "mujoco":
         return MujocoRunner(scene, opts.threads)
     if target == "pybullet":

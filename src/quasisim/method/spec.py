@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from quasisim.errors import InputError, QuasisimError, choice_error
-from quasisim.targets import TARGETS, check_target_hands
+from quasisim.targets import TARGETS
 
 STAGES = ("1", "2", "3", "mpc", "sample", "select")
 METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
@@ -56,9 +56,9 @@ class TransferSpec:
 
 
 def check_hands(spec: TransferSpec, n_hands: int, path: str | Path | None = None) -> None:
-    """Refuse, before any work, a two-hand demo (``path``) for a method or target that handles one hand only
-    (the quasi-physical stages 1/2/3, ``mpc-*``, ``ours``; PyBullet): an :class:`InputError` naming the
-    methods that support two hands."""
+    """Refuse, before any work, a two-hand demo (``path``) for a method that handles one hand only (the
+    quasi-physical stages 1/2/3, ``mpc-*``, ``ours``): an :class:`InputError` naming the methods that
+    support two hands."""
     if n_hands < 2:
         return
     if spec.method not in TWO_HAND_METHODS:
@@ -66,7 +66,6 @@ def check_hands(spec: TransferSpec, n_hands: int, path: str | Path | None = None
             path, "left_joints", f"a one-hand demo for --method {spec.method} (two-hand demos run with --method "
             f"{' or '.join(TWO_HAND_METHODS)})", "a demo with two hands",
         )  # fmt: skip
-    check_target_hands(spec.target, n_hands, path)
 
 
 def parse_stages(text: str) -> tuple[str, ...]:

@@ -11,11 +11,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from quasisim.errors import InputError, choice_error
+from quasisim.errors import choice_error
 from quasisim.files import save_npz_atomic
 
 TARGETS = ("mujoco", "pybullet")
-TWO_HAND_TARGETS = ("mujoco",)  # targets that simulate two hands (a demo with left_joints)
 # A rollout faster than this is a numerical blow-up, not a manipulation (a dropped object reaches ~4 m/s).
 MAX_OBJECT_SPEED = 10.0  # m/s, object origin between two frames
 MAX_HAND_SPEED = 30.0  # m/s, any robot keypoint between two frames
@@ -101,20 +100,9 @@ class Target(Protocol):
     def rollout(self, q_targets: np.ndarray) -> TargetRollout: ...
 
 
-def check_target_hands(name: str, n_hands: int, path: str | Path | None = None) -> None:
-    """Refuse (:class:`~quasisim.errors.InputError`, field ``left_joints`` of the demo ``path``) a two-hand
-    demo for a target that simulates one hand only."""
-    if n_hands > 1 and name not in TWO_HAND_TARGETS:
-        raise InputError(
-            path, "left_joints", f"a one-hand demo for --target {name} (two-hand demos run in --target "
-            f"{' or '.join(TWO_HAND_TARGETS)})", "a demo with two hands",
-        )  # fmt: skip
-
-
 def make_target(name: str, scene: Any) -> Target:
     """Build target simulator ``name`` (one of :data:`TARGETS`) for ``scene`` (each target's module, with
     its simulator, loads only when it is asked for)."""
-    check_target_hands(name, len(scene.hands))
     if name == "mujoco":
         from quasisim.targets.mujoco_target import MujocoTarget
 
