@@ -146,8 +146,14 @@ def size_table(
     clearance: float = 0.04,
     max_half: float = 0.4,
     below_tol: float = 0.01,
+    stand_half: float = 0.03,
 ) -> tuple[Table, tuple[str, ...]]:
     """Size the table footprint from the demo (see module docstring).
+
+    When hand keypoints below the top lie within ``clearance`` of the object's footprint (ARCTIC: fingers
+    under the edges of an object that rests on a small stand), the support becomes a stand instead: the
+    largest box (cut as above) around a square of half-size ``stand_half`` under the object's centre of mass
+    at frame 0 that keeps those keypoints ``clearance`` away; one note says so.
 
     Args:
         margin: the footprint covers the object's initial footprint grown by this much (m).
@@ -155,17 +161,49 @@ def size_table(
         max_half: largest half-extent of the footprint around the object (m).
         below_tol: a keypoint counts as below the top when it is more than this below it (m); fingertips
             touching the table while grasping sit a few mm under it in motion-capture data.
+        stand_half: half-size of the smallest support, a square under the object's centre of mass (m).
     """
     top = float(demo.support_height)
     R0 = np_quat_to_mat(demo.object_quat[0])
     v = obj.vertices @ R0.T + demo.object_pos[0]
     need = np.array([v[:, 0].min() - margin, v[:, 0].max() + margin, v[:, 1].min() - margin, v[:, 1].max() + margin])
     c = np.array([(need[0] + need[1]) / 2, (need[2] + need[3]) / 2])
-    rect = np.array([c[0] - max_half, c[0] + max_half, c[1] - max_half, c[1] + max_half])
-    rect = np.array([min(rect[0], need[0]), max(rect[1], need[1]), min(rect[2], need[2]), max(rect[3], need[3])])
-    notes: list[str] = []
     pts = demo.human_joints.reshape(-1, 3)  # every hand's keypoints
     below = pts[pts[:, 2] < top - below_tol][:, :2]
+    rect, stuck = _carve(_around(c, max_half, need), need, below, c, clearance)
+    if not stuck:
+        return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), ()
+    com = (R0 @ np.asarray(obj.com) + demo.object_pos[0])[:2]
+    stand = np.array([com[0] - stand_half, com[0] + stand_half, com[1] - stand_half, com[1] + stand_half])
+    rect, stuck_stand = _carve(_around(c, max_half, stand), stand, below, com, clearance)
+    notes = [
+        f"{len(stuck)} hand keypoint(s) below the table top within {clearance * 100:g} cm of the object's footprint: "
+        f"the support is a stand under the object's centre of mass ({stand_half * 200:g} cm square or larger) "
+        "that keeps them clear"
+    ]
+    if stuck_stand:
+        x, y = stuck_stand[0]
+        notes.append(
+            f"{len(stuck_stand)} hand keypoint(s) below the table top over the stand, e.g. at ({x:.3f}, {y:.3f}); "
+            "kept the stand"
+        )
+    return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), tuple(notes)
+
+
+def _around(c: np.ndarray, half: float, need: np.ndarray) -> np.ndarray:
+    """[xmin, xmax, ymin, ymax]: the square of half-size ``half`` around ``c`` (2,), grown to cover ``need``."""
+    rect = np.array([c[0] - half, c[0] + half, c[1] - half, c[1] + half])
+    return np.array([min(rect[0], need[0]), max(rect[1], need[1]), min(rect[2], need[2]), max(rect[3], need[3])])
+
+
+def _carve(
+    rect: np.ndarray, need: np.ndarray, below: np.ndarray, c: np.ndarray, clearance: float
+) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    """Cut ``rect`` [xmin, xmax, ymin, ymax] (m) so that no point of ``below`` (N, 2), nearest to ``c`` first,
+    lies within ``clearance`` of it, never cutting into ``need``; each cut moves the one side that keeps the
+    most area. Returns the rectangle and the points that could not be cleared (kept)."""
+    rect = rect.copy()
+    stuck: list[tuple[float, float]] = []
     order = np.argsort(np.linalg.norm(below - c, axis=1))
     for x, y in below[order]:
         inside = rect[0] - clearance < x < rect[1] + clearance and rect[2] - clearance < y < rect[3] + clearance
@@ -181,9 +219,7 @@ def size_table(
         if y + clearance <= need[2]:
             options.append((2, y + clearance))
         if not options:
-            notes.append(
-                f"hand keypoint at ({x:.3f}, {y:.3f}) is below the table top inside the object's footprint; kept the footprint"
-            )
+            stuck.append((float(x), float(y)))
             continue
 
         def area(opt: tuple[int, float]) -> float:
@@ -193,7 +229,7 @@ def size_table(
 
         k, val = max(options, key=area)
         rect[k] = val
-    return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), tuple(notes)
+    return rect, stuck
 
 
 def make_scene(
