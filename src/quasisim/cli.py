@@ -170,12 +170,12 @@ def evaluate(
     _setup_runtime()
     from quasisim.data.controls import check_demo_hash, load_controls
     from quasisim.data.demo import content_hash, load_demo, warn_long_clip
-    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hand_of
+    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hands_of
     from quasisim.files import MANIFEST
 
     d = load_demo(demo)
     c = load_controls(controls)
-    check_controls(d, c, hand_of(c, controls), controls)
+    check_controls(d, c, hands_of(c, controls), controls)
     note = check_demo_hash(c, content_hash(d), controls, force)
     _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
     if note:

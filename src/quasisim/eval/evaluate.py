@@ -87,7 +87,7 @@ def scene_surface(scene: Scene, qpos: np.ndarray) -> np.ndarray:
     return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
 
 
-def hand_of(controls: Controls, path: str | Path | None) -> tuple[HandModel, ...]:
+def hands_of(controls: Controls, path: str | Path | None) -> tuple[HandModel, ...]:
     """The hand(s) that ``controls`` (read from ``path``) were made for (:func:`demo_hands`); an unknown hand
     names the controls file."""
     try:
