@@ -110,3 +110,59 @@ def test_real_clips_load(data_dir: Path) -> None:
         d = load_demo(p)
         assert d.n_frames >= 50
         np.testing.assert_allclose(np.linalg.norm(d.object_quat, axis=1), 1.0, atol=1e-3)
+
+
+# ---- two hands: the optional left_joints -------------------------------------------------------------
+
+
+def _left_of(right: np.ndarray) -> np.ndarray:
+    """A left hand: the mirror image (x -> -x) of a right hand, moved 0.15 m along -x."""
+    left = np.asarray(right, np.float64) * np.array([-1.0, 1.0, 1.0])
+    return (left - np.array([0.15, 0.0, 0.0])).astype(np.float32)
+
+
+def _right(T: int = 5) -> np.ndarray:
+    return np.tile(hand_keypoints(np.zeros((5, 3))) + np.array([0.0, 0.0, 0.9]), (T, 1, 1)).astype(np.float32)
+
+
+def test_left_joints_roundtrip(tmp_path: Path) -> None:
+    left = _left_of(_right())
+    d = load_demo(_write(tmp_path, left_joints=left))
+    assert d.sides == ("right", "left") and d.human_joints.shape == (5, 42, 3)
+    np.testing.assert_allclose(d.human_joints[:, 21:], left, atol=1e-6)
+    save_demo(d, tmp_path / "copy.npz")
+    d2 = load_demo(tmp_path / "copy.npz")
+    np.testing.assert_allclose(d2.left_joints, d.left_joints)
+    from quasisim.data.demo import content_hash
+
+    one = load_demo(_write(tmp_path / "one"))
+    assert one.sides == ("right",) and one.human_joints is one.right_joints
+    assert content_hash(d2) == content_hash(d) != content_hash(one)
+    assert d.slice(1, 4).left_joints.shape == (3, 21, 3)
+
+
+@pytest.mark.parametrize(
+    ("left", "words"),
+    [
+        (np.zeros((5, 20, 3)), "shape (T, 21, 3)"),
+        (np.zeros((4, 21, 3)), "shape (5, 21, 3) (same T as right_joints)"),
+        (np.full((5, 21, 3), np.nan), "finite"),
+        (_right() * 100.0, "within +-10 m"),
+        # the right hand's keypoints given as the left hand: a mirrored (wrong-handed) left hand
+        (_right() - np.array([0.15, 0.0, 0.0], np.float32), "a left hand (thumb on the palm side"),
+        (_left_of(_right()) + np.array([0.0, 0.0, 3.0], np.float32), "within 1 m of the left hand"),
+    ],
+)
+def test_bad_left_joints(tmp_path: Path, left: np.ndarray, words: str) -> None:
+    p = _write(tmp_path, left_joints=left)
+    with pytest.raises(InputError) as e:
+        load_demo(p)
+    msg = str(e.value)
+    field = "object_pos" if "within 1 m" in words else "left_joints"
+    assert str(p) in msg and f"'{field}'" in msg and words in msg and "\n" not in msg
+
+
+def test_mirrored_left_hand_is_named(tmp_path: Path) -> None:
+    p = _write(tmp_path, left_joints=_right() - np.array([0.15, 0.0, 0.0], np.float32))
+    with pytest.raises(InputError, match=r"got a right or mirrored hand in 100% of the frames"):
+        load_demo(p)

@@ -104,6 +104,7 @@ def test_mpjpe_and_rollout_metrics() -> None:
         name="x",
         n_frames=T,
         right_joints=joints,
+        human_joints=joints,
         object_pos=np.zeros((T, 3)),
         object_quat=np.tile([1.0, 0, 0, 0], (T, 1)),
     )
@@ -118,6 +119,23 @@ def test_mpjpe_and_rollout_metrics() -> None:
     m, _pf = evaluate_rollout(demo, roll, robot_surface=None)
     assert abs(m["MPJPE_mm"] - 5.0) < 1e-9 and m["R_err_deg"] == 0.0 and m["T_err_cm"] == 0.0
     assert np.isnan(m["CD_mm"])
+
+
+def test_mpjpe_over_both_hands() -> None:
+    """Two hands: robot keypoints index [right_joints, left_joints]; the left hand's indices are 21..41."""
+    T = 3
+    rng = np.random.default_rng(1)
+    right, left = rng.normal(size=(T, 21, 3)), rng.normal(size=(T, 21, 3))
+    both = np.concatenate([right, left], axis=1)
+    idx = np.array([0, 4, 8, 21, 25, 29])
+    kp = both[:, idx].copy()
+    kp[:, 3:] += np.array([0.0, 0.0, 0.010])  # the left hand's keypoints 10 mm off, the right hand's exact
+    demo = SimpleNamespace(name="x", n_frames=T, right_joints=right, left_joints=left, human_joints=both,
+                           object_pos=np.zeros((T, 3)), object_quat=np.tile([1.0, 0, 0, 0], (T, 1)))  # fmt: skip
+    roll = SimpleNamespace(object_pos=demo.object_pos, object_quat=demo.object_quat, robot_keypoints=kp,
+                           human_keypoint_index=idx)  # fmt: skip
+    m, _pf = evaluate_rollout(demo, roll, robot_surface=None)
+    assert abs(m["MPJPE_mm"] - 5.0) < 1e-9  # the mean over both hands' keypoints
 
 
 def test_human_surface_points_on_capsules() -> None:

@@ -10,13 +10,15 @@ from helpers import box_object
 from quasisim.targets.scene import size_table
 
 
-def _demo(joints: np.ndarray, top: float = 0.8) -> SimpleNamespace:
+def _demo(joints: np.ndarray, top: float = 0.8, left: np.ndarray | None = None) -> SimpleNamespace:
     T = joints.shape[0]
     return SimpleNamespace(
         support_height=top,
         object_pos=np.tile([0.0, 0.0, top + 0.025], (T, 1)),
         object_quat=np.tile([1.0, 0, 0, 0], (T, 1)),
         right_joints=joints,
+        left_joints=left,
+        human_joints=joints if left is None else np.concatenate([joints, left], axis=1),
     )
 
 
@@ -55,3 +57,34 @@ def test_real_clips_tables(data_dir) -> None:
         pts = d.right_joints.reshape(-1, 3)
         low = pts[pts[:, 2] < d.support_height - 0.01]
         assert len(low) > 0 and not table.contains_xy(low[:, :2]).any()
+
+
+def test_table_excludes_low_keypoints_of_both_hands() -> None:
+    """ARCTIC: the object starts on a small stand and either hand may pass below its top beside it."""
+    obj = box_object()
+    right = np.zeros((2, 21, 3))
+    right[:, :, 2] = 0.9
+    left = right.copy()
+    left[1, 8] = [-0.2, 0.0, 0.75]  # the left hand's index tip below the top, 20 cm to the -x side
+    one, _ = size_table(_demo(right), obj)
+    two, notes = size_table(_demo(right, left=left), obj)
+    assert one.contains_xy(np.array([-0.2, 0.0]))  # the right hand alone leaves the full footprint
+    assert not notes and not two.contains_xy(np.array([-0.2, 0.0]), pad=0.039)
+    assert two.contains_xy(np.array([[0.03, 0.03], [-0.03, -0.03]])).all()  # still under the object
+
+
+def test_stand_when_hands_pass_under_the_object_edges() -> None:
+    """Keypoints below the top within the object's footprint (ARCTIC: fingers under the edges of an object on
+    a small stand): the support becomes a stand under the object's centre of mass that keeps them clear."""
+    obj = box_object(extents=(0.3, 0.1, 0.05))  # 30 cm along x
+    right = np.zeros((2, 21, 3))
+    right[:, :, 2] = 0.9
+    left = right.copy()
+    right[1, 8] = [0.14, 0.0, 0.78]  # under the +x edge, 2 cm below the top
+    left[1, 8] = [-0.14, 0.0, 0.78]  # under the -x edge
+    table, notes = size_table(_demo(right, left=left), obj)
+    assert len(notes) == 1 and "stand under the object's centre of mass" in notes[0]
+    assert not table.contains_xy(np.array([[0.14, 0.0], [-0.14, 0.0]]), pad=0.039).any()
+    assert table.contains_xy(np.array([[0.03, 0.03], [-0.03, -0.03]])).all()  # the 6 cm square under the COM
+    one, notes_one = size_table(_demo(right), obj)  # one hand under one edge: a stand as well
+    assert notes_one and not one.contains_xy(np.array([0.14, 0.0]), pad=0.039) and one.contains_xy(np.array([-0.14, 0]))

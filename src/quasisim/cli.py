@@ -134,18 +134,21 @@ def example(out: Path, names: tuple[str, ...], frames: int, overwrite: bool) -> 
 def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
     """Kinematic retargeting of DEMO to a robot hand: writes OUT/kinematic.npz (PD targets per frame)."""
     _setup_runtime()
-    from quasisim.assets.hand import load_hand
+    import numpy as np
+
     from quasisim.data.demo import load_demo, warn_long_clip
+    from quasisim.eval.evaluate import demo_hands
     from quasisim.method.retarget import kinematic_controls
 
     d = load_demo(demo)
-    h = load_hand(hand)
+    hands = demo_hands(hand, d.sides)  # two-hand demos: the hand and its mirror image
     _outputs_free(out, ("kinematic.npz",), overwrite)
     warn_long_clip(d, 0.05, 1.0, "retargeting")
     t0 = time.perf_counter()
-    c = kinematic_controls(h, d, hand, progress=True)
+    c = kinematic_controls(hands, d, hand, progress=True)
     path = c.save(out / "kinematic.npz")
-    err = c.extras["retarget_keypoint_error"][:, h.kp_metric].mean() * 1e3
+    metric = np.concatenate([h.kp_metric for h in hands])
+    err = c.extras["retarget_keypoint_error"][:, metric].mean() * 1e3
     click.echo(
         f"{path}  ({d.n_frames} frames, mean metric keypoint error {err:.1f} mm, {time.perf_counter() - t0:.1f} s)"
     )
@@ -167,12 +170,12 @@ def evaluate(
     _setup_runtime()
     from quasisim.data.controls import check_demo_hash, load_controls
     from quasisim.data.demo import content_hash, load_demo, warn_long_clip
-    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hand_of
+    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hands_of
     from quasisim.files import MANIFEST
 
     d = load_demo(demo)
     c = load_controls(controls)
-    check_controls(d, c, hand_of(c, controls), controls)
+    check_controls(d, c, hands_of(c, controls), controls)
     note = check_demo_hash(c, content_hash(d), controls, force)
     _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
     if note:

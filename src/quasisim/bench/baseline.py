@@ -8,27 +8,27 @@ from typing import Any
 
 from tqdm import tqdm
 
-from quasisim.assets.hand import load_hand
 from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, clips, header, lifted, publish, summary_rows
 from quasisim.data.demo import load_demo
-from quasisim.eval.evaluate import evaluate_controls, load_object_for, scene_for
+from quasisim.eval.evaluate import demo_hands, evaluate_controls, load_object_for, scene_of_hands
 from quasisim.method.retarget import kinematic_controls
 
 
 def run_baseline(
     data_dir: Path, hand_name: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool
 ) -> str:
-    """Kinematic retargeting replayed with PD control in each target, on every clip."""
-    hand = load_hand(hand_name)
+    """Kinematic retargeting replayed with PD control in each target, on every clip (two-hand clips: both
+    hands)."""
     rows: list[dict[str, Any]] = []
     paths = clips(data_dir, pattern)
     for p in tqdm(paths, desc="clips", unit="clip"):
         demo = load_demo(p)
         t0 = time.perf_counter()
-        controls = kinematic_controls(hand, demo, hand_name)
+        hands = demo_hands(hand_name, demo.sides)
+        controls = kinematic_controls(hands, demo, hand_name)
         t_ret = time.perf_counter() - t0
         obj = load_object_for(demo)
-        scene = scene_for(demo, hand, controls.base_rot, obj)
+        scene = scene_of_hands(demo, hands, controls.base_rots, obj)
         for tgt in targets:
             t1 = time.perf_counter()
             ev = evaluate_controls(demo, controls, tgt, out / demo.name / tgt if render else None, render, scene=scene)

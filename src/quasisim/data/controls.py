@@ -12,6 +12,9 @@ key            shape        meaning
 ``base_rot``   (3, 3)       fixed frame of the base hinges
 ``q_targets``  (T, 6 + J)   PD position targets: base x y z (m), base angles (rad), joints (rad/m)
 ``joint_names`` (J,)        names of the joints, in column order after the 6 base columns
+``left_base_rot`` (3, 3)    optional: two hands (a demo with ``left_joints``): the base frame of the left
+                            hand (``hand``'s mirror image); ``q_targets`` is then (T, 2 (6 + J)),
+                            the right hand's columns, then the left hand's
 ============== ============ =====================================================================
 """
 
@@ -41,6 +44,17 @@ class Controls:
     joint_names: tuple[str, ...]
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     demo_hash: str = ""
+    left_base_rot: np.ndarray | None = None
+
+    @property
+    def sides(self) -> tuple[str, ...]:
+        """The hands these controls drive: ``("right",)`` or ``("right", "left")``."""
+        return ("right",) if self.left_base_rot is None else ("right", "left")
+
+    @property
+    def base_rots(self) -> tuple[np.ndarray, ...]:
+        """(3, 3) base frame of each hand, in column order."""
+        return (self.base_rot,) if self.left_base_rot is None else (self.base_rot, self.left_base_rot)
 
     @property
     def n_frames(self) -> int:
@@ -48,6 +62,10 @@ class Controls:
 
     def save(self, path: str | Path) -> Path:
         extras = {f"extra_{k}": np.asarray(v) for k, v in self.extras.items()}
+        columns = [*BASE_NAMES, *self.joint_names]
+        if self.left_base_rot is not None:
+            columns = [f"{side}/{c}" for side in self.sides for c in columns]
+            extras["left_base_rot"] = np.asarray(self.left_base_rot, dtype=np.float64)
         return save_npz_atomic(
             path,
             format=np.array(FORMAT),
@@ -59,7 +77,7 @@ class Controls:
             base_rot=np.asarray(self.base_rot, dtype=np.float64),
             q_targets=np.asarray(self.q_targets, dtype=np.float64),
             joint_names=np.array(self.joint_names),
-            column_names=np.array([*BASE_NAMES, *self.joint_names]),
+            column_names=np.array(columns),
             **extras,
         )
 
@@ -75,24 +93,27 @@ def load_controls(path: str | Path) -> Controls:
         if fmt != FORMAT:
             raise InputError(path, "format", f"'{FORMAT}'", f"'{fmt}'")
         names = _joint_names(npz_member(z, "joint_names", path), path)
+        left = npz_array(z, "left_base_rot", path, (3, 3)) if "left_base_rot" in z.files else None
+        n_hands = 1 if left is None else 2
         c = Controls(
             hand=npz_str(z, "hand", path),
             demo=npz_str(z, "demo", path) if "demo" in z.files else "",
             method=npz_str(z, "method", path) if "method" in z.files else "",
             fps=npz_number(z, "fps", path, *FPS_RANGE),
             base_rot=npz_array(z, "base_rot", path, (3, 3)),
-            q_targets=npz_array(z, "q_targets", path, ("T", 6 + len(names))),
+            q_targets=npz_array(z, "q_targets", path, ("T", n_hands * (6 + len(names)))),
             joint_names=names,
             extras={k[6:]: npz_member(z, k, path) for k in z.files if k.startswith("extra_")},
             demo_hash=npz_str(z, "demo_hash", path) if "demo_hash" in z.files else "",
+            left_base_rot=left,
         )
         for k in z.files:  # every member must be readable
             npz_member(z, k, path)
     if c.q_targets.shape[0] < 2:
-        raise InputError(path, "q_targets", f"shape (T >= 2, {6 + len(names)})", str(c.q_targets.shape))
-    R = c.base_rot
-    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0):
-        raise InputError(path, "base_rot", "a 3x3 rotation matrix", str(R.round(4).tolist()))
+        raise InputError(path, "q_targets", f"shape (T >= 2, {c.q_targets.shape[1]})", str(c.q_targets.shape))
+    for key, R in zip(("base_rot", "left_base_rot"), c.base_rots, strict=False):
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0):
+            raise InputError(path, key, "a 3x3 rotation matrix", str(R.round(4).tolist()))
     return c
 
 

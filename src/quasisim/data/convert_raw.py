@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 
 from quasisim.data import mano
-from quasisim.data.demo import Demo, save_demo, validate_arrays
+from quasisim.data.demo import Demo, save_demo
 from quasisim.errors import InputError
-from quasisim.files import atomic_path, save_npz_atomic
+from quasisim.files import atomic_path
 
 ARCTIC_FPS = 30.0  # ARCTIC's ground truth is per video frame (30 fps); the files do not state it
 HINGE_WARN = 0.1  # rad; the hinge moving more than this within a clip is reported (rigid route)
@@ -174,36 +174,11 @@ def _write_mesh(m: Any, out: Path, stem: str, source: Path) -> Path:
     return mesh_path
 
 
-def _mirror_check(demo: Demo, left: np.ndarray, out: Path) -> None:
-    """Validate ``left`` (T, 21, 3) like a right hand after mirroring x (a left hand mirrored is a right hand)."""
+def save_clip(demo: Demo, out: Path, left: np.ndarray | None) -> Path:
+    """``save_demo`` of ``demo`` with ``left_joints`` (T, 21, 3) when given (validated as a left hand there)."""
     from dataclasses import replace
 
-    M = np.diag([-1.0, 1.0, 1.0])
-    mirrored = replace(demo, right_joints=left @ M, object_pos=demo.object_pos @ M)
-    try:
-        validate_arrays(mirrored, out)
-    except InputError as e:
-        field = "left_joints" if e.field == "right_joints" else e.field
-        expected = f"a left hand: mirrored (x -> -x), {e.expected}"
-        raise InputError(e.path, field, expected, e.got) from None
-
-
-def save_clip(demo: Demo, out: Path, left: np.ndarray | None) -> Path:
-    """``save_demo``, plus ``left_joints`` (T, 21, 3) when given.
-
-    Until this branch's demo saver knows ``left_joints`` (the optional two-hand key; branch ``bimanual``),
-    the key is checked here (mirrored, with the right-hand checks) and added to the written file; after the
-    merge this becomes ``save_demo(replace(demo, left_joints=left), out)``.
-    """
-    if left is None:
-        return save_demo(demo, out)
-    validate_arrays(demo, out)
-    _mirror_check(demo, left, out)
-    save_demo(demo, out)
-    with np.load(out, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
-    arrays["left_joints"] = np.asarray(left, dtype=np.float32)
-    return save_npz_atomic(out, **arrays)
+    return save_demo(demo if left is None else replace(demo, left_joints=np.asarray(left, dtype=np.float32)), out)
 
 
 def _support(vertices: np.ndarray, R0: np.ndarray, p0: np.ndarray) -> float:

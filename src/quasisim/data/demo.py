@@ -14,6 +14,7 @@ key                shape       unit  meaning
 ``object_pos``     (T, 3)      m     object frame origin in the world
 ``object_quat``    (T, 4)            object orientation, unit quaternion w, x, y, z
 ``support_height`` ()          m     z of the table top under the object
+``left_joints``    (T, 21, 3)  m     optional: left-hand keypoints, same conventions (true positions, not mirrored)
 =================  ==========  ====  =====================================================
 """
 
@@ -66,6 +67,7 @@ SUPPORT_RANGE = (0.01, 5.0)  # m, table-top height above the floor
 BONE_RANGE = (0.005, 0.15)  # m, median length over the clip of each bone (GRAB hands: 15-95 mm)
 PALM_RATIO = 1.3  # median wrist-to-finger-base length over the longest median finger bone (reordered keypoints: < 1.1)
 MIN_HAND_EXTENT = 0.02  # m, wrist to the farthest keypoint in every frame (less: a collapsed skeleton)
+SIDES = ("right", "left")  # the demo's hands, in the order of every concatenation over hands
 HAND_OBJECT_MAX = 1.0  # m, the hand (keypoint mean) must come this close to the object origin at some frame
 REST_GAP = (-0.01, 0.2)  # m, the object's lowest point at frame 0 relative to the table top (GRAB, ARCTIC: 0)
 LONG_CLIP = 1500  # frames; longer clips get a warning with an estimate of time and memory
@@ -86,6 +88,7 @@ class Demo:
         support_height: table-top height (m).
         source: free-form provenance string.
         path: file this demo was read from, if any.
+        left_joints: (T, 21, 3) left-hand keypoints (m; true positions, not mirrored), or None (one hand).
     """
 
     name: str
@@ -99,6 +102,26 @@ class Demo:
     source: str = ""
     path: Path | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    left_joints: np.ndarray | None = None
+
+    @property
+    def sides(self) -> tuple[str, ...]:
+        """The demo's hands: ``("right",)`` or ``("right", "left")``."""
+        return SIDES if self.left_joints is not None else SIDES[:1]
+
+    @property
+    def human_joints(self) -> np.ndarray:
+        """(T, 21 H, 3) keypoints of all H hands, ``[right_joints, left_joints]`` (left indices 21..41)."""
+        if self.left_joints is None:
+            return self.right_joints
+        return np.concatenate([self.right_joints, self.left_joints], axis=1)
+
+    def joints_of(self, side: str) -> np.ndarray:
+        """(T, 21, 3) the keypoints of the ``side`` hand."""
+        j = self.right_joints if side == "right" else self.left_joints if side == "left" else None
+        if j is None:
+            raise ValueError(f"demo {self.name} has no {side} hand")
+        return j
 
     @property
     def n_frames(self) -> int:
@@ -121,6 +144,7 @@ class Demo:
             support_height=self.support_height,
             source=self.source,
             path=self.path,
+            left_joints=None if self.left_joints is None else self.left_joints[start:stop],
         )
         validate_arrays(d, self.path)
         return d
@@ -133,11 +157,15 @@ def validate_arrays(demo: Demo, path: str | Path | None) -> None:
         raise InputError(path, "right_joints", f"shape (T, {N_KEYPOINTS}, 3)", f"{demo.right_joints.shape}")
     if T < 2:
         raise InputError(path, "right_joints", "at least 2 frames", f"{T} frame(s)")
+    if demo.left_joints is not None and demo.left_joints.shape != (T, N_KEYPOINTS, 3):
+        raise InputError(
+            path, "left_joints", f"shape ({T}, {N_KEYPOINTS}, 3) (same T as right_joints)", f"{demo.left_joints.shape}"
+        )
     for key, arr, tail in (("object_pos", demo.object_pos, (3,)), ("object_quat", demo.object_quat, (4,))):
         if arr.shape != (T, *tail):
             raise InputError(path, key, f"shape ({T}, {tail[0]}) (same T as right_joints)", f"{arr.shape}")
     for key, arr in (
-        ("right_joints", demo.right_joints),
+        *_hand_arrays(demo),
         ("object_pos", demo.object_pos),
         ("object_quat", demo.object_quat),
     ):
@@ -162,54 +190,68 @@ def validate_arrays(demo: Demo, path: str | Path | None) -> None:
     validate_scales(demo, path)
 
 
+def _hand_arrays(demo: Demo) -> list[tuple[str, np.ndarray]]:
+    """(field name, (T, 21, 3) keypoints) of each of the demo's hands."""
+    return [(f"{side}_joints", demo.joints_of(side)) for side in demo.sides]
+
+
 def validate_scales(demo: Demo, path: str | Path | None) -> None:
-    """Refuse coordinates far from a table top, a hand skeleton that is not a human hand's (collapsed
-    keypoints, bones far from human lengths, e.g. centimetres stored as metres) and a hand that never comes
-    near the object."""
-    for key, arr in (("right_joints", demo.right_joints), ("object_pos", demo.object_pos)):
+    """Refuse coordinates far from a table top, a hand skeleton that is not a human hand's of its side
+    (collapsed keypoints, bones far from human lengths, e.g. centimetres stored as metres, a mirrored hand)
+    and a hand that never comes near the object."""
+    for key, arr in (*_hand_arrays(demo), ("object_pos", demo.object_pos)):
         big = np.abs(arr).reshape(len(arr), -1).max(axis=1)
         if (big > COORD_MAX).any():
             t = int(np.argmax(big > COORD_MAX))
             raise InputError(
                 path, key, f"coordinates within +-{COORD_MAX:g} m (metres)", f"{big[t]:.3g} m at frame {t}"
             )
-    j = demo.right_joints
+    for side in demo.sides:
+        _validate_hand(demo.joints_of(side), side, demo.object_pos, path)
+
+
+def _validate_hand(j: np.ndarray, side: str, object_pos: np.ndarray, path: str | Path | None) -> None:
+    """Check one hand's keypoints ``j`` (T, 21, 3) (field ``<side>_joints``): a human hand skeleton of that
+    side in MediaPipe order that comes within :data:`HAND_OBJECT_MAX` of ``object_pos`` (T, 3) at some frame."""
+    key = f"{side}_joints"
     bones = np.stack([np.linalg.norm(j[:, b] - j[:, a], axis=-1) for a, b in BONES], axis=1)
     med = np.median(bones, axis=0)
     lo, hi = BONE_RANGE
     for k in np.flatnonzero((med < lo) | (med > hi)):
         a, b = BONES[k]
         raise InputError(
-            path, "right_joints", f"a human hand skeleton (median bone lengths {lo * 1e3:g}-{hi * 1e3:g} mm)",
+            path, key, f"a human hand skeleton (median bone lengths {lo * 1e3:g}-{hi * 1e3:g} mm)",
             f"bone {KEYPOINT_NAMES[a]}-{KEYPOINT_NAMES[b]} {med[k] * 1e3:.3g} mm",
         )  # fmt: skip
     palm = np.mean([med[BONES.index((0, k))] for k in (5, 9, 13, 17)])
     finger = max(med[k] for k, (a, _) in enumerate(BONES) if a != 0)
     if palm < PALM_RATIO * finger:
         raise InputError(
-            path, "right_joints", f"keypoints in MediaPipe order (wrist to finger bases > {PALM_RATIO:g} x the longest "
+            path, key, f"keypoints in MediaPipe order (wrist to finger bases > {PALM_RATIO:g} x the longest "
             "finger bone; GRAB and ARCTIC hands: 2.3-2.5 x)", f"{palm / finger:.2f} x (another keypoint order?)",
         )  # fmt: skip
     extent = np.linalg.norm(j - j[:, :1], axis=-1).max(axis=1)
     if (extent < MIN_HAND_EXTENT).any():
         t = int(np.argmax(extent < MIN_HAND_EXTENT))
         raise InputError(
-            path, "right_joints", f"keypoints spread over at least {MIN_HAND_EXTENT * 1e3:g} mm in every frame",
+            path, key, f"keypoints spread over at least {MIN_HAND_EXTENT * 1e3:g} mm in every frame",
             f"a collapsed skeleton at frame {t} ({extent[t] * 1e3:.3g} mm)",
         )  # fmt: skip
     # a right hand: the thumb's MCP lies on the palm side of the plane wrist, index MCP, little MCP (every
-    # frame of every GRAB and ARCTIC clip); a left hand (or a mirrored recording) has it on the other side
+    # frame of every GRAB and ARCTIC clip); a left hand has it on the other side, and so has a mirrored one
     palm = np.cross(j[:, 5] - j[:, 0], j[:, 17] - j[:, 0])
-    right = np.einsum("ti,ti->t", palm, j[:, 2] - j[:, 0]) > 0
-    if right.mean() < 0.5:
+    sign = 1.0 if side == "right" else -1.0
+    ok = sign * np.einsum("ti,ti->t", palm, j[:, 2] - j[:, 0]) > 0
+    if ok.mean() < 0.5:
+        other = "left" if side == "right" else "right"
         raise InputError(
-            path, "right_joints", "a right hand (thumb on the palm side)",
-            f"a left or mirrored hand in {100 * (1 - right.mean()):.0f}% of the frames",
+            path, key, f"a {side} hand (thumb on the palm side; true positions, not mirrored)",
+            f"a {other} or mirrored hand in {100 * (1 - ok.mean()):.0f}% of the frames",
         )  # fmt: skip
-    gap = np.linalg.norm(j.mean(axis=1) - demo.object_pos, axis=-1)
+    gap = np.linalg.norm(j.mean(axis=1) - object_pos, axis=-1)
     if gap.min() > HAND_OBJECT_MAX:
         raise InputError(
-            path, "object_pos", f"the object within {HAND_OBJECT_MAX:g} m of the hand at some frame",
+            path, "object_pos", f"the object within {HAND_OBJECT_MAX:g} m of the {side} hand at some frame",
             f"{gap.min():.3g} m at the closest frame",
         )  # fmt: skip
 
@@ -232,6 +274,8 @@ def content_hash(demo: Demo) -> str:
     h = hashlib.sha256()
     for a in (demo.right_joints, demo.object_pos, demo.object_quat, np.array([demo.fps, demo.support_height])):
         h.update(np.ascontiguousarray(a, np.float64).tobytes())
+    if demo.left_joints is not None:  # after the one-hand content, so one-hand hashes stay as they were
+        h.update(b"left_joints" + np.ascontiguousarray(demo.left_joints, np.float64).tobytes())
     h.update(demo.object_mesh_path.read_bytes())
     return h.hexdigest()[:16]
 
@@ -274,6 +318,7 @@ def load_demo(path: str | Path, check_mesh: bool = True) -> Demo:
         joints = npz_array(z, "right_joints", path, ("T", N_KEYPOINTS, 3))
         opos = npz_array(z, "object_pos", path, ("T", 3))
         oquat = npz_array(z, "object_quat", path, ("T", 4))
+        left = npz_array(z, "left_joints", path, ("T", N_KEYPOINTS, 3)) if "left_joints" in z.files else None
         for k in z.files:  # every member must be readable (a damaged or pickled extra is refused too)
             npz_member(z, k, path)
     mesh_path = _mesh_path(path, mesh_name)
@@ -288,6 +333,7 @@ def load_demo(path: str | Path, check_mesh: bool = True) -> Demo:
         support_height=support,
         source=source,
         path=path.resolve(),
+        left_joints=left,
     )
     validate_arrays(demo, path)
     if check_mesh:
@@ -332,4 +378,5 @@ def save_demo(demo: Demo, path: str | Path) -> Path:
         object_pos=np.asarray(demo.object_pos, dtype=np.float32),
         object_quat=q.astype(np.float32),
         support_height=np.array(demo.support_height, dtype=np.float32),
+        **({} if demo.left_joints is None else {"left_joints": np.asarray(demo.left_joints, dtype=np.float32)}),
     )

@@ -305,9 +305,23 @@ def make_example(name: str, n_frames: int = 60, fps: float = 20.0, seed: int = 0
     return demo, mesh
 
 
-def write_example(name: str, out_dir: str | Path, n_frames: int = 60, fps: float = 20.0) -> Path:
-    """Write ``out_dir/<name>.npz`` and ``out_dir/meshes/<name>.obj`` atomically; return the npz path."""
+def with_mirrored_left(demo: Demo) -> Demo:
+    """``demo`` with a left hand: the mirror image of its right hand across the vertical plane through the
+    object's first position normal to x (a left hand, true positions: ``left_joints``); for two-hand tests."""
+    x0 = float(demo.object_pos[0, 0])
+    left = np.asarray(demo.right_joints, np.float64).copy()
+    left[..., 0] = 2.0 * x0 - left[..., 0]
+    return dataclasses.replace(demo, left_joints=left, name=f"{demo.name}_two_hands")
+
+
+def write_example(
+    name: str, out_dir: str | Path, n_frames: int = 60, fps: float = 20.0, two_hands: bool = False
+) -> Path:
+    """Write ``out_dir/<name>.npz`` and ``out_dir/meshes/<name>.obj`` atomically; return the npz path.
+    ``two_hands``: add the mirror image of the right hand as the left hand (:func:`with_mirrored_left`)."""
     demo, mesh = make_example(name, n_frames=n_frames, fps=fps)
+    demo = with_mirrored_left(demo) if two_hands else demo
+    name = demo.name
     out_dir = Path(out_dir)
     mesh_path = out_dir / "meshes" / f"{name}.obj"
     with atomic_path(mesh_path) as tmp:

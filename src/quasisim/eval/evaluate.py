@@ -44,9 +44,28 @@ def load_object_for(demo: Demo, density: float | None = None, mass: float | None
 
 
 def scene_for(
-    demo: Demo, hand: HandModel, base_rot: np.ndarray, obj: Any = None, physics: PhysicsOptions | None = None
-) -> Scene:
-    return make_scene(demo, hand, base_rot, obj if obj is not None else load_object_for(demo), physics)
+    demo: Demo, hand: HandModel, base_rot: np.ndarray, obj: Any = None, physics: PhysicsOptions | None = None,
+    left: tuple[HandModel, np.ndarray] | None = None,
+) -> Scene:  # fmt: skip
+    """The scene of ``demo`` (:func:`~quasisim.targets.scene.make_scene`), loading the object if not given."""
+    return make_scene(demo, hand, base_rot, obj if obj is not None else load_object_for(demo), physics, left)
+
+
+def scene_of_hands(
+    demo: Demo, hands: tuple[HandModel, ...], base_rots: tuple[np.ndarray, ...], obj: Any = None,
+    physics: PhysicsOptions | None = None,
+) -> Scene:  # fmt: skip
+    """:func:`scene_for` with one robot hand and base frame (3, 3) per hand of the demo (right, left)."""
+    left = (hands[1], base_rots[1]) if len(hands) > 1 else None
+    return scene_for(demo, hands[0], base_rots[0], obj, physics, left)
+
+
+def demo_hands(hand: str | Path, sides: tuple[str, ...]) -> tuple[HandModel, ...]:
+    """The robot hands for a demo with hands ``sides``: one hand, ``hand`` as it is; two hands, ``hand`` as a
+    right hand and its left version (:meth:`~quasisim.assets.hand.HandConfig.for_side`, a mirror image)."""
+    if tuple(sides) == ("right",):
+        return (load_hand(hand),)
+    return tuple(load_hand(hand, side=s) for s in sides)
 
 
 # surface samples per hand object; entries live and die with their hand
@@ -61,10 +80,18 @@ def robot_surface(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray) -> np
     return surface_points_over_time(hand, base_rot, qpos, pts)
 
 
-def hand_of(controls: Controls, path: str | Path | None) -> HandModel:
-    """The hand that ``controls`` (read from ``path``) were made for; an unknown hand names the controls file."""
+def scene_surface(scene: Scene, qpos: np.ndarray) -> np.ndarray:
+    """(T, P, 3) :func:`robot_surface` of every hand of ``scene`` from the hands' ``qpos`` (T, D), concatenated."""
+    hands = zip(scene.hands, scene.base_rots, scene.dof_slices, strict=True)
+    parts = [robot_surface(h, R, qpos[:, sl]) for h, R, sl in hands]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+
+
+def hands_of(controls: Controls, path: str | Path | None) -> tuple[HandModel, ...]:
+    """The hand(s) that ``controls`` (read from ``path``) were made for (:func:`demo_hands`); an unknown hand
+    names the controls file."""
     try:
-        return load_hand(controls.hand)
+        return demo_hands(controls.hand, controls.sides)
     except QuasisimError as e:
         if isinstance(e, InputError):
             raise
@@ -73,7 +100,17 @@ def hand_of(controls: Controls, path: str | Path | None) -> HandModel:
         ) from None
 
 
-def check_controls(demo: Demo, controls: Controls, hand: HandModel, path: str | Path | None = None) -> None:
+def check_controls(
+    demo: Demo, controls: Controls, hand: HandModel | tuple[HandModel, ...], path: str | Path | None = None
+) -> None:
+    """Refuse controls that do not fit ``demo`` and the robot ``hand`` (one, or one per hand of the demo)."""
+    hand = hand if isinstance(hand, HandModel) else hand[0]
+    if controls.sides != demo.sides:
+        n, m = len(demo.sides), len(controls.sides)
+        raise InputError(
+            path, "left_base_rot", f"controls for {n} hand(s) (demo {demo.name} has {', '.join(demo.sides)})",
+            f"controls for {m} hand(s)" + (" (no left_base_rot)" if m < n else ""),
+        )  # fmt: skip
     if abs(controls.fps - demo.fps) > 1e-6 * demo.fps:
         raise InputError(path, "fps", f"{demo.fps:g} (the frame rate of demo {demo.name})", f"{controls.fps:g}")
     if controls.n_frames != demo.n_frames:
@@ -99,12 +136,12 @@ def evaluate_controls(
     """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
     ``metrics.json``, ``rollout.npz``, ``report.html`` (+ ``video.mp4``), ``scene.xml`` and ``trajectory.npz``
     there, as one set (with ``manifest.json``)."""
-    hand = scene.hand if scene is not None else load_hand(controls.hand)
-    check_controls(demo, controls, hand)
-    scene = scene or scene_for(demo, hand, controls.base_rot)
+    hands = scene.hands if scene is not None else demo_hands(controls.hand, controls.sides)
+    check_controls(demo, controls, hands)
+    scene = scene or scene_of_hands(demo, hands, controls.base_rots)
     tgt = make_target(target, scene)
     rollout = tgt.rollout(controls.q_targets)
-    surf = robot_surface(hand, scene.base_rot, rollout.qpos)
+    surf = scene_surface(scene, rollout.qpos)
     metrics, pf = evaluate_rollout(demo, rollout, surf)
     ev = Evaluation(mark_stability(metrics, rollout.instability, f"{demo.name} in {target}"), pf, rollout, scene)
     if out_dir is not None:
@@ -157,7 +194,7 @@ def write_outputs(
     t = ev.scene.table
     info = {
         "demo": f"{demo.name} ({demo.n_frames} frames at {demo.fps:g} fps)",
-        "hand": ev.scene.hand.name,
+        "hand": " + ".join(h.name for h in ev.scene.hands),
         "method": controls.method,
         "target": f"{target} (dt {ev.rollout.dt * 1e3:g} ms, {ev.rollout.substeps} substeps per frame)",
         "object": f"{ev.scene.obj.name}: {ev.scene.obj.mass * 1e3:.0f} g, {len(ev.scene.obj.convex_parts())} convex parts",

@@ -15,7 +15,7 @@ import numpy as np
 from quasisim.errors import QuasisimError
 from quasisim.files import open_npz, save_npz_atomic, save_text_atomic
 from quasisim.targets import TargetRollout
-from quasisim.targets.mujoco_target import HAND_PREFIX, build_spec
+from quasisim.targets.mujoco_target import build_spec, dof_names
 from quasisim.targets.scene import Scene
 
 SCENE_FILE, TRAJECTORY_FILE = "scene.xml", "trajectory.npz"
@@ -23,9 +23,8 @@ TRAJECTORY_FORMAT = "quasisim-trajectory-v1"
 
 
 def hand_joint_names(scene: Scene) -> list[str]:
-    """The MJCF joint names of the hand's 6 base coordinates and its joints, in controls/rollout order."""
-    base = [f"{HAND_PREFIX}base_t{a}" for a in "xyz"] + [f"{HAND_PREFIX}base_r{a}" for a in "xyz"]
-    return base + [HAND_PREFIX + n for n in scene.hand.joint_names]
+    """The MJCF joint names of each hand's 6 base coordinates and its joints, in controls/rollout order."""
+    return dof_names(scene)
 
 
 def mujoco_qpos(model: mujoco.MjModel, scene: Scene, rollout: TargetRollout) -> np.ndarray:

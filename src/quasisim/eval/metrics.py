@@ -4,11 +4,12 @@ Per sequence of N frames:
 
 * ``R_err_deg``: mean over frames of the angle of ``q_ref^-1 q_sim`` (degrees).
 * ``T_err_cm``: mean object translation error (cm).
-* ``MPJPE_mm``: mean over frames and metric keypoints of |human keypoint - corresponding robot keypoint| (mm).
+* ``MPJPE_mm``: mean over frames and metric keypoints of |human keypoint - corresponding robot keypoint| (mm);
+  with two hands, over the metric keypoints of both.
 * ``CD_mm``: mean over frames of the symmetric Chamfer distance between human and robot hand surface
   points, ``0.5 * (mean_a min_b |a - b| + mean_b min_a |a - b|)`` (mm). Human surface points are sampled
   on capsules around the 20 bones of the keypoint skeleton (radius 8-10 mm; the demo format carries no
-  hand mesh); robot surface points on the hand's collision geoms.
+  hand mesh); robot surface points on the hand's collision geoms (both hands' surfaces with two hands).
 * ``object_motion``: did the simulated object move as the demo's did? The demo's height gain (highest
   frame above the first) and its largest displacement from the start (at frame ``t*``) against the
   rollout's own: the rollout must rise at least half as high as the demo and its displacement at ``t*``
@@ -126,7 +127,7 @@ def object_errors(
 
 
 def mpjpe_per_frame(human: np.ndarray, robot_kp: np.ndarray, human_index: np.ndarray) -> np.ndarray:
-    """(T,) mean keypoint error in mm; ``human`` (T, 21, 3), ``robot_kp`` (T, K, 3), ``human_index`` (K,)."""
+    """(T,) mean keypoint error in mm; ``human`` (T, 21 H, 3) (H hands), ``robot_kp`` (T, K, 3), ``human_index`` (K,)."""
     return 1000.0 * np.linalg.norm(human[:, human_index] - robot_kp, axis=-1).mean(axis=1)
 
 
@@ -170,18 +171,19 @@ def evaluate_rollout(demo: Demo, rollout: Any, robot_surface: np.ndarray | None)
     """Metrics of a target ``rollout`` against ``demo``.
 
     Args:
-        rollout: a :class:`quasisim.targets.TargetRollout` (object pose, keypoints per frame).
-        robot_surface: (T, P, 3) robot hand surface points per frame for CD, or None (CD = NaN).
+        rollout: a :class:`quasisim.targets.TargetRollout` (object pose, keypoints per frame; its
+            ``human_keypoint_index`` indexes ``demo.human_joints``, every hand's keypoints).
+        robot_surface: (T, P, 3) robot hand surface points per frame (all hands) for CD, or None (CD = NaN).
     """
     T = demo.n_frames
     if rollout.object_pos.shape[0] != T:
         raise ValueError(f"rollout has {rollout.object_pos.shape[0]} frames, demo {demo.name} has {T}")
     rot, trans = object_errors(demo.object_pos, demo.object_quat, rollout.object_pos, rollout.object_quat)
-    mp = mpjpe_per_frame(demo.right_joints, rollout.robot_keypoints, rollout.human_keypoint_index)
+    mp = mpjpe_per_frame(demo.human_joints, rollout.robot_keypoints, rollout.human_keypoint_index)
     if robot_surface is None:
         cd = np.full(T, np.nan)
     else:
-        hs = human_surface_points(demo.right_joints)
+        hs = np.concatenate([human_surface_points(demo.joints_of(s)) for s in demo.sides], axis=1)
         cd = np.array([chamfer_mm(hs[t], robot_surface[t]) for t in range(T)])
     pf = PerFrame(rot, trans, mp, cd)
     return summarize(pf, object_motion(demo.object_pos, rollout.object_pos)), pf

@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 from tqdm import tqdm
 
-from quasisim.data.demo import BONES, Demo
+from quasisim.data.demo import BONES, N_KEYPOINTS, Demo
 from quasisim.targets.mujoco_target import MujocoModel
 from quasisim.targets.scene import Scene
 
@@ -30,12 +30,18 @@ class Camera:
 
 
 def default_camera(demo: Demo) -> Camera:
-    """Look at the object's mean position from the side of the approaching hand."""
+    """Look at the object's mean position from the side of the approaching hand; with two hands, from behind
+    them (along the mean wrist-to-middle-knuckle direction), so that both stand beside the object."""
     obj = demo.object_pos.mean(axis=0)
-    wrist = demo.right_joints[:, 0].mean(axis=0)
-    d = obj - wrist
-    az = float(np.degrees(np.arctan2(d[1], d[0]))) + 90.0
-    span = float(np.ptp(np.concatenate([demo.object_pos, demo.right_joints[:, 0]]), axis=0).max())
+    wrists = np.concatenate([demo.joints_of(s)[:, 0] for s in demo.sides])
+    if len(demo.sides) > 1:
+        j = demo.human_joints.reshape(demo.n_frames, -1, N_KEYPOINTS, 3)
+        d = (j[:, :, 9] - j[:, :, 0]).mean(axis=(0, 1))  # forward: wrists to knuckles, away from the body
+        az = float(np.degrees(np.arctan2(d[1], d[0])))
+    else:
+        d = obj - wrists.mean(axis=0)
+        az = float(np.degrees(np.arctan2(d[1], d[0]))) + 90.0
+    span = float(np.ptp(np.concatenate([demo.object_pos, wrists]), axis=0).max())
     return Camera(lookat=obj, distance=float(np.clip(0.45 + 0.8 * span, 0.5, 1.4)), azimuth=az, elevation=-25.0)
 
 
@@ -57,10 +63,12 @@ def _add_capsule(mujoco: Any, scn: Any, a: np.ndarray, b: np.ndarray, r: float, 
 
 
 def _add_skeleton(mujoco: Any, scn: Any, joints: np.ndarray, rgba: np.ndarray, r: float = 0.007) -> None:
-    for a, b in BONES:
-        _add_capsule(mujoco, scn, joints[a], joints[b], r, rgba)
-    for p in joints:
-        _add_sphere(mujoco, scn, p, r * 1.15, rgba)
+    """Capsules and spheres of the human keypoint skeleton(s) ``joints`` (21 H, 3): H hands one after the other."""
+    for hand in joints.reshape(-1, N_KEYPOINTS, 3):
+        for a, b in BONES:
+            _add_capsule(mujoco, scn, hand[a], hand[b], r, rgba)
+        for p in hand:
+            _add_sphere(mujoco, scn, p, r * 1.15, rgba)
 
 
 class SideBySide:
@@ -99,15 +107,16 @@ class SideBySide:
         return self.renderer.render().copy()
 
     def reference(self, t: int) -> np.ndarray:
-        far = np.zeros(6 + self.mm.scene.hand.n_joints)
-        far[2] = -50.0  # park the robot hand out of view
+        far = np.zeros(self.mm.scene.n_dof)
+        for sl in self.mm.scene.dof_slices:
+            far[sl.start + 2] = -50.0  # park the robot hands out of view
         d = self.demo
-        return self._render(far, d.object_pos[t], d.object_quat[t], d.right_joints[t], ghost=False)
+        return self._render(far, d.object_pos[t], d.object_quat[t], d.human_joints[t], ghost=False)
 
     def result(
         self, t: int, qpos: np.ndarray, opos: np.ndarray, oquat: np.ndarray, show_human: bool = True
     ) -> np.ndarray:
-        joints = self.demo.right_joints[t] if show_human else None
+        joints = self.demo.human_joints[t] if show_human else None
         return self._render(qpos[t], opos[t], oquat[t], joints, ghost=True)
 
     def close(self) -> None:

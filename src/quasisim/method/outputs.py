@@ -81,7 +81,7 @@ def write_outputs(
         **({"notes": "; ".join(record.notes)} if record.notes else {}),
     }
     summary = {
-        "demo": demo.name, "hand": prob.hand.name, "target": target, "curriculum": settings["curriculum"],
+        "demo": demo.name, "hand": " + ".join(h.name for h in scene.hands), "target": target, "curriculum": settings["curriculum"],
         "stages": list(settings["stages"]), "budget": settings["budget"], "method": settings["method"],
         "seconds": record.seconds, "simulators": record.simulators, "kinematic_metrics": km, "sysid": s_desc,
         "stage3": record.fit or None, "notes": record.notes, "metrics": ev.metrics,

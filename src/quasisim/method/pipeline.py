@@ -26,6 +26,7 @@ from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError
+from quasisim.eval.evaluate import demo_hands
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
 from quasisim.method import outputs, stage1, stage2, stage3
 from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
@@ -34,10 +35,10 @@ from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.mpc import run_mpc
 from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_outputs
 from quasisim.method.problem import Problem, make_problem
-from quasisim.method.retarget import retarget
+from quasisim.method.retarget import retarget_hands
 from quasisim.method.sample_target import run_sample_target
 from quasisim.method.select import best_in_target
-from quasisim.method.spec import STAGES, TransferSpec
+from quasisim.method.spec import STAGES, TransferSpec, check_hands
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
@@ -63,17 +64,22 @@ def run_transfer(
     spec = (spec or TransferSpec()).checked()
     cfg = config or TransferConfig.from_yaml()
     bud, cur, out = cfg.budget(spec.budget), load_curriculum(spec.curriculum), Path(out)
-    demo, hand = load_demo(demo_path), load_hand(spec.hand)
+    demo = load_demo(demo_path)
+    check_hands(spec, len(demo.sides), demo_path)  # two hands: only the methods that support them
+    hands = demo_hands(spec.hand, demo.sides)
+    hand = hands[0]
     _check_run_dir(out, resume, overwrite)
     warn_long_clip(demo, *_cost_per_frame(cfg, spec), f"transfer ({spec.budget} budget)")
     info = _identity(demo_path, demo, spec, cur, cfg)
     ck = Checkpoints(out / "checkpoints", info, resume, overwrite, lambda name: _piece_scope(info, name))
     progress, record = Progress(spec.progress), RunRecord()
 
-    T, J = demo.n_frames, hand.n_joints
-    kin = _timed(ck, "kinematic", lambda: _kinematic(hand, demo, progress), {"q": (T, 6 + J), "base_rot": (3, 3)})
+    T, D = demo.n_frames, sum(6 + h.n_joints for h in hands)
+    kin_expect = {"q": (T, D), "base_rot": (3, 3), **({"left_base_rot": (3, 3)} if len(hands) > 1 else {})}
+    kin = _timed(ck, "kinematic", lambda: _kinematic(hands, demo, progress), kin_expect)
     record.seconds["retarget"] = float(kin["wall_s"])
-    prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates)
+    left = (hands[1], np.asarray(kin["left_base_rot"], np.float64)) if len(hands) > 1 else None
+    prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates, left=left)
     plan = Plan(Trajectory.from_q(kin["q"], prob.model.n_points), SysID.init())
     objective = prob.objective(prob.reference())
     if "1" in spec.stages and cur.relaxed:
@@ -100,7 +106,7 @@ def run_transfer(
     controls = Controls(
         hand=spec.hand, demo=demo.name, method=f"{label}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
         fps=demo.fps, base_rot=prob.base_rot, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
-        demo_hash=content_hash(demo),
+        demo_hash=content_hash(demo), left_base_rot=None if left is None else left[1],
     )  # fmt: skip
     settings = {
         "label": label,
@@ -307,10 +313,12 @@ def _select_in_target(
     return candidates[best]
 
 
-def _kinematic(hand: Any, demo: Any, progress: Progress) -> dict[str, Any]:
-    """Stage 1c, the kinematic retarget: the first trajectory of every later stage."""
-    rt = retarget(hand, demo, progress=progress.enabled)
-    return {"q": rt.q, "base_rot": rt.base_rot}
+def _kinematic(hands: tuple[Any, ...], demo: Any, progress: Progress) -> dict[str, Any]:
+    """Stage 1c, the kinematic retarget: the first trajectory of every later stage; with two hands, each
+    retargeted to its own keypoints, their targets concatenated (right, left)."""
+    rt = retarget_hands(hands, demo, progress=progress.enabled)
+    out = {"q": np.concatenate([r.q for r in rt], axis=1), "base_rot": rt[0].base_rot}
+    return out if len(rt) == 1 else {**out, "left_base_rot": rt[1].base_rot}
 
 
 def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]], expect: Expect) -> dict[str, Any]:
@@ -329,7 +337,7 @@ def _traj_expect(prob: Problem, **more: Any) -> Expect:
 
 
 def _q_expect(prob: Problem) -> Expect:
-    return {"q_targets": (prob.demo.n_frames, 6 + prob.hand.n_joints), "window_loss": (None,), "wall_s": ()}
+    return {"q_targets": (prob.demo.n_frames, prob.scene.n_dof), "window_loss": (None,), "wall_s": ()}
 
 
 # Seconds per frame of each stage with the fast budget (BENCHMARKS.md: 60-frame clips, default curriculum, 2 CPU

@@ -80,11 +80,15 @@ class Problem:
 
 
 def make_problem(
-    demo: Demo, hand: HandModel, base_rot: np.ndarray, substeps: int, n_candidates: int, obj: ObjectAsset | None = None
-) -> Problem:
+    demo: Demo, hand: HandModel, base_rot: np.ndarray, substeps: int, n_candidates: int, obj: ObjectAsset | None = None,
+    left: tuple[HandModel, np.ndarray] | None = None,
+) -> Problem:  # fmt: skip
     """The scene (table sized from the demo) and the simulator (``substeps`` per frame, origin at the
-    object's first position) for ``demo`` and ``hand`` with base frame ``base_rot``."""
+    object's first position) for ``demo`` and ``hand`` with base frame ``base_rot``; ``left``: the left hand
+    and its base frame of a two-hand demo. The quasi-physical simulator models ``hand`` alone: the stages
+    that use it refuse two-hand demos up front (:func:`quasisim.method.spec.check_hands`); the scene (the
+    targets, ``sample-target``, the evaluation) holds both hands."""
     obj = obj if obj is not None else load_object_for(demo)
-    scene = make_scene(demo, hand, base_rot, obj)
+    scene = make_scene(demo, hand, base_rot, obj, left=left)
     opts = SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates)
     return Problem(demo, scene, build_model(hand, obj, scene.table, opts, demo.object_pos[0]))

@@ -9,6 +9,9 @@ where ``kp_k`` are the robot keypoints of the hand config, ``h_k`` their human k
 weights the joint and base-angle terms. The root is first placed by a weighted rigid fit of the robot's
 rest-pose wrist/knuckle keypoints onto the human wrist and knuckles (``wrist_fit_human``); the fixed
 base frame is the clip's mean root orientation, so base angles stay small.
+
+A demo with two hands is retargeted hand by hand: each robot hand (the right one and its mirror image) to
+its own human keypoints (:func:`kinematic_controls`); the controls concatenate them, right then left.
 """
 
 from __future__ import annotations
@@ -110,11 +113,11 @@ def _solver(hand: HandModel, opts: RetargetOptions) -> tuple:
 
 
 def retarget(
-    hand: HandModel, demo: Demo, opts: RetargetOptions | None = None, progress: bool = False
+    hand: HandModel, demo: Demo, opts: RetargetOptions | None = None, progress: bool = False, side: str = "right"
 ) -> RetargetResult:
-    """Retarget ``demo``'s right-hand keypoints to ``hand`` frame by frame (see module docstring)."""
+    """Retarget ``demo``'s keypoints of its ``side`` hand to ``hand`` frame by frame (see module docstring)."""
     opts = opts or RetargetOptions()
-    J = np.asarray(demo.right_joints, dtype=np.float64)
+    J = np.asarray(demo.joints_of(side), dtype=np.float64)
     Rs, ps = rigid_root_fit(hand, J)
     base_rot = chordal_mean_rotation(Rs)
     eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("ji,tjk->tik", base_rot, Rs)), axis=0)
@@ -138,19 +141,32 @@ def retarget(
     )
 
 
+def retarget_hands(
+    hands: tuple[HandModel, ...], demo: Demo, opts: RetargetOptions | None = None, progress: bool = False
+) -> tuple[RetargetResult, ...]:
+    """Retarget each of ``demo``'s hands (``demo.sides``) to the robot hand of the same position in ``hands``."""
+    if len(hands) != len(demo.sides):
+        raise ValueError(f"retarget: demo {demo.name} has {len(demo.sides)} hand(s), {len(hands)} robot hand(s) given")
+    return tuple(retarget(h, demo, opts, progress, side) for h, side in zip(hands, demo.sides, strict=True))
+
+
 def kinematic_controls(
-    hand: HandModel, demo: Demo, hand_ref: str, opts: RetargetOptions | None = None, progress: bool = False
-) -> Controls:
-    """Retarget and package the result as PD targets (the kinematic-replay baseline)."""
-    res = retarget(hand, demo, opts, progress)
+    hand: HandModel | tuple[HandModel, ...], demo: Demo, hand_ref: str, opts: RetargetOptions | None = None,
+    progress: bool = False,
+) -> Controls:  # fmt: skip
+    """Retarget and package the result as PD targets (the kinematic-replay baseline); ``hand`` is one robot
+    hand, or one per hand of the demo (right, left): their targets are concatenated (T, 2 (6 + J))."""
+    hands = (hand,) if isinstance(hand, HandModel) else tuple(hand)
+    res = retarget_hands(hands, demo, opts, progress)
     return Controls(
         hand=hand_ref,
         demo=demo.name,
         method="kinematic",
         fps=demo.fps,
-        base_rot=res.base_rot,
-        q_targets=res.q,
-        joint_names=hand.joint_names,
-        extras={"retarget_keypoint_error": res.keypoint_error},
+        base_rot=res[0].base_rot,
+        q_targets=np.concatenate([r.q for r in res], axis=1),
+        joint_names=hands[0].joint_names,
+        extras={"retarget_keypoint_error": np.concatenate([r.keypoint_error for r in res], axis=1)},
         demo_hash=content_hash(demo),
+        left_base_rot=res[1].base_rot if len(res) > 1 else None,
     )

@@ -180,29 +180,37 @@ def knot_basis(horizon: int, knots: int) -> np.ndarray:
     return np.stack([np.interp(x, at, np.eye(knots)[k]) for k in range(knots)], axis=1)
 
 
-def noise_std(opts: SamplingOptions, n_joints: int) -> np.ndarray:
-    """(6 + J,) noise std per dof: base position (m), base angles (rad), joints."""
-    return np.r_[np.full(3, opts.noise_base_pos), np.full(3, opts.noise_base_rot), np.full(n_joints, opts.noise_joints)]
+def noise_std(opts: SamplingOptions, n_joints: int | tuple[int, ...]) -> np.ndarray:
+    """(D,) noise std per dof of hands with ``n_joints`` joints each (one int: one hand): per hand, base
+    position (m), base angles (rad), joints; D = sum over hands of 6 + J."""
+    counts = (n_joints,) if isinstance(n_joints, int | np.integer) else n_joints
+    b = np.r_[np.full(3, opts.noise_base_pos), np.full(3, opts.noise_base_rot)]
+    return np.concatenate([np.r_[b, np.full(int(j), opts.noise_joints)] for j in counts])
 
 
 def sample_windows(
-    rng: np.random.Generator, nominal: np.ndarray, opts: SamplingOptions, joint_lo: np.ndarray, joint_hi: np.ndarray
-) -> np.ndarray:
-    """Candidate windows (N, H + 1, 6 + J): row 0 the ``nominal`` window (H + 1, 6 + J), rows 1.. perturbed.
+    rng: np.random.Generator, nominal: np.ndarray, opts: SamplingOptions, joint_lo: np.ndarray, joint_hi: np.ndarray,
+    std: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
+    """Candidate windows (N, H + 1, D): row 0 the ``nominal`` window (H + 1, D), rows 1.. perturbed.
 
-    Frame 0 of every window (the targets the step starts from) is never perturbed. ``joint_lo/hi`` (J,)
-    bound the perturbed joints (-inf/inf for unlimited joints); a bound the nominal already crosses is
-    widened to the nominal's value.
+    Frame 0 of every window (the targets the step starts from) is never perturbed. ``joint_lo/hi`` bound the
+    perturbed targets: (J,) for one hand's joints (columns 6..), or (D,) for every column (-inf/inf for the
+    base coordinates and unlimited joints, :meth:`~quasisim.targets.scene.Scene.joint_bounds`); a bound the
+    nominal already crosses is widened to the nominal's value. ``std`` (D,): the noise std per column
+    (default: one hand's, :func:`noise_std`).
     """
     N, H, D = opts.samples, len(nominal) - 1, nominal.shape[1]
+    std = noise_std(opts, D - 6) if std is None else std
     basis = knot_basis(H, opts.knots)
     scales = np.asarray(opts.noise_scales, dtype=np.float64)[np.arange(N - 1) % len(opts.noise_scales)]
-    knots = rng.standard_normal((N - 1, opts.knots, D)) * noise_std(opts, D - 6) * scales[:, None, None]
+    knots = rng.standard_normal((N - 1, opts.knots, D)) * std * scales[:, None, None]
     wins = np.repeat(nominal[None].astype(np.float64), N, axis=0)
     wins[1:, 1:] += np.einsum("hk,nkd->nhd", basis, knots)
-    lo = np.minimum(joint_lo, nominal[1:, 6:])
-    hi = np.maximum(joint_hi, nominal[1:, 6:])
-    wins[1:, 1:, 6:] = np.clip(wins[1:, 1:, 6:], lo, hi)
+    c = D - len(joint_lo)  # the first bounded column
+    lo = np.minimum(joint_lo, nominal[1:, c:])
+    hi = np.maximum(joint_hi, nominal[1:, c:])
+    wins[1:, 1:, c:] = np.clip(wins[1:, 1:, c:], lo, hi)
     return wins
 
 
@@ -214,18 +222,26 @@ def window_costs(
     ref_kp: np.ndarray,
     frame_w: np.ndarray,
     weights: Weights,
+    base_cols: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N,) the MPC window objective of every candidate, measured in the target
     (:func:`quasisim.optim.objective.window_costs`, the objective of the gradient-based MPC).
 
     Args:
-        wins: (N, H + 1, 6 + J) candidate windows.  pred: their rollouts at frames 1..H of the window.
+        wins: (N, H + 1, D) candidate windows.  pred: their rollouts at frames 1..H of the window.
         ref_pos: (H, 3) m, ref_quat: (H, 4), ref_kp: (H, K_metric, 3) m: references of those frames.
         frame_w: (H,) 1 for frames inside the clip, 0 past its end.  weights: objective weights.
+        base_cols: the base-coordinate columns of every hand (two hands: 12 of D); None: one hand, the first
+            6 columns. The smoothness term averages the base columns and the joint columns separately.
     """
+    n_base = 6
+    if base_cols is not None:
+        joints = np.setdiff1d(np.arange(wins.shape[-1]), base_cols)
+        wins, n_base = wins[..., np.r_[base_cols, joints]], len(base_cols)
     costs = objective.window_costs(
-        pred.obj_pos, pred.obj_quat, pred.keypoints, wins, ref_pos, ref_quat, ref_kp, frame_w, weights.arrays()
-    )
+        pred.obj_pos, pred.obj_quat, pred.keypoints, wins, ref_pos, ref_quat, ref_kp, frame_w, weights.arrays(),
+        n_base=n_base,
+    )  # fmt: skip
     return np.asarray(costs, np.float64)
 
 
@@ -293,17 +309,17 @@ class MujocoRunner:
         import mujoco
         from mujoco import rollout
 
-        from quasisim.targets.mujoco_target import HAND_PREFIX, MujocoTarget, build_spec
+        from quasisim.targets.mujoco_target import MujocoTarget, build_spec
 
         self.target = MujocoTarget(scene)
         self.substeps = self.target.substeps
-        hand = scene.hand
         spec = build_spec(scene, visual=False)
-        for k in np.flatnonzero(hand.kp_metric):
-            spec.add_sensor(
-                name=f"kp_metric/{hand.kp_names[k]}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
-                objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{HAND_PREFIX}kp/{hand.kp_names[k]}",
-            )  # fmt: skip
+        for hand, prefix in zip(scene.hands, scene.prefixes, strict=True):  # scene.kp_metric's order
+            for k in np.flatnonzero(hand.kp_metric):
+                spec.add_sensor(
+                    name=f"kp_metric/{prefix}{hand.kp_names[k]}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
+                    objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{prefix}kp/{hand.kp_names[k]}",
+                )  # fmt: skip
         self.model = spec.compile()
         m0 = self.target.mm.model
         if (self.model.nq, self.model.nv, self.model.nu) != (m0.nq, m0.nv, m0.nu):
@@ -372,7 +388,7 @@ class PybulletRunner:
 
         self.target = PybulletTarget(scene)
         self.substeps = self.target.substeps
-        self.metric = np.flatnonzero(scene.hand.kp_metric)
+        self.metric = np.flatnonzero(scene.kp_metric)
         self._rec: list[tuple[np.ndarray, ...]] = []
 
     def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None:
@@ -430,7 +446,7 @@ def make_runner(target: str, scene: Scene, opts: SamplingOptions) -> Runner:
 
 def _check_plan(demo: Demo, scene: Scene, plan: np.ndarray) -> np.ndarray:
     plan = np.asarray(plan, dtype=np.float64)
-    D = 6 + scene.hand.n_joints
+    D = scene.n_dof
     if plan.ndim != 2 or plan.shape != (demo.n_frames, D) or demo.n_frames < 2:
         raise QuasisimError(
             f"sample-target: plan must have shape ({demo.n_frames}, {D}) with >= 2 frames, got {plan.shape}"
@@ -467,10 +483,12 @@ def _control_loop(
     demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, runner: Runner, progress: bool,
     alts: tuple[np.ndarray, ...],
 ) -> SampleResult:  # fmt: skip
-    T, H, fps, hand = len(plan), opts.horizon, float(demo.fps), scene.hand
-    ref_pos, ref_quat, ref_kp = window_references(demo, hand.kp_human, np.flatnonzero(hand.kp_metric), H)
-    lo = np.where(hand.joint_limited, hand.joint_range[:, 0], -np.inf)
-    hi = np.where(hand.joint_limited, hand.joint_range[:, 1], np.inf)
+    T, H, fps = len(plan), opts.horizon, float(demo.fps)
+    ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
+    lo, hi = scene.joint_bounds()  # every column of every hand (the base unbounded)
+    std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
+    base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
+    base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
     work = padded(plan, H)  # the plan, shifted as we go
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
@@ -478,14 +496,14 @@ def _control_loop(
     runner.begin(plan[0], None)
     t0 = time.perf_counter()
     for t in tqdm(range(T - 1), desc="sample-target", unit="frame", disable=not progress, leave=False):
-        wins = sample_windows(rng, work[t : t + H + 1], opts, lo, hi)
+        wins = sample_windows(rng, work[t : t + H + 1], opts, lo, hi, std)
         for alt in alts:  # windows around another plan, from the targets this step starts from
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
-            wins = np.concatenate([wins, sample_windows(rng, nominal, opts, lo, hi)])
+            wins = np.concatenate([wins, sample_windows(rng, nominal, opts, lo, hi, std)])
         pred = runner.predict(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-        costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights)
+        costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
         win, best = choose(wins, costs, opts)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]

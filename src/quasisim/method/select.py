@@ -27,7 +27,7 @@ def clip_cost(demo: Demo, rollout: TargetRollout, weights: Weights) -> float:
     """J of a rollout in the target (frames 1..T-1 against the demo); infinity when it is unstable."""
     if rollout.instability:
         return float("inf")
-    ref_kp = demo.right_joints[1:, rollout.kp_human[rollout.kp_metric]]
+    ref_kp = demo.human_joints[1:, rollout.kp_human[rollout.kp_metric]]
     terms = tracking_errors(
         rollout.object_pos[1:], rollout.object_quat[1:], rollout.robot_keypoints[1:],
         demo.object_pos[1:], demo.object_quat[1:], ref_kp,

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
-from quasisim.errors import QuasisimError, choice_error
+from quasisim.errors import InputError, QuasisimError, choice_error
 from quasisim.targets import TARGETS
 
 STAGES = ("1", "2", "3", "mpc", "sample", "select")
 METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
+TWO_HAND_METHODS = ("kinematic", "sample-target")  # methods that transfer a demo with two hands (left_joints)
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,19 @@ class TransferSpec:
                 "leave out stages 3 and mpc"
             )
         return dataclasses.replace(self, stages=tuple(s for s in STAGES if s in stages))
+
+
+def check_hands(spec: TransferSpec, n_hands: int, path: str | Path | None = None) -> None:
+    """Refuse, before any work, a two-hand demo (``path``) for a method that handles one hand only (the
+    quasi-physical stages 1/2/3, ``mpc-*``, ``ours``): an :class:`InputError` naming the methods that
+    support two hands."""
+    if n_hands < 2:
+        return
+    if spec.method not in TWO_HAND_METHODS:
+        raise InputError(
+            path, "left_joints", f"a one-hand demo for --method {spec.method} (two-hand demos run with --method "
+            f"{' or '.join(TWO_HAND_METHODS)})", "a demo with two hands",
+        )  # fmt: skip
 
 
 def parse_stages(text: str) -> tuple[str, ...]:

@@ -229,8 +229,9 @@ def padded(x: np.ndarray, horizon: int) -> np.ndarray:
 
 def window_references(demo: Demo, kp_human: np.ndarray, kp_index: np.ndarray, horizon: int) -> list[np.ndarray]:
     """The references of MPC windows, padded by ``horizon`` frames: object positions (T + H, 3), quaternions
-    (T + H, 4) and the human keypoints of robot keypoints ``kp_index`` (T + H, K, 3)."""
-    kp = demo.right_joints[:, kp_human[kp_index]]
+    (T + H, 4) and the human keypoints of robot keypoints ``kp_index`` (T + H, K, 3); ``kp_human`` indexes
+    the keypoints of all the demo's hands (``Demo.human_joints``)."""
+    kp = demo.human_joints[:, kp_human[kp_index]]
     return [padded(x, horizon) for x in (demo.object_pos, demo.object_quat, kp)]
 
 
@@ -262,18 +263,19 @@ def make_window_objective(model: Model, base_quat: np.ndarray, fps: float, kp_in
     return WindowObjective(model, jnp.asarray(base_quat, F32), jnp.asarray(kp_index, jnp.int32), float(fps))
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames=("n_base",))
 def window_costs(
     pos: Array, quat: Array, kp: Array, wins: Array, ref_pos: Array, ref_quat: Array, ref_kp: Array,
-    frame_w: Array, weights: dict[str, Array],
+    frame_w: Array, weights: dict[str, Array], n_base: int = 6,
 ) -> Array:  # fmt: skip
     """(N,) the MPC window objective of N candidate windows measured in a target: object trajectories
     ``pos`` (N, H, 3), ``quat`` (N, H, 4), keypoints ``kp`` (N, H, K, 3), the windows' PD targets ``wins``
-    (N, H + 1, 6 + J); references (H, ...) and ``frame_w`` (H,) as in :func:`make_window_objective`."""
+    (N, H + 1, D) whose first ``n_base`` columns are base coordinates and the rest joints (one hand: 6 + J;
+    two hands: both bases first); references (H, ...) and ``frame_w`` (H,) as in :func:`make_window_objective`."""
 
     def one(p: Array, q: Array, k: Array, w: Array) -> Array:
         terms = tracking_errors(p, q, k, ref_pos, ref_quat, ref_kp, frame_w)
-        terms["smooth"] = smoothness(w[:, :6], w[:, 6:])
+        terms["smooth"] = smoothness(w[:, :n_base], w[:, n_base:])
         return weighted_sum(terms, weights)
 
     return jax.vmap(one)(pos, quat, kp, wins)

@@ -26,10 +26,12 @@ class TargetRollout:
 
     Attributes:
         target: ``"mujoco"`` or ``"pybullet"``.
-        qpos: (T, 6 + J) measured hand generalized positions (base coordinates + joints).
+        qpos: (T, D) measured hand generalized positions (base coordinates + joints; D = 6 + J per hand,
+            the hands concatenated, right then left).
         object_pos: (T, 3) m.  object_quat: (T, 4) w x y z.
-        keypoints: (T, K, 3) all robot keypoints of the hand config (m).
-        kp_human: (K,) human keypoint index of each robot keypoint.  kp_metric: (K,) used in MPJPE.
+        keypoints: (T, K, 3) all robot keypoints of every hand (m).
+        kp_human: (K,) index of each robot keypoint into the human keypoints of all hands
+            (``Demo.human_joints``: the left hand's are 21..41).  kp_metric: (K,) used in MPJPE.
         dt: physics step (s); substeps: physics steps per control frame; wall_s: wall time of the rollout.
         extras: ``sim_warnings`` (name -> count) where the simulator reports numerical trouble (MuJoCo).
     """

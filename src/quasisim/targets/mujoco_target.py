@@ -1,4 +1,4 @@
-"""MuJoCo target: the hand on a PD-driven floating base, the object as convex pieces, a finite table.
+"""MuJoCo target: the hand(s) on PD-driven floating bases, the object as convex pieces, a finite table.
 
 Set-up (stated once, used for every figure):
 
@@ -7,6 +7,9 @@ Set-up (stated once, used for every figure):
 * Hand base: 3 slide joints along world x, y, z and 3 hinges about the axes of ``scene.base_rot``
   (intrinsic x-y-z), all on the hand's root body. Finger joints as in the hand model, with the hand
   config's damping and armature. No hand self-collision; the hand collides with the object and the table.
+* Two hands (a demo with ``left_joints``): each hand as above under its own name prefix (``rhand/``,
+  ``lhand/``; one hand: ``hand/``) with its own ``base_rot``; both collide with the object and the table,
+  not with each other. The control vector and ``qpos`` of the hands are ``[right (6 + J), left (6 + J)]``.
 * PD control per degree of freedom, ``tau = kp (q* - q) + kv (qd* - qd)``: one position actuator
   (gain ``kp``, bias ``-kp q - kv qd``) plus one feed-forward actuator (``kv qd*``). Within a control
   frame the targets are interpolated linearly and ``qd*`` is the frame-to-frame velocity of the targets.
@@ -21,11 +24,12 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from quasisim.assets.hand import HandModel
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
 from quasisim.targets import TargetRollout
 from quasisim.targets.scene import Scene
 
-HAND_PREFIX = "hand/"
+HAND_PREFIX = "hand/"  # the one hand of a one-hand scene (Scene.prefixes: two hands are rhand/ and lhand/)
 # collision bits: hand (type 2, affinity 1) touches object/table (type 1, affinity 3), not itself.
 HAND_CONTYPE, HAND_CONAFFINITY = 2, 1
 # MuJoCo's warnings that mean the simulation went wrong (counted per run in ``data.warning``)
@@ -41,7 +45,7 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
     """An ``mujoco.MjSpec`` of the scene (compile with ``.compile()``): options, world (floor, table),
     the hand on its floating base, the object, the PD actuators."""
     spec = mujoco.MjSpec()
-    spec.modelname = f"quasisim_{scene.hand.name}"
+    spec.modelname = "quasisim_" + "+".join(h.name for h in scene.hands)
     spec.compiler.degree = False
     spec.option.timestep = scene.physics.mujoco_dt
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
@@ -53,11 +57,24 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
     spec.visual.quality.shadowsize = 2048
     fr = [scene.physics.friction, 0.005, 0.0001]
     _add_world(spec, scene, visual, fr)
-    bodies = _add_hand_bodies(spec, scene)
-    _add_hand_geoms(spec, scene, bodies, visual, fr)
+    for hand, base_rot, prefix in zip(scene.hands, scene.base_rots, scene.prefixes, strict=True):
+        bodies = _add_hand_bodies(spec, hand, base_rot, prefix)
+        _add_hand_geoms(spec, hand, prefix, bodies, visual, fr)
     _add_object(spec, scene, visual, fr)
-    _add_actuators(spec, scene)
+    for hand, prefix in zip(scene.hands, scene.prefixes, strict=True):
+        _add_actuators(spec, hand, prefix)
     return spec
+
+
+def hand_dof_names(hand: HandModel, prefix: str) -> list[str]:
+    """The MJCF joint names of one hand's 6 base coordinates and its joints, in control order."""
+    names = [f"{prefix}base_t{a}" for a in "xyz"] + [f"{prefix}base_r{a}" for a in "xyz"]
+    return names + [prefix + n for n in hand.joint_names]
+
+
+def dof_names(scene: Scene) -> list[str]:
+    """The MJCF joint names of the whole control vector (every hand, in order)."""
+    return [n for h, p in zip(scene.hands, scene.prefixes, strict=True) for n in hand_dof_names(h, p)]
 
 
 def _add_world(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
@@ -91,34 +108,33 @@ def _add_world(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
     )  # fmt: skip
 
 
-def _add_hand_bodies(spec: Any, scene: Scene) -> list[Any]:
-    """The hand's bodies and joints below a root on 3 slide + 3 hinge base joints; returns the bodies."""
-    hand, pd, wb = scene.hand, scene.hand.config.pd, spec.worldbody
+def _add_hand_bodies(spec: Any, hand: HandModel, base_rot: np.ndarray, prefix: str) -> list[Any]:
+    """The hand's bodies and joints below a root on 3 slide + 3 hinge base joints about the axes of
+    ``base_rot`` (3, 3), named with ``prefix``; returns the bodies."""
+    pd, wb = hand.config.pd, spec.worldbody
     bodies: list[Any] = []
     for b in range(hand.n_bodies):
         if b == 0:
-            body = wb.add_body(
-                name=HAND_PREFIX + hand.body_names[0], pos=[0, 0, 0], quat=np_mat_to_quat(scene.base_rot).tolist()
-            )
+            body = wb.add_body(name=prefix + hand.body_names[0], pos=[0, 0, 0], quat=np_mat_to_quat(base_rot).tolist())
             for k, ax in enumerate(("x", "y", "z")):
                 body.add_joint(
-                    name=f"{HAND_PREFIX}base_t{ax}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=scene.base_rot[k].tolist(),
+                    name=f"{prefix}base_t{ax}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=base_rot[k].tolist(),
                     limited=False, armature=0.0, damping=0.0,
                 )  # fmt: skip
             for k, ax in enumerate(("x", "y", "z")):
                 e = np.eye(3)[k]
                 body.add_joint(
-                    name=f"{HAND_PREFIX}base_r{ax}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=e.tolist(),
+                    name=f"{prefix}base_r{ax}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=e.tolist(),
                     limited=False, armature=0.0, damping=0.0,
                 )  # fmt: skip
         else:
             parent = bodies[hand.body_parent[b]]
             body = parent.add_body(
-                name=HAND_PREFIX + hand.body_names[b], pos=hand.body_pos[b].tolist(), quat=hand.body_quat[b].tolist()
+                name=prefix + hand.body_names[b], pos=hand.body_pos[b].tolist(), quat=hand.body_quat[b].tolist()
             )
             for j in hand.body_joints(b):
                 body.add_joint(
-                    name=HAND_PREFIX + hand.joint_names[j],
+                    name=prefix + hand.joint_names[j],
                     type=mujoco.mjtJoint.mjJNT_HINGE if hand.joint_type[j] == 0 else mujoco.mjtJoint.mjJNT_SLIDE,
                     axis=hand.joint_axis[j].tolist(), pos=hand.joint_pos[j].tolist(),
                     limited=bool(hand.joint_limited[j]), range=hand.joint_range[j].tolist(),
@@ -135,14 +151,13 @@ def _add_hand_bodies(spec: Any, scene: Scene) -> list[Any]:
     return bodies
 
 
-def _add_hand_geoms(spec: Any, scene: Scene, bodies: list[Any], visual: bool, fr: list[float]) -> None:
-    """Collision geoms (and visual ones when ``visual``) and the keypoint sites of the hand."""
-    hand = scene.hand
+def _add_hand_geoms(spec: Any, hand: HandModel, prefix: str, bodies: list[Any], visual: bool, fr: list[float]) -> None:
+    """Collision geoms (and visual ones when ``visual``) and the keypoint sites of the hand (names start with ``prefix``)."""
     for gi, g in enumerate(hand.geoms):
         if not g.collision and not visual:
             continue
         kw: dict[str, Any] = {
-            "name": f"{HAND_PREFIX}{g.name or gi}",
+            "name": f"{prefix}{g.name or gi}",
             "type": _geom_type(g.type),
             "size": g.size.tolist(),
             "pos": g.pos.tolist(),
@@ -150,7 +165,7 @@ def _add_hand_geoms(spec: Any, scene: Scene, bodies: list[Any], visual: bool, fr
             "rgba": g.rgba.tolist(),
         }
         if g.type == "mesh":
-            mname = f"{HAND_PREFIX}mesh{gi}"
+            mname = f"{prefix}mesh{gi}"
             spec.add_mesh(name=mname, uservert=g.vertices.ravel().tolist(), userface=g.faces.ravel().tolist())
             kw["meshname"] = mname
         if g.collision:
@@ -162,7 +177,7 @@ def _add_hand_geoms(spec: Any, scene: Scene, bodies: list[Any], visual: bool, fr
         bodies[g.body].add_geom(**kw)
     for k, name in enumerate(hand.kp_names):
         bodies[hand.kp_body[k]].add_site(
-            name=f"{HAND_PREFIX}kp/{name}", pos=hand.kp_pos[k].tolist(), size=[0.004, 0, 0], group=4
+            name=f"{prefix}kp/{name}", pos=hand.kp_pos[k].tolist(), size=[0.004, 0, 0], group=4
         )
 
 
@@ -195,12 +210,10 @@ def _add_object(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
         )  # fmt: skip
 
 
-def _add_actuators(spec: Any, scene: Scene) -> None:
-    """PD position + velocity feed-forward actuators on every hand dof."""
-    hand, pd = scene.hand, scene.hand.config.pd
-    dof_names = [f"{HAND_PREFIX}base_t{a}" for a in "xyz"] + [f"{HAND_PREFIX}base_r{a}" for a in "xyz"]
-    dof_names += [HAND_PREFIX + n for n in hand.joint_names]
-    for i, jn in enumerate(dof_names):
+def _add_actuators(spec: Any, hand: HandModel, prefix: str) -> None:
+    """PD position + velocity feed-forward actuators on every dof of the hand with name prefix ``prefix``."""
+    pd = hand.config.pd
+    for i, jn in enumerate(hand_dof_names(hand, prefix)):
         gains = pd.base_pos if i < 3 else pd.base_rot if i < 6 else pd.joint
         limit = None if i < 6 else pd.joint_force_limit
         for kind in ("pd", "ff"):
@@ -228,20 +241,16 @@ class MujocoModel:
         self.scene = scene
         self.model = build_spec(scene, visual=visual).compile()
         m = self.model
-        hand = scene.hand
-        names = [f"{HAND_PREFIX}base_t{a}" for a in "xyz"] + [f"{HAND_PREFIX}base_r{a}" for a in "xyz"]
-        names += [HAND_PREFIX + n for n in hand.joint_names]
+        names = dof_names(scene)
+        sites = [f"{p}kp/{n}" for h, p in zip(scene.hands, scene.prefixes, strict=True) for n in h.kp_names]
+        bodies = [p + n for h, p in zip(scene.hands, scene.prefixes, strict=True) for n in h.body_names]
         jid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
         self.hand_qpos = np.array([m.jnt_qposadr[j] for j in jid])
         self.hand_dof = np.array([m.jnt_dofadr[j] for j in jid])
         self.pd_act = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"pd/{n}") for n in names])
         self.ff_act = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff/{n}") for n in names])
-        self.kp_site = np.array(
-            [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{HAND_PREFIX}kp/{n}") for n in hand.kp_names]
-        )
-        self.hand_body = np.array(
-            [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, HAND_PREFIX + n) for n in hand.body_names]
-        )
+        self.kp_site = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, n) for n in sites])
+        self.hand_body = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in bodies])
         oj = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "object_free")
         self.obj_qpos = int(m.jnt_qposadr[oj])
         self.obj_dof = int(m.jnt_dofadr[oj])
@@ -268,14 +277,15 @@ class MujocoTarget:
         return max(1, round(1.0 / (self.scene.fps * self.scene.physics.mujoco_dt)))
 
     def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> TargetRollout:
-        """Run the PD targets ``q_targets`` (T, 6 + J) from the demo's initial object pose.
+        """Run the PD targets ``q_targets`` (T, D) from the demo's initial object pose (D = 6 + J per hand,
+        the hands concatenated).
 
-        The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``).
+        The hands start at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``).
         """
         q_targets = np.asarray(q_targets, dtype=np.float64)
-        hand = self.scene.hand
-        if q_targets.ndim != 2 or q_targets.shape[1] != 6 + hand.n_joints:
-            raise ValueError(f"q_targets must have shape (T, {6 + hand.n_joints}), got {q_targets.shape}")
+        D = self.scene.n_dof
+        if q_targets.ndim != 2 or q_targets.shape[1] != D:
+            raise ValueError(f"q_targets must have shape (T, {D}), got {q_targets.shape}")
         T = len(q_targets)
         qd0 = (q_targets[1] - q_targets[0]) * self.scene.fps if init_qvel and T > 1 else None
         sess = self.session(q_targets[0], qd0)
@@ -287,7 +297,7 @@ class MujocoTarget:
         return sess.result(time.perf_counter() - t0)
 
     def session(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> MujocoSession:
-        """A step-by-step run (closed-loop control): the hand at ``q0`` (6 + J) with velocity ``qd0``,
+        """A step-by-step run (closed-loop control): the hands at ``q0`` (D,) with velocity ``qd0``,
         the object at the demo's initial pose, at rest."""
         return MujocoSession(self, np.asarray(q0, np.float64), qd0)
 
@@ -305,7 +315,7 @@ class MujocoSession:
         self._rec: dict[str, list[np.ndarray]] = {"qpos": [], "opos": [], "oquat": [], "kps": []}
 
     def observe(self) -> dict[str, np.ndarray]:
-        """Hand ``qpos``/``qvel`` (6 + J), object origin ``obj_pos``, ``obj_quat`` (w x y z), world linear
+        """Hands' ``qpos``/``qvel`` (D,), object origin ``obj_pos``, ``obj_quat`` (w x y z), world linear
         velocity of the centre of mass ``obj_vel`` and world angular velocity ``obj_angvel``, ``keypoints``."""
         mm, d = self.target.mm, self.data
         self._sync()
@@ -346,15 +356,15 @@ class MujocoSession:
 
     def result(self, wall_s: float) -> TargetRollout:
         """The recorded frames as a :class:`TargetRollout`."""
-        hand = self.target.scene.hand
+        scene = self.target.scene
         return TargetRollout(
             target=self.target.name,
             qpos=np.array(self._rec["qpos"]),
             object_pos=np.array(self._rec["opos"]),
             object_quat=sign_continuous(np.array(self._rec["oquat"])),
             keypoints=np.array(self._rec["kps"]),
-            kp_human=hand.kp_human.copy(),
-            kp_metric=hand.kp_metric.copy(),
+            kp_human=scene.kp_human,
+            kp_metric=scene.kp_metric,
             dt=float(self.target.mm.model.opt.timestep),
             substeps=self.target.substeps,
             wall_s=wall_s,

@@ -36,6 +36,9 @@ PyBullet cannot load the Shadow MJCF, so the hand is assembled link by link from
   are hulls loaded from temporary OBJ files (``createCollisionShapeArray`` takes meshes only as files).
 * Object: one rigid body with the asset's mass, centre of mass and principal inertia. PyBullet reports a
   base's pose as its inertial frame; it is converted back to the object frame for the readout.
+* Two hands (a demo with ``left_joints``): one multibody per hand as above, each with its own ``base_rot``
+  and PD law (mass matrix per hand); the hands collide with the object and the table, not with each other
+  (``setCollisionFilterPair``). States and targets are ``[right (6 + J), left (6 + J)]``.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from quasisim.assets.hand import HINGE, Geom
+from quasisim.assets.hand import HINGE, Geom, HandModel
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
 from quasisim.targets import TargetRollout
@@ -144,20 +147,46 @@ class _Link:
     limit: tuple[float, float] | None = None
 
 
-def hand_links(scene: Scene) -> tuple[list[_Link], list[int], np.ndarray, np.ndarray]:
-    """The hand as PyBullet links.
+@dataclass
+class _HandBody:
+    """One hand as a PyBullet multibody: its links (:func:`hand_links`), the PyBullet joint of each of its dofs
+    (``dof_joint``, 6 + J, our order), its bodies' links and offsets, and the multibody's id once built."""
+
+    hand: HandModel
+    links: list[_Link]
+    dof_joint: np.ndarray
+    body_link: np.ndarray
+    body_off: np.ndarray
+    id: int = -1
+
+    @classmethod
+    def make(cls, scene: Scene, hand: HandModel, base_rot: np.ndarray) -> _HandBody:
+        links, dof_link, body_link, body_off = hand_links(scene, hand, base_rot)
+        return cls(hand, links, np.asarray(dof_link), body_link, body_off)
+
+    @property
+    def mm_order(self) -> np.ndarray:
+        """PyBullet's dof order (= joint index order) -> ours."""
+        return np.argsort(self.dof_joint)
+
+
+def hand_links(scene: Scene, hand: HandModel | None = None, base_rot: np.ndarray | None = None) -> tuple[
+    list[_Link], list[int], np.ndarray, np.ndarray
+]:  # fmt: skip
+    """The hand as PyBullet links: ``hand`` on base frame ``base_rot`` (default: ``scene.hand``, ``scene.base_rot``).
 
     Returns:
         links; ``dof_link`` (6 + J): the link (= PyBullet joint index) of every hand dof in our order;
         ``body_link`` (B,): the link of every body; ``body_off`` (B, 3): the link frame in the body frame
         (link frame = body frame translated by ``body_off``, in body axes; m).
     """
-    hand = scene.hand
+    hand = scene.hand if hand is None else hand
+    base_rot = scene.base_rot if base_rot is None else base_rot
     arm = hand.config.pd.joint_armature
     eye = np.eye(3)
     links = [_Link(parent=k, pos=np.zeros(3), rot=eye, joint="prismatic", axis=eye[k]) for k in range(3)]
     for k in range(3):  # the base hinges; the first link frame carries base_rot
-        rot = scene.base_rot if k == 0 else eye
+        rot = base_rot if k == 0 else eye
         links.append(_Link(parent=3 + k, pos=np.zeros(3), rot=rot, joint="revolute", axis=eye[k]))
     dof_link = list(range(6)) + [-1] * hand.n_joints
     body_link = np.zeros(hand.n_bodies, dtype=int)
@@ -231,13 +260,35 @@ class PybulletTarget:
         self.scene = scene
         self.pb = _pybullet()
         self.client = self.pb.connect(self.pb.DIRECT)
-        self.links, dof_link, self.body_link, self.body_off = hand_links(scene)
-        self.dof_joint = np.asarray(dof_link)
-        self._mm_order = np.argsort(self.dof_joint)  # PyBullet's dof order (= joint index order) -> ours
-        self._mm_inv = np.argsort(self._mm_order)
+        self.parts = [_HandBody.make(scene, h, R) for h, R in zip(scene.hands, scene.base_rots, strict=True)]
         self._fresh = False
         self._files = itertools.count()
         self._build()
+
+    # the first (one-hand: the only) hand's multibody
+    @property
+    def hand_id(self) -> int:
+        return self.parts[0].id
+
+    @property
+    def links(self) -> list[_Link]:
+        return self.parts[0].links
+
+    @property
+    def body_link(self) -> np.ndarray:
+        return self.parts[0].body_link
+
+    @property
+    def body_off(self) -> np.ndarray:
+        return self.parts[0].body_off
+
+    @property
+    def dof_joint(self) -> np.ndarray:
+        return self.parts[0].dof_joint
+
+    def _slices(self) -> list[tuple[_HandBody, slice]]:
+        """Each hand's multibody and its columns in the state and target vectors."""
+        return list(zip(self.parts, self.scene.dof_slices, strict=True))
 
     # ---- construction ----------------------------------------------------------------------------
 
@@ -294,19 +345,7 @@ class PybulletTarget:
         pb.setGravity(0.0, 0.0, -sc.physics.gravity, **kw)
         with tempfile.TemporaryDirectory(prefix="quasisim_pb_") as d:
             tmp = Path(d)
-            shape_ids = [self._shape_array(lk.shapes, tmp) if lk.shapes else -1 for lk in self.links]
-            frames = [_principal(lk.inertia) for lk in self.links]
-            jtype = {"fixed": pb.JOINT_FIXED, "revolute": pb.JOINT_REVOLUTE, "prismatic": pb.JOINT_PRISMATIC}
-            L = self.links
-            self.hand_id = pb.createMultiBody(
-                baseMass=0.0, basePosition=[0, 0, 0], linkMasses=[lk.mass for lk in L],
-                linkCollisionShapeIndices=shape_ids, linkVisualShapeIndices=[-1] * len(L),
-                linkPositions=[lk.pos.tolist() for lk in L], linkOrientations=[_xyzw(lk.rot) for lk in L],
-                linkInertialFramePositions=[lk.com.tolist() for lk in L],
-                linkInertialFrameOrientations=[_xyzw(f[1]) for f in frames],
-                linkParentIndices=[lk.parent for lk in L], linkJointTypes=[jtype[lk.joint] for lk in L],
-                linkJointAxis=[lk.axis.tolist() for lk in L], **kw,
-            )  # fmt: skip
+            frames = [self._add_hand(part, tmp) for part in self.parts]
             obj = sc.obj
             self.obj_moments, self.obj_axes = _principal(np.asarray(obj.inertia, dtype=np.float64))
             self.obj_com = np.asarray(obj.com, dtype=np.float64)
@@ -322,24 +361,51 @@ class PybulletTarget:
         tshape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=t.half_size.tolist(), **kw)
         self.table_id = pb.createMultiBody(0.0, tshape, basePosition=t.center.tolist(), **kw)
         self._dynamics(self.table_id, -1)
-        for i, (lk, (moments, _)) in enumerate(zip(self.links, frames, strict=True)):
-            self._dynamics(self.hand_id, i, moments + 1e-12)  # strict triangle inequality for the rotor disc
-            pb.changeDynamics(self.hand_id, i, maxJointVelocity=MAX_JOINT_VELOCITY, **kw)
+        for part, part_frames in zip(self.parts, frames, strict=True):
+            self._hand_dynamics(part, part_frames)
+        for a, b in itertools.combinations(self.parts, 2):  # the hands do not touch each other (as in MuJoCo)
+            for i, j in itertools.product(range(-1, len(a.links)), range(-1, len(b.links))):
+                pb.setCollisionFilterPair(a.id, b.id, i, j, enableCollision=0, **kw)
+        self._fresh = True
+
+    def _add_hand(self, part: _HandBody, tmp: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Create ``part``'s multibody (sets ``part.id``); returns its links' principal inertia frames."""
+        pb, kw, L = self.pb, self._kw(), part.links
+        shape_ids = [self._shape_array(lk.shapes, tmp) if lk.shapes else -1 for lk in L]
+        frames = [_principal(lk.inertia) for lk in L]
+        jtype = {"fixed": pb.JOINT_FIXED, "revolute": pb.JOINT_REVOLUTE, "prismatic": pb.JOINT_PRISMATIC}
+        part.id = pb.createMultiBody(
+            baseMass=0.0, basePosition=[0, 0, 0], linkMasses=[lk.mass for lk in L],
+            linkCollisionShapeIndices=shape_ids, linkVisualShapeIndices=[-1] * len(L),
+            linkPositions=[lk.pos.tolist() for lk in L], linkOrientations=[_xyzw(lk.rot) for lk in L],
+            linkInertialFramePositions=[lk.com.tolist() for lk in L],
+            linkInertialFrameOrientations=[_xyzw(f[1]) for f in frames],
+            linkParentIndices=[lk.parent for lk in L], linkJointTypes=[jtype[lk.joint] for lk in L],
+            linkJointAxis=[lk.axis.tolist() for lk in L], **kw,
+        )  # fmt: skip
+        return frames
+
+    def _hand_dynamics(self, part: _HandBody, frames: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Friction, inertia, joint limits of ``part``'s links; its velocity motors off."""
+        pb, kw = self.pb, self._kw()
+        for i, (lk, (moments, _)) in enumerate(zip(part.links, frames, strict=True)):
+            self._dynamics(part.id, i, moments + 1e-12)  # strict triangle inequality for the rotor disc
+            pb.changeDynamics(part.id, i, maxJointVelocity=MAX_JOINT_VELOCITY, **kw)
             if lk.limit is not None:
                 lo, hi = lk.limit
-                pb.changeDynamics(self.hand_id, i, jointLowerLimit=lo, jointUpperLimit=hi, **kw)
-        movable = [i for i, lk in enumerate(self.links) if lk.joint != "fixed"]
+                pb.changeDynamics(part.id, i, jointLowerLimit=lo, jointUpperLimit=hi, **kw)
+        movable = [i for i, lk in enumerate(part.links) if lk.joint != "fixed"]
         zero = [0.0] * len(movable)
-        pb.setJointMotorControlArray(self.hand_id, movable, pb.VELOCITY_CONTROL, forces=zero, **kw)
-        self._fresh = True
+        pb.setJointMotorControlArray(part.id, movable, pb.VELOCITY_CONTROL, forces=zero, **kw)
 
     # ---- state -----------------------------------------------------------------------------------
 
     def set_state(self, qfull: np.ndarray, qvel: np.ndarray | None = None) -> None:
-        """Reset the hand to ``qfull`` (6 + J) with velocity ``qvel`` (m/s, rad/s; default 0)."""
+        """Reset the hands to ``qfull`` (D,) with velocity ``qvel`` (m/s, rad/s; default 0)."""
         qvel = np.zeros(len(qfull)) if qvel is None else qvel
-        for j, q, v in zip(self.dof_joint, qfull, qvel, strict=True):
-            self.pb.resetJointState(self.hand_id, int(j), float(q), float(v), **self._kw())
+        for part, sl in self._slices():
+            for j, q, v in zip(part.dof_joint, qfull[sl], qvel[sl], strict=True):
+                self.pb.resetJointState(part.id, int(j), float(q), float(v), **self._kw())
 
     def set_object_pose(self, pos: np.ndarray, quat: np.ndarray) -> None:
         """Place the object frame at ``pos`` (m), ``quat`` (w x y z), at rest."""
@@ -356,28 +422,39 @@ class PybulletTarget:
         return np.asarray(p) - R @ self.obj_com, np_mat_to_quat(R)
 
     def joint_states(self) -> tuple[np.ndarray, np.ndarray]:
-        """Measured hand ``qfull`` (6 + J) and its velocity, in our dof order."""
-        st = self.pb.getJointStates(self.hand_id, self.dof_joint.tolist(), **self._kw())
+        """Measured hands' ``qfull`` (D,) and its velocity, in our dof order."""
+        q, v = zip(*(self._joint_states(part) for part in self.parts), strict=True)
+        return (q[0], v[0]) if len(q) == 1 else (np.concatenate(q), np.concatenate(v))
+
+    def _joint_states(self, part: _HandBody) -> tuple[np.ndarray, np.ndarray]:
+        st = self.pb.getJointStates(part.id, part.dof_joint.tolist(), **self._kw())
         return np.array([s[0] for s in st]), np.array([s[1] for s in st])
 
-    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
-        """Joint-space mass matrix (6 + J, 6 + J) of the hand at ``q`` in our dof order (kg, kg m, kg m^2)."""
-        M = self.pb.calculateMassMatrix(self.hand_id, q[self._mm_order].tolist(), **self._kw())
-        return np.asarray(M)[np.ix_(self._mm_inv, self._mm_inv)]
+    def mass_matrix(self, q: np.ndarray, part: int = 0) -> np.ndarray:
+        """Joint-space mass matrix (6 + J, 6 + J) of hand ``part`` at its ``q`` (6 + J) in our dof order
+        (kg, kg m, kg m^2)."""
+        h = self.parts[part]
+        order = h.mm_order
+        inv = np.argsort(order)
+        M = self.pb.calculateMassMatrix(h.id, q[order].tolist(), **self._kw())
+        return np.asarray(M)[np.ix_(inv, inv)]
 
-    def body_poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """World poses of the hand bodies from PyBullet's links: positions (B, 3) m, rotations (B, 3, 3)."""
-        links = self.body_link.tolist()
-        st = self.pb.getLinkStates(self.hand_id, links, computeForwardKinematics=1, **self._kw())
+    def body_poses(self, part: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """World poses of hand ``part``'s bodies from PyBullet's links: positions (B, 3) m, rotations (B, 3, 3)."""
+        h = self.parts[part]
+        st = self.pb.getLinkStates(h.id, h.body_link.tolist(), computeForwardKinematics=1, **self._kw())
         rot = np.stack([_mat(s[5]) for s in st])
-        pos = np.array([s[4] for s in st]) - np.einsum("bij,bj->bi", rot, self.body_off)
+        pos = np.array([s[4] for s in st]) - np.einsum("bij,bj->bi", rot, h.body_off)
         return pos, rot
 
     def keypoints(self) -> np.ndarray:
-        """Hand keypoints (K, 3) from PyBullet's link poses and the hand model's offsets (m)."""
-        pos, rot = self.body_poses()
-        h = self.scene.hand
-        return pos[h.kp_body] + np.einsum("kij,kj->ki", rot[h.kp_body], h.kp_pos)
+        """Keypoints (K, 3) of every hand from PyBullet's link poses and the hand models' offsets (m)."""
+        out = []
+        for i, part in enumerate(self.parts):
+            pos, rot = self.body_poses(i)
+            h = part.hand
+            out.append(pos[h.kp_body] + np.einsum("kij,kj->ki", rot[h.kp_body], h.kp_pos))
+        return out[0] if len(out) == 1 else np.concatenate(out)
 
     # ---- rollout ---------------------------------------------------------------------------------
 
@@ -386,20 +463,20 @@ class PybulletTarget:
         return max(1, round(1.0 / (self.scene.fps * self.scene.physics.pybullet_dt)))
 
     def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> TargetRollout:
-        """Run the PD targets ``q_targets`` (T, 6 + J) from the demo's initial object pose.
+        """Run the PD targets ``q_targets`` (T, D) from the demo's initial object pose (D = 6 + J per hand).
 
-        The hand starts at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``); the
+        The hands start at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``); the
         world is rebuilt first when a previous rollout used it, so rollouts are reproducible.
         """
         q_targets = np.asarray(q_targets, dtype=np.float64)
-        hand = self.scene.hand
-        if q_targets.ndim != 2 or q_targets.shape[1] != 6 + hand.n_joints:
-            raise ValueError(f"q_targets must have shape (T, {6 + hand.n_joints}), got {q_targets.shape}")
+        D = self.scene.n_dof
+        if q_targets.ndim != 2 or q_targets.shape[1] != D:
+            raise ValueError(f"q_targets must have shape (T, {D}), got {q_targets.shape}")
         T, fps = len(q_targets), self.scene.fps
         self.reset(q_targets[0], (q_targets[1] - q_targets[0]) * fps if init_qvel and T > 1 else None)
-        qpos = np.zeros((T, 6 + hand.n_joints))
+        qpos = np.zeros((T, D))
         opos, oquat = np.zeros((T, 3)), np.zeros((T, 4))
-        kps = np.zeros((T, len(hand.kp_names), 3))
+        kps = np.zeros((T, len(self.scene.kp_human), 3))
         t0 = time.perf_counter()
         for t in range(T):
             qpos[t], opos[t], oquat[t], kps[t] = self.frame_state()
@@ -409,7 +486,7 @@ class PybulletTarget:
         return self.make_rollout(qpos, opos, oquat, kps, time.perf_counter() - t0)
 
     def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> None:
-        """Start a run: rebuild the world when a previous run used it, put the hand at ``q0`` (6 + J) with
+        """Start a run: rebuild the world when a previous run used it, put the hands at ``q0`` (D,) with
         velocity ``qd0`` (default 0) and the object at the demo's initial pose, at rest."""
         if not self._fresh:
             self._build()
@@ -418,15 +495,14 @@ class PybulletTarget:
         self.set_object_pose(self.scene.object_pos0, self.scene.object_quat0)
 
     def frame_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """What a rollout records per frame: hand ``qpos`` (6 + J), object position (3,) m and quaternion
+        """What a rollout records per frame: hands' ``qpos`` (D,), object position (3,) m and quaternion
         (4,) w x y z, all keypoints (K, 3) m."""
         qpos = self.joint_states()[0]
         opos, oquat = self.object_pose()
         return qpos, opos, oquat, self.keypoints()
 
-    def _pd_law(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per-dof ``kp``, ``kv``, PD torque limit and joint damping (6 + J each) of the PD law."""
-        hand = self.scene.hand
+    def _pd_law(self, hand: HandModel) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per-dof ``kp``, ``kv``, PD torque limit and joint damping (6 + J each) of ``hand``'s PD law."""
         pd = hand.config.pd
         kp = np.array([pd.base_pos.kp] * 3 + [pd.base_rot.kp] * 3 + [pd.joint.kp] * hand.n_joints)
         kv = np.array([pd.base_pos.kv] * 3 + [pd.base_rot.kv] * 3 + [pd.joint.kv] * hand.n_joints)
@@ -436,36 +512,40 @@ class PybulletTarget:
 
     def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
         """One control frame (``substeps`` physics steps): PD targets interpolated linearly from ``qa`` to
-        ``qb`` (6 + J each) with their velocity fed forward; the PD law of the module docstring."""
+        ``qb`` (D each) with their velocity fed forward; the PD law of the module docstring, per hand."""
         pb, kw = self.pb, self._kw()
-        fps, n, dt = self.scene.fps, self.substeps, self.scene.physics.pybullet_dt
-        kp, kv, lim, damp = self._pd_law()
-        D = dt * np.diag(kv + damp)
-        joints, torque = self.dof_joint.tolist(), pb.TORQUE_CONTROL
-        ff = kv * (qb - qa) * fps  # kv qd*
+        n = self.substeps
+        laws = [self._pd_law(part.hand) for part in self.parts]
         for k in range(n):
             s = (k + 1) / n
-            q, qd = self.joint_states()
-            M = self.mass_matrix(q)
-            e = kp * ((1 - s) * qa + s * qb - q)
-            v = np.linalg.solve(M + D, M @ qd + dt * (e + ff))  # end-of-step velocity
-            tau = np.clip(e - kv * v, -lim, lim) + ff - damp * v
-            pb.setJointMotorControlArray(self.hand_id, joints, torque, forces=tau.tolist(), **kw)
+            for i, ((part, sl), law) in enumerate(zip(self._slices(), laws, strict=True)):
+                tau = self._pd_torque(i, law, qa[sl], qb[sl], s)
+                pb.setJointMotorControlArray(part.id, part.dof_joint.tolist(), pb.TORQUE_CONTROL, forces=tau, **kw)
             pb.stepSimulation(**kw)
+
+    def _pd_torque(self, i: int, law: tuple[np.ndarray, ...], qa: np.ndarray, qb: np.ndarray, s: float) -> list[float]:
+        """Hand ``i``'s PD torques (6 + J) at fraction ``s`` of the frame from ``qa`` to ``qb`` (its targets)."""
+        kp, kv, lim, damp = law
+        dt, fps = self.scene.physics.pybullet_dt, self.scene.fps
+        ff = kv * (qb - qa) * fps  # kv qd*
+        q, qd = self._joint_states(self.parts[i])
+        M = self.mass_matrix(q, i)
+        e = kp * ((1 - s) * qa + s * qb - q)
+        v = np.linalg.solve(M + dt * np.diag(kv + damp), M @ qd + dt * (e + ff))  # end-of-step velocity
+        return (np.clip(e - kv * v, -lim, lim) + ff - damp * v).tolist()
 
     def make_rollout(
         self, qpos: np.ndarray, opos: np.ndarray, oquat: np.ndarray, kps: np.ndarray, wall_s: float
     ) -> TargetRollout:
         """A :class:`TargetRollout` of recorded frames (the arrays of :meth:`frame_state`, stacked over T)."""
-        hand = self.scene.hand
         return TargetRollout(
             target=self.name,
             qpos=np.asarray(qpos),
             object_pos=np.asarray(opos),
             object_quat=sign_continuous(np.asarray(oquat)),
             keypoints=np.asarray(kps),
-            kp_human=hand.kp_human.copy(),
-            kp_metric=hand.kp_metric.copy(),
+            kp_human=self.scene.kp_human,
+            kp_metric=self.scene.kp_metric,
             dt=float(self.scene.physics.pybullet_dt),
             substeps=self.substeps,
             wall_s=wall_s,

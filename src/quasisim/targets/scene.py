@@ -1,9 +1,15 @@
-"""The evaluation scene shared by every target simulator: hand on a floating base, object, finite table.
+"""The evaluation scene shared by every target simulator: hand(s) on floating bases, object, finite table.
+
+A scene holds one hand (the demo's right hand) or two (right, then the mirrored left hand of a demo with
+``left_joints``). Everything indexed over hands follows that order: the control vector is the
+concatenation ``[right (6 + J), left (6 + J)]`` (:attr:`Scene.dof_slices`) and robot keypoints index the
+human keypoints ``[right_joints, left_joints]`` (:attr:`Scene.kp_human`: left-hand indices 21..41).
 
 The table is a box from the floor (z = 0) up to ``support_height``. Its footprint is sized from the demo:
-it covers the object's initial footprint with a margin and contains no human keypoint (of any frame)
-that is below the table top, with a clearance. In GRAB clips the hand rises from below the table top
-beside the table, so an infinite support plane would collide with it.
+it covers the object's initial footprint with a margin and contains no human keypoint (of any frame, of
+either hand) that is below the table top, with a clearance. In GRAB clips the hand rises from below the
+table top beside the table, and ARCTIC's objects start on a small stand with hands passing below its
+top beside it, so an infinite support plane would collide with them.
 """
 
 from __future__ import annotations
@@ -14,7 +20,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from quasisim.assets.hand import HandModel
-from quasisim.data.demo import Demo
+from quasisim.data.demo import N_KEYPOINTS, Demo
+from quasisim.errors import QuasisimError
 from quasisim.rotations import np_quat_to_mat
 
 if TYPE_CHECKING:
@@ -60,8 +67,9 @@ class Scene:
     """Everything a target needs to build the same world.
 
     Attributes:
-        hand: parsed hand model.
+        hand: parsed hand model (the right hand of a two-hand scene).
         base_rot: (3, 3) fixed frame of the base hinges (see :mod:`quasisim.sim.kinematics`).
+        left: the second hand of a two-hand scene and its base frame (3, 3), or None (one hand).
         obj: object asset (mesh, mass, inertia, convex parts).
         table: the support box.
         object_pos0, object_quat0: initial object pose (m; w x y z).
@@ -79,6 +87,56 @@ class Scene:
     fps: float
     physics: PhysicsOptions = PhysicsOptions()
     notes: tuple[str, ...] = field(default=())
+    left: tuple[HandModel, np.ndarray] | None = None
+
+    @property
+    def hands(self) -> tuple[HandModel, ...]:
+        """The hands in control order: ``(hand,)`` or ``(hand, left hand)``."""
+        return (self.hand,) if self.left is None else (self.hand, self.left[0])
+
+    @property
+    def base_rots(self) -> tuple[np.ndarray, ...]:
+        """(3, 3) base frame of each hand of :attr:`hands`."""
+        return (self.base_rot,) if self.left is None else (self.base_rot, np.asarray(self.left[1], np.float64))
+
+    @property
+    def prefixes(self) -> tuple[str, ...]:
+        """Name prefix of each hand in the simulators' models: ``hand/`` alone, ``rhand/`` and ``lhand/``."""
+        return ("hand/",) if self.left is None else ("rhand/", "lhand/")
+
+    @property
+    def dof_slices(self) -> tuple[slice, ...]:
+        """Columns of each hand (6 base + J joints) in the control vector."""
+        out, start = [], 0
+        for h in self.hands:
+            out.append(slice(start, start + 6 + h.n_joints))
+            start += 6 + h.n_joints
+        return tuple(out)
+
+    @property
+    def n_dof(self) -> int:
+        """Length of the control vector: sum over hands of 6 + J."""
+        return self.dof_slices[-1].stop
+
+    @property
+    def kp_human(self) -> np.ndarray:
+        """(K,) for every robot keypoint of every hand, its index into the human keypoints of all hands
+        (``Demo.human_joints``: hand ``i``'s keypoints are offset by 21 i)."""
+        return np.concatenate([h.kp_human + N_KEYPOINTS * i for i, h in enumerate(self.hands)])
+
+    @property
+    def kp_metric(self) -> np.ndarray:
+        """(K,) whether each robot keypoint (all hands) counts in MPJPE and the hand term."""
+        return np.concatenate([h.kp_metric for h in self.hands])
+
+    def joint_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(D,) lower and upper bounds of the control vector: -inf/inf for the base coordinates and
+        unlimited joints, the joint limits otherwise."""
+        lo, hi = [], []
+        for h in self.hands:
+            lo += [np.full(6, -np.inf), np.where(h.joint_limited, h.joint_range[:, 0], -np.inf)]
+            hi += [np.full(6, np.inf), np.where(h.joint_limited, h.joint_range[:, 1], np.inf)]
+        return np.concatenate(lo), np.concatenate(hi)
 
 
 def size_table(
@@ -88,8 +146,14 @@ def size_table(
     clearance: float = 0.04,
     max_half: float = 0.4,
     below_tol: float = 0.01,
+    stand_half: float = 0.03,
 ) -> tuple[Table, tuple[str, ...]]:
     """Size the table footprint from the demo (see module docstring).
+
+    When hand keypoints below the top lie within ``clearance`` of the object's footprint (ARCTIC: fingers
+    under the edges of an object that rests on a small stand), the support becomes a stand instead: the
+    largest box (cut as above) around a square of half-size ``stand_half`` under the object's centre of mass
+    at frame 0 that keeps those keypoints ``clearance`` away; one note says so.
 
     Args:
         margin: the footprint covers the object's initial footprint grown by this much (m).
@@ -97,17 +161,49 @@ def size_table(
         max_half: largest half-extent of the footprint around the object (m).
         below_tol: a keypoint counts as below the top when it is more than this below it (m); fingertips
             touching the table while grasping sit a few mm under it in motion-capture data.
+        stand_half: half-size of the smallest support, a square under the object's centre of mass (m).
     """
     top = float(demo.support_height)
     R0 = np_quat_to_mat(demo.object_quat[0])
     v = obj.vertices @ R0.T + demo.object_pos[0]
     need = np.array([v[:, 0].min() - margin, v[:, 0].max() + margin, v[:, 1].min() - margin, v[:, 1].max() + margin])
     c = np.array([(need[0] + need[1]) / 2, (need[2] + need[3]) / 2])
-    rect = np.array([c[0] - max_half, c[0] + max_half, c[1] - max_half, c[1] + max_half])
-    rect = np.array([min(rect[0], need[0]), max(rect[1], need[1]), min(rect[2], need[2]), max(rect[3], need[3])])
-    notes: list[str] = []
-    pts = demo.right_joints.reshape(-1, 3)
+    pts = demo.human_joints.reshape(-1, 3)  # every hand's keypoints
     below = pts[pts[:, 2] < top - below_tol][:, :2]
+    rect, stuck = _carve(_around(c, max_half, need), need, below, c, clearance)
+    if not stuck:
+        return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), ()
+    com = (R0 @ np.asarray(obj.com) + demo.object_pos[0])[:2]
+    stand = np.array([com[0] - stand_half, com[0] + stand_half, com[1] - stand_half, com[1] + stand_half])
+    rect, stuck_stand = _carve(_around(c, max_half, stand), stand, below, com, clearance)
+    notes = [
+        f"{len(stuck)} hand keypoint(s) below the table top within {clearance * 100:g} cm of the object's footprint: "
+        f"the support is a stand under the object's centre of mass ({stand_half * 200:g} cm square or larger) "
+        "that keeps them clear"
+    ]
+    if stuck_stand:
+        x, y = stuck_stand[0]
+        notes.append(
+            f"{len(stuck_stand)} hand keypoint(s) below the table top over the stand, e.g. at ({x:.3f}, {y:.3f}); "
+            "kept the stand"
+        )
+    return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), tuple(notes)
+
+
+def _around(c: np.ndarray, half: float, need: np.ndarray) -> np.ndarray:
+    """[xmin, xmax, ymin, ymax]: the square of half-size ``half`` around ``c`` (2,), grown to cover ``need``."""
+    rect = np.array([c[0] - half, c[0] + half, c[1] - half, c[1] + half])
+    return np.array([min(rect[0], need[0]), max(rect[1], need[1]), min(rect[2], need[2]), max(rect[3], need[3])])
+
+
+def _carve(
+    rect: np.ndarray, need: np.ndarray, below: np.ndarray, c: np.ndarray, clearance: float
+) -> tuple[np.ndarray, list[tuple[float, float]]]:
+    """Cut ``rect`` [xmin, xmax, ymin, ymax] (m) so that no point of ``below`` (N, 2), nearest to ``c`` first,
+    lies within ``clearance`` of it, never cutting into ``need``; each cut moves the one side that keeps the
+    most area. Returns the rectangle and the points that could not be cleared (kept)."""
+    rect = rect.copy()
+    stuck: list[tuple[float, float]] = []
     order = np.argsort(np.linalg.norm(below - c, axis=1))
     for x, y in below[order]:
         inside = rect[0] - clearance < x < rect[1] + clearance and rect[2] - clearance < y < rect[3] + clearance
@@ -123,9 +219,7 @@ def size_table(
         if y + clearance <= need[2]:
             options.append((2, y + clearance))
         if not options:
-            notes.append(
-                f"hand keypoint at ({x:.3f}, {y:.3f}) is below the table top inside the object's footprint; kept the footprint"
-            )
+            stuck.append((float(x), float(y)))
             continue
 
         def area(opt: tuple[int, float]) -> float:
@@ -135,7 +229,7 @@ def size_table(
 
         k, val = max(options, key=area)
         rect[k] = val
-    return Table(float(rect[0]), float(rect[1]), float(rect[2]), float(rect[3]), top), tuple(notes)
+    return rect, stuck
 
 
 def make_scene(
@@ -144,7 +238,18 @@ def make_scene(
     base_rot: np.ndarray,
     obj: ObjectAsset,
     physics: PhysicsOptions | None = None,
+    left: tuple[HandModel, np.ndarray] | None = None,
 ) -> Scene:
+    """The scene of ``demo`` with ``hand`` on base frame ``base_rot`` (3, 3) and, for a demo with
+    ``left_joints``, the left hand and its base frame ``left`` (required then, refused otherwise)."""
+    if left is not None and demo.left_joints is None:
+        raise ValueError(f"make_scene: demo {demo.name} has one hand, the scene was given a left hand")
+    if left is None and demo.left_joints is not None:  # a one-hand code path reached with a two-hand demo
+        raise QuasisimError(
+            f"{demo.path or demo.name}: a demo with two hands (left_joints); this command handles one-hand demos "
+            "only (two hands: quasisim retarget, quasisim evaluate, quasisim bench baseline, quasisim transfer --method "
+            "kinematic or sample-target)"
+        )
     table, notes = size_table(demo, obj)
     return Scene(
         hand=hand,
@@ -156,4 +261,5 @@ def make_scene(
         fps=float(demo.fps),
         physics=physics or PhysicsOptions(),
         notes=notes,
+        left=None if left is None else (left[0], np.asarray(left[1], dtype=np.float64)),
     )
