@@ -262,6 +262,24 @@ DEMO_CASES: list[tuple[str, Callable[[Path], None], tuple[str, ...]]] = [
     ),
     ("mesh_10um", _mesh_scale(10e-6 / 0.05), ("cube_lift.obj", "across")),
     ("mesh_50m", _mesh_scale(50.0 / 0.05), ("cube_lift.obj", "across")),
+    (
+        "mesh_1e30_m",
+        _write(MESH, "v 0 0 0\nv 1e30 0 0\nv 0 1e30 0\nv 0 0 1e30\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"),
+        ("cube_lift.obj", "across"),
+    ),
+    (
+        "object_jump",
+        _npz_edit(DEMO, object_pos=lambda a: np.where(np.arange(T)[:, None] == 8, a + np.float32(1.0), a)),
+        ("object_pos", "15 m/s", "frame 7 to 8"),
+    ),
+    (
+        "joints_jump",
+        _npz_edit(DEMO, right_joints=lambda a: np.where(np.arange(T)[:, None, None] == 8, a + np.float32(1.0), a)),
+        ("right_joints", "15 m/s"),
+    ),
+    ("fps_wrong_1000", _npz_edit(DEMO, fps=np.array(1000.0)), ("m/s", "wrong fps")),
+    ("name_empty", _npz_edit(DEMO, name=np.array("")), ("name", "non-empty")),
+    ("name_two_lines", _npz_edit(DEMO, name=np.array("cube\nlift")), ("name", "one line")),
     ("demo_empty", _write(DEMO, b""), (DEMO, "empty file")),
     ("demo_random_bytes", _write(DEMO, RANDOM), (DEMO, "not a zip archive")),
     ("demo_text", _write(DEMO, "format: quasisim-demo-v1\n"), (DEMO, "npz")),
@@ -340,6 +358,12 @@ CONTROLS_CASES = [
     Case("controls-truncated", _truncate(CONTROLS), EVAL, (CONTROLS, "npz")),
     Case("controls-npy", _npy(CONTROLS), EVAL, (CONTROLS, ".npy")),
     Case("controls-absent", lambda d: (d / CONTROLS).unlink(), EVAL, (CONTROLS, "no such file")),
+    Case(
+        "controls-hand-yaml-absent",
+        _npz_edit(CONTROLS, hand=np.array("/nonexistent/hand.yaml")),
+        EVAL,
+        (CONTROLS, "hand", "no such file"),
+    ),
 ]
 
 # ---- hand YAMLs (retarget --hand) ------------------------------------------------------------------------
@@ -402,6 +426,34 @@ HAND_CASES = [
     ),
     Case("hand-model-passwd", _yaml_edit(lambda y: y.update(model="/etc/passwd")), RET, ("/etc/passwd", "MJCF")),
     Case("hand-unknown-name", _nothing, "retarget {d}/cube_lift.npz --hand nohand --out {d}/out", ("nohand", "shadow")),
+    Case(
+        "hand-wrist-fit-empty", _yaml_edit(lambda y: y.update(wrist_fit_human=[])), RET, (HAND, "wrist_fit_human", "3")
+    ),
+    Case(
+        "hand-weights-zero",
+        _yaml_edit(lambda y: [k.update(weight=0.0) for k in y["keypoints"]]),
+        RET,
+        (HAND, "wrist_fit_human", "weight > 0"),
+    ),
+    Case(
+        "hand-no-metric",
+        _yaml_edit(lambda y: [k.update(metric=False) for k in y["keypoints"]]),
+        RET,
+        (HAND, "keypoints", "metric"),
+    ),
+    Case("hand-seed-negative", _yaml_edit(lambda y: y["points"].update(seed=-1)), RET, (HAND, "points.seed", ">= 0")),
+    Case(
+        "hand-exclude-typo",
+        _yaml_edit(lambda y: y.update(exclude_geoms=["robot0:V_thbse"])),
+        RET,
+        (HAND, "exclude_geoms[0]", "a geom of", "V_thbse"),
+    ),
+    Case(
+        "hand-key-twice",
+        lambda d: (d / HAND).write_text((d / HAND).read_text() + "\nname: other\n"),
+        RET,
+        (HAND, "'name' given twice"),
+    ),
 ]
 
 # ---- CLI options -----------------------------------------------------------------------------------------
@@ -454,6 +506,110 @@ OPTION_CASES = [
     Case("demo-device", _nothing, "retarget /dev/null --out {d}/out", ("/dev/null", "regular file")),
     Case("demo-name-too-long", _nothing, "retarget {d}/" + "y" * 300 + ".npz --out {d}/out", ("yyyy",)),
     Case("demo-folder", _nothing, "retarget {d}/meshes --out {d}/out", ("meshes", "a folder")),
+    Case("transfer-set-yaml", _nothing, TR + "--set weights.hand=[1,", ("--set", "weights.hand", "YAML value")),
+    Case("transfer-set-no-key", _nothing, TR + "--set =5", ("--set", "KEY=VALUE", "'=5'")),
+    Case("transfer-set-soften-range", _nothing, TR + "--set mpc.soften_range=5.0", ("mpc", "soften_range < 1")),
+    Case("batch-no-clips", _nothing, "batch {d}/meshes --out {d}/bout", ("meshes", "--pattern", "got none")),
+    Case("batch-pattern-absolute", _nothing, "batch {d} --out {d}/bout --pattern /x/*.npz", ("--pattern", "/x/*.npz")),
+    Case("batch-workers-negative", _nothing, "batch {d} --out {d}/bout --workers -1", ("--workers", "x>=0")),
+    Case("batch-hand", _nothing, "batch {d} --out {d}/bout --hand nohand", ("nohand", "shadow")),
+    Case("batch-curriculum", _nothing, "batch {d} --out {d}/bout --curriculum soft", ("soft", "default")),
+    Case("bench-sim-substeps", _nothing, "bench sim --substeps -1", ("--substeps", "x>=1")),
+    Case("bench-sim-dt-study", _nothing, "bench sim --dt-study a,b", ("--dt-study", "'a,b'")),
+]
+
+# ---- convert landmarks: the base demo written as a user's files -------------------------------------------
+
+
+def _landmarks(edit: Callable[[Path, np.ndarray, np.ndarray], None] | None = None) -> Callable[[Path], None]:
+    """hand.csv (63 numbers per frame) and poses.csv (x y z + wxyz) from the base demo; then ``edit(d, joints,
+    poses)``."""
+
+    def make(d: Path) -> None:
+        with np.load(d / DEMO) as z:
+            joints = z["right_joints"].reshape(T, 63).astype(float)
+            poses = np.c_[z["object_pos"], z["object_quat"]].astype(float)
+        np.savetxt(d / "hand.csv", joints, delimiter=",")
+        np.savetxt(d / "poses.csv", poses, delimiter=",")
+        if edit is not None:
+            edit(d, joints, poses)
+
+    return make
+
+
+CV = "convert landmarks {d}/hand.csv {d}/poses.csv {d}/meshes/cube_lift.obj --out {d}/conv/x.npz --fps 20 "
+TET = "v 0 0 0\nv {s} 0 0\nv 0 {s} 0\nv 0 0 {s}\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+CONVERT_CASES = [
+    Case("convert-fps-negative", _landmarks(), CV + "--fps -5", ("hand.csv", "--fps", "frame rate", "-5")),
+    Case("convert-support-negative", _landmarks(), CV + "--support-height -1", ("--support-height", "table-top")),
+    Case(
+        "convert-csv-trailing-column",
+        _landmarks(lambda d, j, p: np.savetxt(d / "hand.csv", np.c_[j, np.ones(T)], delimiter=",")),
+        CV,
+        ("hand.csv", "63 numbers", "does not increase"),
+    ),
+    Case("convert-csv-binary", _landmarks(lambda d, j, p: _write("hand.csv", RANDOM)(d)), CV, ("hand.csv", "UTF-8")),
+    Case(
+        "convert-json-empty",
+        _landmarks(lambda d, j, p: _write("hand.json", "[]")(d)),
+        CV.replace("hand.csv", "hand.json"),
+        ("hand.json", "no frames"),
+    ),
+    Case(
+        "convert-npz-fps-text",
+        _landmarks(lambda d, j, p: np.savez(d / "hand.npz", landmarks=j, fps=np.array("fast"))),
+        CV.replace("hand.csv", "hand.npz"),
+        ("hand.npz", "fps", "number"),
+    ),
+    Case(
+        "convert-npz-pickled",
+        _landmarks(lambda d, j, p: np.savez(d / "hand.npz", landmarks=j, meta=_pickled({"fps": 20}))),
+        CV.replace("hand.csv", "hand.npz"),
+        ("hand.npz", "meta", "pickled"),
+    ),
+    Case(
+        "convert-pose-not-rigid",
+        _landmarks(
+            lambda d, j, p: np.savetxt(
+                d / "poses.csv",
+                [np.r_[np.c_[2 * np.eye(3), x], [[0, 0, 0, 1]]].ravel() for x in p[:, :3]],
+                delimiter=",",
+            )
+        ),
+        CV,
+        ("poses.csv", "pose", "rigid"),
+    ),
+    Case(
+        "convert-mesh-open",
+        _landmarks(lambda d, j, p: _write("tri.obj", "v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")(d)),
+        CV.replace("meshes/cube_lift.obj", "tri.obj"),
+        ("tri.obj", "watertight"),
+    ),
+    Case(
+        "convert-mesh-random",
+        _landmarks(lambda d, j, p: _write("g.stl", RANDOM)(d)),
+        CV.replace("meshes/cube_lift.obj", "g.stl"),
+        ("g.stl", "triangle"),
+    ),
+    Case(
+        "convert-mesh-100m",
+        _landmarks(lambda d, j, p: _write("big.obj", TET.format(s=100))(d)),
+        CV.replace("meshes/cube_lift.obj", "big.obj"),
+        ("big.obj", "across", "--units m"),
+    ),
+    Case(
+        "convert-out-folder",
+        _landmarks(lambda d, j, p: (d / "conv" / "x.npz").mkdir(parents=True)),
+        CV,
+        ("x.npz", "--out", "a folder"),
+    ),
+    Case(
+        "convert-out-exists",
+        _landmarks(),
+        CV.replace("conv/x.npz", "cube_lift.npz"),
+        ("--out", "--overwrite", "cube_lift.npz", "meshes/cube_lift.obj"),
+    ),
+    Case("convert-name-folders", _landmarks(), CV + "--name ../evil", ("--name", "../evil")),
 ]
 
 # ---- output folders ------------------------------------------------------------------------------------
@@ -513,7 +669,7 @@ OVERWRITE_CASES = [
     Case("transfer-overwrite", _earlier_outputs(("metrics.json", "controls.npz")), TR, ("--overwrite", "controls.npz")),
 ]
 
-CASES = [*_demo_cases(), *CONTROLS_CASES, *HAND_CASES, *OPTION_CASES, *OUT_CASES, *OVERWRITE_CASES]
+CASES = [*_demo_cases(), *CONTROLS_CASES, *HAND_CASES, *OPTION_CASES, *CONVERT_CASES, *OUT_CASES, *OVERWRITE_CASES]
 
 
 def _snapshot(d: Path) -> dict[str, bytes]:

@@ -350,13 +350,19 @@ def run_batch_command(
     workers: int, threads: int, config_path: Path | None, overrides: dict[str, Any], retries: int = 2,
 ) -> BatchResult:  # fmt: skip
     """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput."""
+    from quasisim.assets.hand import load_hand
     from quasisim.bench.tables import clips
     from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.method.curriculum import load_curriculum
 
     TransferConfig.from_yaml(config_path or CONFIG_PATH, overrides).budget(spec.budget)  # bad settings: fail now
+    load_hand(spec.hand)  # so are a bad --hand and --curriculum (not an error in every clip)
+    load_curriculum(spec.curriculum)
     paths = clips(data_dir, pattern, names)
     if not paths:
-        raise QuasisimError(f"no clips matching {pattern!r} in {data_dir}")
+        raise QuasisimError(
+            f"{data_dir}: expected clips matching --pattern {pattern!r} (*_long.npz only when the pattern names them), got none"
+        )
     cfg_path = str(config_path) if config_path else None
     s = Settings(ray_address, workers, threads, None, cfg_path, overrides, max_retries=retries).resolved()
     jobs = [Job(p, (Run("", spec),)) for p in paths]

@@ -216,10 +216,11 @@ def convert() -> None:
 )
 @click.option("--key", default=None, help="Landmark array in an .npz (default: the only (T, 21, 3) or (T, 63) one).")
 @click.option("--name", default=None, help="Clip name (default: OUT's file name).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT and its mesh in meshes/ when they exist.")
 @_friendly
 def convert_landmarks(
     landmarks: Path, poses: Path, mesh: Path, out: Path, units: str, up: str, quat_order: str, fps: float | None,
-    support_height: float | None, key: str | None, name: str | None,
+    support_height: float | None, key: str | None, name: str | None, overwrite: bool,
 ) -> None:  # fmt: skip
     """21 hand LANDMARKS per frame (MediaPipe order; .npz, .csv or .json), the object's POSES per frame
     (position + quaternion, or 4x4) and its MESH (object frame) -> OUT (demo npz) and meshes/ beside it.
@@ -227,7 +228,7 @@ def convert_landmarks(
     from quasisim.data import convert as cv
 
     opts = cv.ConvertOptions(units, up, quat_order, fps, support_height, key, name)
-    click.echo(str(cv.convert_landmarks(landmarks, poses, mesh, out, opts)))
+    click.echo(str(cv.convert_landmarks(landmarks, poses, mesh, out, opts, overwrite)))
 
 
 def _raw_options(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -292,7 +293,15 @@ def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
         if "=" not in s:
             raise QuasisimError(f"--set expects KEY=VALUE (e.g. budgets.fast.sim.control_steps=20), got {s!r}")
         k, v = s.split("=", 1)
-        out[k.strip()] = yaml.safe_load(v)
+        if not k.strip():
+            raise QuasisimError(f"--set expects KEY=VALUE with a key (e.g. weights.hand=2.0), got {s!r}")
+        try:
+            out[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError as e:
+            problem = " ".join(str(getattr(e, "problem", "") or e).split())
+            raise QuasisimError(
+                f"--set {k.strip()}: expected a YAML value (e.g. 2.0, true, [1, 2]), got {v!r} ({problem})"
+            ) from None
     return out
 
 
@@ -387,8 +396,16 @@ def transfer(
     default=None,
     help="Address of an existing Ray cluster (default: local Ray on this machine).",
 )
-@click.option("--workers", default=0, show_default=True, help="Clips at once (0: one per core).")
-@click.option("--threads", default=0, show_default=True, help="Cores per worker (0: cores / workers).")
+@click.option(
+    "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
+)
+@click.option(
+    "--threads",
+    default=0,
+    show_default=True,
+    type=click.IntRange(0, None),
+    help="Cores per worker (0: cores / workers).",
+)
 @click.option(
     "--retries", default=2, show_default=True, type=click.IntRange(0, 10), help="Retries of a clip whose worker died."
 )
@@ -453,7 +470,9 @@ def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Pat
 @click.option("--clip", default="grab_s1_apple_lift", show_default=True, help="Clip of the speed measurement.")
 @click.option("--study-clips", default="grab_s1_apple_lift,grab_s1_cubesmall_lift,grab_s1_mug_lift", show_default=True)
 @click.option("--hand", default="shadow", show_default=True)
-@click.option("--substeps", type=int, default=None, help="Substeps per frame (default: the fast budget's).")
+@click.option(
+    "--substeps", type=click.IntRange(1, None), default=None, help="Substeps per frame (default: the fast budget's)."
+)
 @click.option(
     "--dt-study",
     default="50,20,10",
@@ -474,7 +493,14 @@ def bench_sim(
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     if not (data / f"{clip}.npz").is_file():
         raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
-    study = tuple(int(x) for x in dt_study.split(",") if x.strip())
+    try:
+        study = tuple(int(x) for x in dt_study.split(",") if x.strip())
+    except ValueError:
+        study = ()
+    if not study or min(study) < 1:
+        raise QuasisimError(
+            f"--dt-study expects positive integers separated by commas (e.g. 50,20,10), got {dt_study!r}"
+        )
     clips_ = tuple(c for c in study_clips.split(",") if c.strip())
     run_sim_bench(data, clip, clips_, hand, substeps, study, as_json)
 
@@ -508,7 +534,9 @@ def bench_sim(
     help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
 )
 @click.option("--ray", "ray_address", default=None, help="Address of an existing Ray cluster (default: local Ray).")
-@click.option("--workers", default=0, show_default=True, help="Clips at once (0: one per core).")
+@click.option(
+    "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
+)
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,

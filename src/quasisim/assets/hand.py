@@ -167,9 +167,19 @@ class HandConfig:
                 self.path, "pd", "joint_damping >= 0, joint_armature >= 0 and joint_force_limit > 0",
                 f"{pd.joint_damping:g}, {pd.joint_armature:g}, {pd.joint_force_limit:g}",
             )  # fmt: skip
+        if not any(k.metric for k in self.keypoints):
+            raise InputError(self.path, "keypoints", "at least one keypoint with metric: true (MPJPE)", "none")
         for i in self.wrist_fit_human:
             if i not in [k.human for k in self.keypoints]:
                 raise InputError(self.path, "wrist_fit_human", "human indices that have a robot keypoint", str(i))
+        weights = {i: next(k.weight for k in self.keypoints if k.human == i) for i in self.wrist_fit_human}
+        if sum(w > 0 for w in weights.values()) < 3:  # the rigid fit of the hand's root needs three points
+            raise InputError(
+                self.path, "wrist_fit_human", "at least 3 distinct indices whose keypoints have weight > 0",
+                str(list(self.wrist_fit_human)),
+            )  # fmt: skip
+        if self.points.seed < 0:
+            raise InputError(self.path, "points.seed", "a seed >= 0", str(self.points.seed))
         if self.side not in SIDES:
             raise InputError(self.path, "side", f"one of {', '.join(SIDES)}", repr(self.side))
         if self.mirror_axis not in ("x", "y", "z"):
@@ -445,6 +455,10 @@ def _geoms(m: Any, new_index: dict[int, int], cfg: HandConfig, src: Path) -> tup
                 rgba=np.array(m.geom_rgba[g], dtype=np.float64), vertices=verts, faces=faces,
             )
         )  # fmt: skip
+    names = {_name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}" for g in range(m.ngeom)}
+    for i, gname in enumerate(cfg.exclude_geoms):
+        if gname not in names:
+            raise InputError(cfg.path, f"exclude_geoms[{i}]", f"a geom of {src.name}", repr(gname))
     if not any(g.collision for g in geoms):
         raise InputError(src, "geoms", "collision geoms below the root body", "none")
     return tuple(geoms)

@@ -430,6 +430,14 @@ def _read_object(path: Path, mtime_ns: int, size: int, density: float, mass: flo
         ) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(path, "mesh", "a triangle mesh with at least one face", "no triangles")
+    # the size first: vertices far out (or not finite) would overflow trimesh's vertex merging
+    used = mesh.vertices[np.unique(mesh.faces)]
+    extent = float(np.ptp(used, axis=0).max()) if np.isfinite(used).all() else np.inf
+    if not SIZE_RANGE[0] <= extent <= SIZE_RANGE[1]:
+        lo, hi = SIZE_RANGE
+        raise InputError(
+            path, "mesh", f"an object {lo * 1e3:g} mm to {hi:g} m across (vertices in metres)", f"{extent:.3g} m across"
+        )
     mesh.merge_vertices()
     f = mesh.faces
     mesh.update_faces((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
@@ -453,12 +461,6 @@ def _read_object(path: Path, mtime_ns: int, size: int, density: float, mass: flo
                 "a watertight (closed) triangle mesh",
                 f"{_open_edges(mesh)} open edges after trimesh repair (fill_holes, fix_normals)",
             )
-    extent = float(np.ptp(mesh.vertices, axis=0).max())
-    if not SIZE_RANGE[0] <= extent <= SIZE_RANGE[1]:
-        lo, hi = SIZE_RANGE
-        raise InputError(
-            path, "mesh", f"an object {lo * 1e3:g} mm to {hi:g} m across (vertices in metres)", f"{extent:.3g} m across"
-        )
     if mesh.volume < 0:
         mesh.invert()
     volume = float(mesh.volume)

@@ -50,6 +50,8 @@ def clips(data_dir: Path, pattern: str, names: tuple[str, ...] = ()) -> list[Pat
         if missing:
             raise QuasisimError(f"clips not found: {', '.join(missing)}")
         return paths
+    if not pattern.strip() or Path(pattern).is_absolute():
+        raise QuasisimError(f"--pattern expects a file pattern inside the data folder (e.g. *.npz), got {pattern!r}")
     paths = sorted(data_dir.glob(pattern))
     if "_long" not in pattern:
         paths = [p for p in paths if not p.stem.endswith("_long")]

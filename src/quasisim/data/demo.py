@@ -69,6 +69,7 @@ PALM_RATIO = 1.3  # median wrist-to-finger-base length over the longest median f
 MIN_HAND_EXTENT = 0.02  # m, wrist to the farthest keypoint in every frame (less: a collapsed skeleton)
 SIDES = ("right", "left")  # the demo's hands, in the order of every concatenation over hands
 HAND_OBJECT_MAX = 1.0  # m, the hand (keypoint mean) must come this close to the object origin at some frame
+MAX_SPEED = 15.0  # m/s, any hand keypoint or the object origin between two frames (GRAB, ARCTIC: < 3.5 m/s)
 REST_GAP = (-0.01, 0.2)  # m, the object's lowest point at frame 0 relative to the table top (GRAB, ARCTIC: 0)
 LONG_CLIP = 1500  # frames; longer clips get a warning with an estimate of time and memory
 
@@ -208,6 +209,14 @@ def validate_scales(demo: Demo, path: str | Path | None) -> None:
             )
     for side in demo.sides:
         _validate_hand(demo.joints_of(side), side, demo.object_pos, path)
+    for key, arr in (*_hand_arrays(demo), ("object_pos", demo.object_pos)):  # a jump: a tracking glitch or wrong fps
+        speed = np.linalg.norm(np.diff(arr, axis=0), axis=-1).reshape(len(arr) - 1, -1).max(axis=1) * demo.fps
+        if (speed > MAX_SPEED).any():
+            t = int(np.argmax(speed > MAX_SPEED))
+            raise InputError(
+                path, key, f"motion below {MAX_SPEED:g} m/s between frames at {demo.fps:g} fps (a jump or a wrong fps?)",
+                f"{speed[t]:.3g} m/s from frame {t} to {t + 1}",
+            )  # fmt: skip
 
 
 def _validate_hand(j: np.ndarray, side: str, object_pos: np.ndarray, path: str | Path | None) -> None:
@@ -291,6 +300,13 @@ def _mesh_path(path: Path, mesh_name: str) -> Path:
     return mesh_path
 
 
+def _one_line(text: str, key: str, path: Path) -> str:
+    """A name field: non-empty, one line (it heads summaries and warnings)."""
+    if not text.strip() or not text.isprintable():
+        raise InputError(path, key, "a non-empty name on one line", repr(text)[:80])
+    return text
+
+
 def load_demo(path: str | Path, check_mesh: bool = True) -> Demo:
     """Read and validate a ``quasisim-demo-v1`` file (and its object mesh unless ``check_mesh`` is false).
 
@@ -309,8 +325,8 @@ def load_demo(path: str | Path, check_mesh: bool = True) -> Demo:
             raise InputError(
                 path, missing[0], "a key present in every demo file", f"missing (keys: {', '.join(z.files)})"
             )
-        name = npz_str(z, "name", path)
-        object_name = npz_str(z, "object_name", path)
+        name = _one_line(npz_str(z, "name", path), "name", path)
+        object_name = _one_line(npz_str(z, "object_name", path), "object_name", path)
         mesh_name = npz_str(z, "object_mesh", path)
         source = npz_str(z, "source", path) if "source" in z.files else ""
         fps = npz_number(z, "fps", path)

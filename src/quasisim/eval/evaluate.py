@@ -90,6 +90,11 @@ def scene_surface(scene: Scene, qpos: np.ndarray) -> np.ndarray:
 def hands_of(controls: Controls, path: str | Path | None) -> tuple[HandModel, ...]:
     """The hand(s) that ``controls`` (read from ``path``) were made for (:func:`demo_hands`); an unknown hand
     names the controls file."""
+    if Path(controls.hand).suffix in (".yaml", ".yml") and not Path(controls.hand).is_file():
+        raise InputError(
+            path, "hand", f"a built-in hand ({', '.join(builtin_hands())}) or an existing hand YAML",
+            f"{controls.hand!r} (no such file)",
+        )  # fmt: skip
     try:
         return demo_hands(controls.hand, controls.sides)
     except QuasisimError as e:

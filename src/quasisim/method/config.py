@@ -65,8 +65,10 @@ class TransferConfig:
                 sb: StepBudget = getattr(b, part)
                 if min(sb.control_steps, sb.sysid_steps, sb.patience) < 0 or sb.control_lr < 0 or sb.sysid_lr < 0:
                     raise InputError(path, f"budgets.{name}.{part}", "non-negative steps and learning rates", str(sb))
-        if cfg.mpc.horizon < 1 or cfg.mpc.steps < 0 or cfg.soften_samples < 1:
-            raise InputError(path, "mpc", "horizon >= 1, steps >= 0 and soften_samples >= 1", str(cfg.mpc))
+        if cfg.mpc.horizon < 1 or cfg.mpc.steps < 0 or cfg.soften_samples < 1 or not cfg.mpc.soften_range < 1:
+            raise InputError(
+                path, "mpc", "horizon >= 1, steps >= 0, soften_range < 1 and soften_samples >= 1", str(cfg.mpc)
+            )
         _check_ranges(cfg, path)
         return cfg
 
