@@ -28,11 +28,12 @@ demo: setup
 	$(VENV)/bin/quasisim transfer out/example/cube_lift.npz --hand shadow --method sample-target \
 		--target mujoco --out out/example/cube_lift/sample_target
 
+# Two test processes (one per core; a test module stays in one process, so its compiled programs are shared).
 test: setup
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile
 
 test-fast: setup
-	$(VENV)/bin/pytest -q -m "not slow"
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check src tests examples scripts
