@@ -49,7 +49,7 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     from quasisim.method.spec import TransferSpec
 
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
-    spec = TransferSpec(curriculum=str(tmp_path / "tiny.yaml"), render=False, progress=False)
+    spec = TransferSpec(curriculum=str(tmp_path / "tiny.yaml"), stages=("1", "2"), render=False, progress=False)
     cfg = TransferConfig.from_yaml(overrides=TINY)
     out = tmp_path / "run"
 

@@ -41,7 +41,7 @@ def one_simulator(
     if sb.sysid_steps > 0:
         sysid, log_s = minimise(
             lambda s: pick_grad(vg(traj, s, params, w), 1), sysid, sb.sysid_steps, sb.sysid_lr, sb, progress,
-            f"{label} identify S",
+            f"{label} identify S (object mass, inertia, damping)",
         )  # fmt: skip
     traj, log_c = minimise(
         lambda x: pick_grad(vg(x, sysid, params, w), 0), traj, sb.control_steps, sb.control_lr, sb, progress,
@@ -62,7 +62,8 @@ def run_simulator(
         best, start_losses = restart_guard(vg, {"previous": traj, **restart_from}, sysid, params, w)
         if best != "previous":
             progress.write(
-                f"{label}: restarting from {best} ({start_losses[best]:.5f} < previous {start_losses['previous']:.5f})"
+                f"{label}: continuing from the {best.replace('_', ' ')} trajectory instead of the previous simulator's "
+                f"result (lower loss in this simulator: {start_losses[best]:.5f} < {start_losses['previous']:.5f})"
             )
             traj = restart_from[best]
     traj, sysid, log_s, log_c = one_simulator(vg, traj, sysid, params, w, sb, progress, label)

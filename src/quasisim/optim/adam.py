@@ -103,6 +103,7 @@ class Progress:
             yield None
             return
         bar = tqdm(total=total + 1, desc=desc, unit="step", leave=False, dynamic_ncols=True)
+        bar.set_postfix_str("first step compiles (JAX), then the rate is the real one")
 
         def on_step(k: int, loss: float) -> None:
             bar.update(1)
