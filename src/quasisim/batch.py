@@ -342,7 +342,13 @@ def _flat(r: dict[str, Any], which: str) -> dict[str, Any]:
     m = r["metrics"] if which == "method" else r["kinematic_metrics"]
     name = r["run"] if which == "method" else "kinematic"
     wall = method_seconds(r["seconds"]) if which == "method" else r["seconds"].get("retarget", 0.0)
-    return {"clip": r["clip"], "method": name, **m, "wall_s": wall, "lifted": m.get("lifted", False)}
+    return {"clip": r["clip"], "method": name, **m, "wall_s": wall, "lifted": lifted_as_demo(m)}
+
+
+def lifted_as_demo(metrics: dict[str, Any]) -> bool:
+    """Whether a run's object rose as the demo's did (``metrics.json``'s ``object_motion.lift_ok``: at least the
+    set fraction of the demo's lift, or the demo barely lifts it); False for metrics without ``object_motion``."""
+    return bool(metrics.get("object_motion", {}).get("lift_ok", False))
 
 
 def run_batch_command(

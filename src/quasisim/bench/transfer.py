@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.batch import Job, Run, Settings, finished_runs, method_seconds, run_batch
+from quasisim.batch import Job, Run, Settings, finished_runs, lifted_as_demo, method_seconds, run_batch
 from quasisim.bench.tables import SUMMARY_HEAD, clips, header, publish, summary_rows
 from quasisim.data.controls import load_controls
 from quasisim.data.demo import load_demo
@@ -93,7 +93,7 @@ def run_transfer_bench(
             rows.append(kin)
         rows.append(row)
     for r in rows:
-        r["lifted"] = False  # not recomputed here (see the baseline benchmark)
+        r["lifted"] = lifted_as_demo(r)
     return publish(
         out,
         "transfer" if (judge or target) == target else f"transfer_{judge}",

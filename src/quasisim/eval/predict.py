@@ -203,11 +203,11 @@ def prediction_errors(
 ) -> WindowErrors:
     """H-frame prediction errors of the simulator ``params`` on windows ``w`` (see :class:`WindowErrors`)."""
     bq = jnp.asarray(base_quat, jnp.float32)
-    outs = [
-        _predict_jit(model, params, w.take(jnp.arange(i, min(i + chunk, len(w)))), fps, bq)
-        for i in range(0, len(w), chunk)
-    ]
-    pos, quat, kp = (np.concatenate([np.asarray(o[k], np.float64) for o in outs]) for k in range(3))
+    n, chunk = len(w), min(chunk, len(w))
+    # every chunk of one size (the last one padded with its final window, then trimmed): one compiled program
+    idx = [np.minimum(np.arange(i, i + chunk), n - 1) for i in range(0, n, chunk)]
+    outs = [_predict_jit(model, params, w.take(jnp.asarray(i)), fps, bq) for i in idx]
+    pos, quat, kp = (np.concatenate([np.asarray(o[k], np.float64) for o in outs])[:n] for k in range(3))
     w = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), w)
     pos_e = np.linalg.norm(pos - w.obj_pos, axis=-1) * 100.0
     rot_e = quat_angle_deg(quat, w.obj_quat)

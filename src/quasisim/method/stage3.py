@@ -197,13 +197,20 @@ def _adam(
     fixed subset of ``2 batch`` training windows is measured and the best iterate by it is returned, so a
     fit never ends worse on that subset than it started. Returns the iterate and the minibatch losses."""
     rng, n = np.random.default_rng(seed), len(train)
-    check = jnp.asarray(rng.choice(n, size=min(2 * batch, n), replace=False))
+    b = min(batch, n)
+    check = rng.choice(n, size=min(2 * batch, n), replace=False)
+    # the check subset in batches of the step's own size: one compiled program serves both
+    chunks = [jnp.asarray(check[i : i + b]) for i in range(0, len(check) - b + 1, b)]
+
+    def check_loss(x: Any) -> float:
+        return float(np.mean([float(vg(x, train, c)[0]) for c in chunks]))
+
     tx = optax.adam(lr)
     x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
-    best, best_x = float(vg(x, train, check)[0]), x
+    best, best_x = check_loss(x), x
     losses: list[float] = []
     for k in range(1, steps + 1):
-        idx = jnp.asarray(rng.choice(n, size=min(batch, n), replace=False))
+        idx = jnp.asarray(rng.choice(n, size=b, replace=False))
         loss, g = vg(x, train, idx)
         if not np.isfinite(float(loss)):
             break
@@ -211,7 +218,7 @@ def _adam(
         upd, st = tx.update(g, st, x)
         x = optax.apply_updates(x, upd)
         if k % check_every == 0 or k == steps:
-            c = float(vg(x, train, check)[0])
+            c = check_loss(x)
             if c < best:
                 best, best_x = c, x
     return best_x, losses
