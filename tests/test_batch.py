@@ -47,6 +47,7 @@ def _batch_cli(clips_dir: Path, out: Path, *extra: str, fault: str = "") -> subp
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.slow  # three Ray batches in subprocesses (~50 s cold)
 def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_path: Path) -> None:
     from quasisim.method.config import TransferConfig
     from quasisim.method.pipeline import run_transfer
