@@ -85,25 +85,27 @@ class Settings:
 
 def identity(run: Run, s: Settings) -> dict[str, Any]:
     """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
-    match it), as JSON would give it back: the run, its spec and the content of the transfer config."""
+    match it), as JSON would give it back: the run, its spec and the config settings its stages read."""
     spec = {k: v for k, v in dataclasses.asdict(run.spec).items() if k != "progress"}
-    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config_sha256": config_hash(s)}
+    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
     return json.loads(json.dumps(d))
 
 
 @functools.cache
-def _config_hash(path: str | None, overrides: str) -> str:
+def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[str, ...]) -> str:
     from quasisim.method.config import CONFIG_PATH, TransferConfig
 
     cfg = TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides))
-    content = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "path"}
+    content = cfg.identity(budget, stages)
+    content.get("sample_target", {}).pop("threads", None)
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def config_hash(s: Settings) -> str:
-    """Hash of the transfer config's values (the YAML with the overrides applied; rollout threads aside,
-    they do not change results)."""
-    return _config_hash(s.config_path, json.dumps(s.overrides, sort_keys=True))
+def config_hash(s: Settings, spec: TransferSpec) -> str:
+    """Hash of the config settings that determine ``spec``'s results (the YAML with the overrides applied;
+    settings of stages the run does not have and rollout threads aside): adding a stage-3 setting does not
+    invalidate a finished sample-target run."""
+    return _config_hash(s.config_path, json.dumps(s.overrides, sort_keys=True), spec.budget, tuple(spec.stages))
 
 
 # ---- the worker's side -------------------------------------------------------------------------------

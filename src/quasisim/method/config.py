@@ -86,6 +86,7 @@ class TransferConfig:
         }
         if "mpc" in stages:
             out["mpc"] = dataclasses.asdict(self.mpc)
+            out["soften_samples"] = self.soften_samples
         if "3" in stages:
             out["stage3"] = dataclasses.asdict(self.stage3)
         if "sample" in stages:
