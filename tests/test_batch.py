@@ -101,3 +101,22 @@ def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
 
     r = CliRunner().invoke(main, ["batch", str(tmp_path), "--out", str(tmp_path / "o"), "--stages", "9"])
     assert r.exit_code == 2 and "valid stages" in r.output
+
+
+def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:
+    """Round-robin over objects, order kept within an object; an unreadable demo is its own group."""
+    from quasisim.batch import spread_objects
+
+    names = {
+        "a1": "apple.obj",
+        "a2": "apple.obj",
+        "a3": "apple.obj",
+        "b1": "ball.obj",
+        "b2": "ball.obj",
+        "c1": "cup.obj",
+    }
+    for clip, mesh in names.items():
+        np.savez(tmp_path / f"{clip}.npz", object_mesh=np.array(mesh))
+    (tmp_path / "zz.npz").write_bytes(b"broken")
+    jobs = [Job(tmp_path / f"{c}.npz", ()) for c in [*names, "zz"]]
+    assert [j.clip for j in spread_objects(jobs)] == ["a1", "b1", "c1", "zz", "a2", "b2", "a3"]

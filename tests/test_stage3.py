@@ -71,3 +71,34 @@ def test_fit_lowers_the_prediction_loss_and_residuals_start_at_zero(setup) -> No
     b = predict(m2, p2, train, demo.fps, bq)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-6)
+
+
+@pytest.mark.slow
+def test_world_model_rounds_keep_the_best_controls_judged_in_the_target(setup) -> None:
+    """Each round's controls are judged by ``cost``; the best seen is returned (the start when no round beats
+    it), the fitted simulator's error on each round's new rollout is measured and the rollouts are kept."""
+    from quasisim.method.stage3 import SimFit, world_model_rounds
+    from quasisim.optim.trajectory import Trajectory
+
+    prob, cfg, p0, buf, q, _v = setup
+    opts = dataclasses.replace(cfg.stage3, horizon=3, steps=3, batch=4, variants=1, rounds=2)
+    start, f0 = Trajectory.from_q(q, prob.model.n_points), SimFit.nominal()
+    shift = np.zeros(q.shape[1])
+    shift[2] = 0.01  # each round lifts the base PD targets by 1 cm
+
+    def improve(traj: Trajectory, f: SimFit) -> Trajectory:
+        assert isinstance(f, SimFit)
+        return Trajectory.from_q(traj.q_targets + shift, prob.model.n_points)
+
+    def run(cost):
+        return world_model_rounds(
+            prob, p0, start, f0, buf, opts, cfg.sample_target, cfg.weights.arrays(), improve, cost
+        )
+
+    higher = run(lambda x: -float(x[:, 2].mean()))  # the target "prefers" the raised hand: the last round wins
+    assert int(higher["best_round"]) == 2 and np.allclose(higher["q_targets"], q + 2 * shift)
+    assert higher["round_costs"].shape == (3,) and np.all(np.diff(higher["round_costs"]) < 0)
+    assert higher["round_errors"].shape == (2, 3) and np.all(np.isfinite(higher["round_errors"]))
+    assert int(higher["buffer_rollouts"]) == buf.n_rollouts + 2 * (1 + opts.variants)  # each round's rollouts added
+    lower = run(lambda x: float(x[:, 2].mean()))  # every round is worse: the start is kept
+    assert int(lower["best_round"]) == 0 and np.array_equal(lower["q_targets"], q)

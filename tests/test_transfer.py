@@ -215,13 +215,16 @@ def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> N
     from quasisim.method.spec import TransferSpec
 
     over = {**TINY, "stage3.steps": 2, "stage3.variants": 1, "stage3.horizon": 3, "stage3.batch": 4,
-            "mpc.horizon": 2, "mpc.steps": 1}  # fmt: skip
+            "stage3.rounds": 1, "mpc.horizon": 2, "mpc.steps": 1}  # fmt: skip
     cfg = TransferConfig.from_yaml(overrides=over)
     spec = TransferSpec(curriculum="none", stages=("3", "mpc"), render=False, progress=False)
     run_transfer(short_demo, tmp_path / "s3", spec, cfg)
     assert {"stage3.npz", "mpc.npz"} <= {p.name for p in (tmp_path / "s3" / "checkpoints").iterdir()}
     s = json.loads((tmp_path / "s3" / "summary.json").read_text())
     assert len(s["stage3"]["held_out_before"]) == 3 and np.all(np.isfinite(s["stage3"]["held_out_after"]))
+    # one world-model round, judged in MuJoCo; the kept controls are never worse there than the stage's start
+    costs, best = s["stage3"]["round_costs"], s["stage3"]["best_round"]
+    assert len(costs) == 2 and len(s["stage3"]["round_errors"]) == 1 and costs[best] == min(costs)
     assert {"stage3", "mpc"} <= set(s["seconds"])
     with pytest.raises(QuasisimError, match="MuJoCo only"):
         TransferSpec(stages=("3",), target="pybullet").checked()

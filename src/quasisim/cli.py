@@ -519,7 +519,8 @@ def bench_sim(
     "runs",
     default="default,none,curriculum2",
     show_default=True,
-    help="Comma-separated runs: a curriculum (stages 1,2), CURRICULUM+mpc (then closed-loop MPC), mpc-base, mpc-soften.",
+    help="Comma-separated runs: a curriculum (its stages, --stages), CURRICULUM+3, +mpc, +sample, +select (those "
+    "stages after them, e.g. default+sample+select = transfer's default), mpc-base, mpc-soften, sample-target.",
 )
 @click.option("--stages", default="1,2", show_default=True)
 @click.option("--budget", default="fast", show_default=True)

@@ -23,8 +23,8 @@ from quasisim.method.curriculum import load_curriculum
 from quasisim.method.spec import TransferSpec
 
 RUN_KINDS = (
-    "CURRICULUM (stages 1,2), CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+mpc+sample, ...+select (those stages "
-    "after 1,2), mpc-base, mpc-soften, sample-target"
+    "CURRICULUM (stages 1,2), CURRICULUM+3, CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+3+sample+select, ... "
+    "(those stages after 1,2), mpc-base, mpc-soften, sample-target"
 )
 
 
@@ -33,7 +33,7 @@ def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferS
     if run in ("mpc-base", "mpc-soften", "sample-target"):
         return dataclasses.replace(base, method=run, curriculum="none").checked()
     cur, *extra = run.split("+")
-    if not set(extra) <= {"mpc", "sample", "select"} or len(set(extra)) < len(extra):
+    if not set(extra) <= {"3", "mpc", "sample", "select"} or len(set(extra)) < len(extra):
         raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
     load_curriculum(cur)
     return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, *extra)).checked()

@@ -37,13 +37,14 @@ from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_o
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget_hands
 from quasisim.method.sample_target import run_sample_target
-from quasisim.method.select import best_in_target
+from quasisim.method.select import best_in_target, clip_cost
 from quasisim.method.spec import STAGES, TransferSpec, check_hands
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.types import Params
+from quasisim.targets import make_target
 
 
 @dataclass
@@ -90,7 +91,7 @@ def run_transfer(
     stiffest = prob.params(cur.contact(cur.stiffest))  # the model of stage 3 and MPC
     model_params = plan.sysid.apply(stiffest, prob.obj.mass, prob.obj.inertia)
     if "3" in spec.stages:
-        model_params = _stage3(prob, cfg, ck, plan, stiffest, progress, record)
+        model_params, plan = _stage3(prob, cfg, spec, ck, plan, stiffest, objective, progress, record)
     q_out, extras = plan.traj.q_targets, {"kinematic_q": np.asarray(kin["q"])}
     if "mpc" in spec.stages:
         extras["plan_q"] = q_out
@@ -216,35 +217,52 @@ def _record_simulator(
 
 
 def _stage3(
-    prob: Problem,
-    cfg: TransferConfig,
-    ck: Checkpoints,
-    plan: Plan,
-    params: Params,
-    progress: Progress,
-    record: RunRecord,
-) -> Params:
-    """Stage 3: fit the stiffest simulator (S from stage 2) to MuJoCo rollouts of the plan and its variants;
-    returns the fitted simulator (the model of the MPC that follows)."""
-    o = cfg.stage3
+    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, plan: Plan, params: Params,
+    objective: TrackingObjective, progress: Progress, record: RunRecord,
+) -> tuple[Params, Plan]:  # fmt: skip
+    """Stage 3: fit the stiffest simulator (S from stage 2) to MuJoCo rollouts of the plan and its variants,
+    then the world-model rounds (optimise in the fitted simulator, judge and collect in MuJoCo, refit).
+    Returns the fitted simulator (the model of the MPC that follows) and the best plan judged in MuJoCo."""
+    o, sb, w2 = cfg.stage3, cfg.budget(spec.budget).sim, cfg.weights.arrays(points=0.0)
+    vg, judge = objective.value_and_grad, make_target(spec.target, prob.scene)
+
+    def improve(traj: Trajectory, f: stage3.SimFit) -> Trajectory:
+        p = f.apply_constants(params)
+        return stage2.one_simulator(vg, traj, f.sysid, p, w2, dataclasses.replace(sb, sysid_steps=0), progress,
+                                    "stage 3 (fitted simulator)")[0]  # fmt: skip
 
     def run() -> dict[str, Any]:
         t0 = time.perf_counter()
-        d = stage3.fit_to_target(
+        d, f, buf = stage3.fit_to_target(
             prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, cfg.weights.arrays()
         )
-        return {**d, "wall_s": np.array(time.perf_counter() - t0)}
+        progress.write(
+            f"stage 3: held-out {o.horizon}-frame error {d['held_out_before'][0]:.2f} cm / {d['held_out_before'][1]:.1f} deg "
+            f"-> {d['held_out_after'][0]:.2f} cm / {d['held_out_after'][1]:.1f} deg"
+        )
+        cost = lambda q: clip_cost(prob.demo, judge.rollout(q), cfg.weights)  # noqa: E731
+        rounds = stage3.world_model_rounds(
+            prob, params, plan.traj, f, buf, o, cfg.sample_target, cfg.weights.arrays(), improve, cost, progress
+        )
+        return {**d, **rounds, "wall_s": np.array(time.perf_counter() - t0)}
 
-    d = ck.get("stage3", run, {"fit": (8,), "losses": (None,), "held_out_before": (3,), "held_out_after": (3,)})
+    expect = {"fit": (8,), "losses": (None,), "held_out_before": (3,), "held_out_after": (3,), "round_fit": (8,),
+              "round_costs": (o.rounds + 1,), "round_errors": (o.rounds, 3), "best_round": (), "buffer_rollouts": (),
+              "q_targets": (prob.demo.n_frames, prob.scene.n_dof)}  # fmt: skip
+    d = ck.get("stage3", run, expect)
     record.seconds["stage3"] = float(d["wall_s"])
     record.curves["stage 3 fit (minibatch loss)"] = [float(x) for x in d["losses"]]
-    f = stage3.SimFit.from_array(d["fit"])
+    f = stage3.SimFit.from_array(d["round_fit"])
     b, a = d["held_out_before"], d["held_out_after"]
-    record.fit = {"fitted": f.describe(prob.obj.mass), "held_out_before": b.tolist(), "held_out_after": a.tolist()}
-    progress.write(
-        f"stage 3: held-out {o.horizon}-frame error {b[0]:.2f} cm / {b[1]:.1f} deg -> {a[0]:.2f} cm / {a[1]:.1f} deg"
-    )
-    return f.apply(params, prob.obj.mass, prob.obj.inertia)
+    record.fit = {
+        "fitted": f.describe(prob.obj.mass), "held_out_before": b.tolist(), "held_out_after": a.tolist(),
+        "round_costs": d["round_costs"].tolist(), "round_errors": d["round_errors"].tolist(),
+        "best_round": int(d["best_round"]), "buffer_rollouts": int(d["buffer_rollouts"]),
+    }  # fmt: skip
+    progress.write(f"stage 3 done in {record.seconds['stage3']:.0f} s; kept round {int(d['best_round'])}'s controls")
+    if int(d["best_round"]) > 0:  # a round's controls did better in the target than the stage's start
+        plan = Plan(Trajectory.from_q(d["q_targets"], prob.model.n_points), plan.sysid)
+    return f.apply(params, prob.obj.mass, prob.obj.inertia), plan
 
 
 def _closed_loop(

@@ -13,6 +13,8 @@ physical environment").
    then, optionally, the residual networks (:mod:`quasisim.sim.residual`, zero at start) on the same loss.
 4. **Measure** (:func:`quasisim.eval.predict.prediction_errors`): the error after ``h = 1..H`` frames on windows the fit never
    saw (the clip's later frames), beside the zero-motion predictor (the object stays where it is).
+5. **World-model rounds** (:func:`world_model_rounds`): optimise the controls in the fitted simulator, roll
+   them out in the target (kept when the target judges them best), add the rollouts to the buffer, refit.
 
 The loss is the tracking objective's terms (:func:`quasisim.optim.objective.tracking_errors`) between the
 predicted and the recorded trajectory: object translation (m), ``1 - |q . q_ref|`` and keypoint distance (m).
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,10 +35,11 @@ import numpy as np
 import optax
 
 from quasisim.errors import QuasisimError
-from quasisim.eval.predict import Windows, collect, predict, prediction_errors, split_starts, windows
+from quasisim.eval.predict import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method.sample_target import SamplingOptions, sample_windows
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
+from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.build import attach_residual
 from quasisim.sim.residual import ResidualConfig, ResidualNets
 from quasisim.sim.types import Model, Params, pytree
@@ -91,8 +95,12 @@ class SimFit:
 
     def apply(self, params: Params, mass0: float, inertia0: np.ndarray) -> Params:
         """``params`` with the fitted values (differentiable in ``self``)."""
-        p = self.sysid.apply(params, mass0, inertia0)
-        g = jnp.exp(self.log_gain)
+        return self.sysid.apply(self.apply_constants(params), mass0, inertia0)
+
+    def apply_constants(self, params: Params) -> Params:
+        """``params`` with the fitted contact and joint constants, S left as it is (the tracking objective
+        applies S itself)."""
+        p, g = params, jnp.exp(self.log_gain)
         return dataclasses.replace(
             p,
             contact_scale=p.contact_scale * jnp.exp(self.log_contact),
@@ -131,6 +139,7 @@ class FitOptions:
         variants: noisy rollouts added to the buffer beside the current controls.  capacity: rollouts kept.
         steps, lr: Adam steps and step size of the constants.  batch: windows per step.
         residual_steps, residual_lr: the same for the residual networks (0 steps: no residual).
+        rounds: world-model rounds after the first fit (:func:`world_model_rounds`; 0: fit only).
         seed: window sampling and variant noise.
     """
 
@@ -143,6 +152,7 @@ class FitOptions:
     batch: int
     residual_steps: int
     residual_lr: float
+    rounds: int
     seed: int
 
 
@@ -161,12 +171,11 @@ def fit(
 @functools.partial(jax.jit, static_argnames=("fps",))
 def _fit_vg(
     const: tuple[Model, Params, Array, Array], base_quat: Array, weights: dict[str, Array], f: SimFit,
-    windows: Windows, idx: Array, fps: float,
+    batch: Windows, fps: float,
 ) -> tuple[Array, SimFit]:  # fmt: skip
-    """Value and gradient of the window loss of a batch ``idx`` of ``windows`` w.r.t. the fit ``f``;
-    ``const``: the model, the simulator and the object's nominal mass and inertia."""
+    """Value and gradient of the window loss of a ``batch`` of windows w.r.t. the fit ``f``; ``const``: the
+    model, the simulator and the object's nominal mass and inertia."""
     model, params, mass0, inertia0 = const
-    batch = windows.take(idx)
     return jax.value_and_grad(
         lambda f: window_loss(model, f.apply(params, mass0, inertia0), batch, fps, base_quat, weights)
     )(f)
@@ -181,8 +190,7 @@ def fit_residual(
     model, p0 = attach_residual(model, params, ResidualNets(cfg, seed=opts.seed), local, glob)
 
     @jax.jit
-    def vg(res: Any, windows: Windows, idx: Array) -> tuple[Array, Any]:
-        batch = windows.take(idx)
+    def vg(res: Any, batch: Windows) -> tuple[Array, Any]:
         loss = lambda r: window_loss(model, p0.replace(residual=r), batch, fps, base_quat, weights)  # noqa: E731
         return jax.value_and_grad(loss)(res)
 
@@ -193,17 +201,19 @@ def fit_residual(
 def _adam(
     vg: Any, x0: Any, train: Windows, steps: int, lr: float, batch: int, seed: int, check_every: int = 10
 ) -> tuple[Any, list[float]]:
-    """Minibatch Adam (``batch`` random training windows per step). Every ``check_every`` steps the loss on a
-    fixed subset of ``2 batch`` training windows is measured and the best iterate by it is returned, so a
-    fit never ends worse on that subset than it started. Returns the iterate and the minibatch losses."""
+    """Minibatch Adam (``batch`` random training windows per step; ``vg(x, windows)``). Every ``check_every``
+    steps the loss on a fixed subset of ``2 batch`` training windows is measured and the best iterate by it
+    is returned, so a fit never ends worse on that subset than it started. Returns the iterate and the
+    minibatch losses. Batches are taken here, so ``vg`` is compiled for the batch's size alone, whatever
+    the number of training windows."""
     rng, n = np.random.default_rng(seed), len(train)
     b = min(batch, n)
     check = rng.choice(n, size=min(2 * batch, n), replace=False)
     # the check subset in batches of the step's own size: one compiled program serves both
-    chunks = [jnp.asarray(check[i : i + b]) for i in range(0, len(check) - b + 1, b)]
+    chunks = [train.take(jnp.asarray(check[i : i + b])) for i in range(0, len(check) - b + 1, b)]
 
     def check_loss(x: Any) -> float:
-        return float(np.mean([float(vg(x, train, c)[0]) for c in chunks]))
+        return float(np.mean([float(vg(x, c)[0]) for c in chunks]))
 
     tx = optax.adam(lr)
     x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
@@ -211,7 +221,7 @@ def _adam(
     losses: list[float] = []
     for k in range(1, steps + 1):
         idx = jnp.asarray(rng.choice(n, size=b, replace=False))
-        loss, g = vg(x, train, idx)
+        loss, g = vg(x, train.take(idx))
         if not np.isfinite(float(loss)):
             break
         losses.append(float(loss))
@@ -224,7 +234,9 @@ def _adam(
     return best_x, losses
 
 
-def fit_windows(prob: Any, plan: np.ndarray, opts: FitOptions, noise: SamplingOptions) -> tuple[Windows, Windows]:
+def fit_windows(
+    prob: Any, plan: np.ndarray, opts: FitOptions, noise: SamplingOptions
+) -> tuple[Windows, Windows, ReplayBuffer]:
     """The training and held-out windows of stage 3 for a plan (T, 6 + J): the plan and ``opts.variants``
     noisy variants rolled out in MuJoCo; training windows end before the last ``held_out`` fraction of the
     clip, the held-out ones are those of the plan's own rollout. Refuses clips too short for both."""
@@ -239,24 +251,83 @@ def fit_windows(prob: Any, plan: np.ndarray, opts: FitOptions, noise: SamplingOp
     buf = collect(prob.scene, plans, demo.fps)
     train = windows(m, buf, train_s, opts.horizon, bq)
     test = windows(m, buf, [s for s in test_s if s[0] == 0], opts.horizon, bq)
-    return train, test
+    return train, test, buf
 
 
 def fit_to_target(
     prob: Any, params: Params, plan: np.ndarray, sysid: SysID, opts: FitOptions, noise: SamplingOptions,
     weights: dict[str, Array],
-) -> dict[str, Any]:  # fmt: skip
-    """Stage 3 for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay buffer of the
-    plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the training windows,
-    and the held-out ``H``-frame errors before and after (checkpoint arrays)."""
+) -> tuple[dict[str, Any], SimFit, ReplayBuffer]:  # fmt: skip
+    """Stage 3's first fit for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay
+    buffer of the plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the
+    training windows, and the held-out ``H``-frame errors before and after. Returns the checkpoint arrays,
+    the fit and the buffer."""
     demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
-    train, test = fit_windows(prob, plan, opts, noise)
+    train, test, buf = fit_windows(prob, plan, opts, noise)
     start = SimFit.nominal(sysid)
     f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start)
     before = prediction_errors(m, start.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
     after = prediction_errors(m, f.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
-    return {
+    d = {
         "fit": f.as_array(), "losses": np.asarray(losses, np.float64),
         "held_out_before": np.array([before.obj_pos_cm[-1], before.obj_rot_deg[-1], before.keypoints_mm[-1]]),
         "held_out_after": np.array([after.obj_pos_cm[-1], after.obj_rot_deg[-1], after.keypoints_mm[-1]]),
+    }  # fmt: skip
+    return d, f, buf
+
+
+def world_model_rounds(
+    prob: Any, params: Params, traj: Trajectory, f: SimFit, buf: ReplayBuffer, opts: FitOptions,
+    noise: SamplingOptions, weights: dict[str, Array], improve: Callable[[Trajectory, SimFit], Trajectory],
+    cost: Callable[[np.ndarray], float], progress: Any = None,
+) -> dict[str, Any]:  # fmt: skip
+    """The paper's world-model-style loop (appendix "World model-style training"), ``opts.rounds`` times:
+
+    1. ``improve`` the controls in the fitted simulator (``params`` with the fit ``f``);
+    2. roll them and ``opts.variants`` noisy variants out in the target and judge them there (``cost``, the
+       clip objective of :mod:`quasisim.method.select`); the best controls seen are kept, so a round never
+       makes the result worse;
+    3. measure the fitted simulator's ``H``-frame prediction error on the new controls' rollout (windows from
+       every frame: rollouts the fit has not seen);
+    4. add the new rollouts to the buffer (the newest ``capacity`` kept) and refit from ``f`` on the windows
+       of every rollout and frame.
+
+    Returns the best controls (T, 6 + J), the last fit, per round the target cost (round 0: the stage's
+    starting controls) and the prediction error (cm, deg, mm) before the refit, and the buffer's size, as
+    checkpoint arrays."""
+    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    best_q = np.asarray(traj.q_targets, np.float64)
+    costs, errors, best = [cost(best_q)], [], 0
+    for r in range(1, opts.rounds + 1):
+        traj = improve(traj, f)
+        q = np.asarray(traj.q_targets, np.float64)
+        costs.append(cost(q))
+        if costs[-1] < costs[best]:
+            best, best_q = r, q
+        new = collect(
+            prob.scene, [q, *noisy_variants(q, opts.variants, noise, opts.seed + r, prob.hand.joint_range)], demo.fps
+        )
+        T = demo.n_frames
+        e = prediction_errors(
+            m,
+            f.apply(params, obj.mass, obj.inertia),
+            windows(m, new, [(0, t) for t in range(T - opts.horizon)], opts.horizon, bq),
+            demo.fps,
+            bq,
+        )
+        errors.append([e.obj_pos_cm[-1], e.obj_rot_deg[-1], e.keypoints_mm[-1]])
+        buf = buf.extended(new, opts.capacity)
+        every = [(i, t) for i in range(buf.n_rollouts) for t in range(T - opts.horizon)]
+        f, _ = fit(m, params, windows(m, buf, every, opts.horizon, bq), demo.fps, bq, obj.mass, obj.inertia,
+                   dataclasses.replace(opts, seed=opts.seed + r), weights, f)  # fmt: skip
+        if progress is not None:
+            progress.write(
+                f"stage 3 round {r}/{opts.rounds}: objective in the target {costs[-1]:.4f} (best {costs[best]:.4f}); "
+                f"the fitted simulator predicted this round's rollout to {errors[-1][0]:.2f} cm / {errors[-1][1]:.1f} deg "
+                f"after {opts.horizon} frames"
+            )
+    return {
+        "q_targets": best_q, "round_fit": f.as_array(), "round_costs": np.asarray(costs, np.float64),
+        "round_errors": np.asarray(errors, np.float64).reshape(-1, 3), "best_round": np.array(best),
+        "buffer_rollouts": np.array(buf.n_rollouts),
     }  # fmt: skip
