@@ -304,3 +304,36 @@ def test_residual_networks(shadow, cube) -> None:
     assert moved > 1e-5
     off = float(run(p3.replace(residual_global_on=0.0)).obj_pos[0] - out0.obj_pos[0])
     assert abs(off) < 1e-7
+
+
+def test_control_transformation(shadow, cube) -> None:
+    """Zero at init; a bias on its output is exactly the same frame as the shifted control applied directly."""
+    import equinox as eqx
+
+    from quasisim.sim.build import attach_control_transform
+    from quasisim.sim.residual import ControlTransform, ResidualConfig
+
+    cfg = ResidualConfig(point_hidden=(16, 16), head_hidden=(16,), n_global=8)
+    model, s = _contact_setup(shadow, cube)
+    base = default_params(model, cube.mass, cube.inertia, STIFF, d_c=0.02, k_n=2e3, k_f=5e2, contact_scale=1.0)
+    J = model.hand.n_joints
+    m2, p2 = attach_control_transform(model, base, ControlTransform(cfg, J, seed=0))
+    ctrl = _zero_ctrl(model)
+    direct = jax.jit(lambda p, c: frame(model, p, s, c))
+    run = jax.jit(lambda p: frame(m2, p, s, ctrl))
+    out0 = direct(base, ctrl)
+    np.testing.assert_allclose(np.asarray(run(p2).q), np.asarray(out0.q), atol=1e-7)  # zero at init
+    bias = np.zeros(6 + 2 * J, np.float32)
+    bias[0], bias[6 + 3] = 1.0, 1.0  # +x root velocity, joint 3's target
+    ct = eqx.combine(p2.control_transform, m2.control_transform_static)
+    ct = eqx.tree_at(lambda c: c.net.head.layers[-1].bias, ct, jnp.asarray(bias))
+    _, p3 = attach_control_transform(model, base, ct)
+    shifted = dataclasses.replace(
+        ctrl,
+        root_vel=ctrl.root_vel.at[0].add(cfg.control_vel_scale),
+        q_target=ctrl.q_target.at[3].add(cfg.control_pos_scale),
+    )
+    want, got = direct(base, shifted), run(p3)
+    for name in ("root_pos", "q", "obj_pos"):
+        np.testing.assert_allclose(np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), atol=1e-6)
+    assert float(got.root_pos[0] - out0.root_pos[0]) > 1e-4  # and it did move the root

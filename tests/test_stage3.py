@@ -86,14 +86,13 @@ def test_world_model_rounds_keep_the_best_controls_judged_in_the_target(setup) -
     shift = np.zeros(q.shape[1])
     shift[2] = 0.01  # each round lifts the base PD targets by 1 cm
 
-    def improve(traj: Trajectory, f: SimFit) -> Trajectory:
-        assert isinstance(f, SimFit)
+    def improve(traj: Trajectory, f: SimFit, p) -> Trajectory:
+        assert isinstance(f, SimFit) and p.residual is None
         return Trajectory.from_q(traj.q_targets + shift, prob.model.n_points)
 
     def run(cost):
-        return world_model_rounds(
-            prob, p0, start, f0, buf, opts, cfg.sample_target, cfg.weights.arrays(), improve, cost
-        )
+        w = cfg.weights.arrays()
+        return world_model_rounds(prob, prob.model, p0, start, f0, buf, opts, cfg.sample_target, w, improve, cost)[0]
 
     higher = run(lambda x: -float(x[:, 2].mean()))  # the target "prefers" the raised hand: the last round wins
     assert int(higher["best_round"]) == 2 and np.allclose(higher["q_targets"], q + 2 * shift)
@@ -102,3 +101,34 @@ def test_world_model_rounds_keep_the_best_controls_judged_in_the_target(setup) -
     assert int(higher["buffer_rollouts"]) == buf.n_rollouts + 2 * (1 + opts.variants)  # each round's rollouts added
     lower = run(lambda x: float(x[:, 2].mean()))  # every round is worse: the start is kept
     assert int(lower["best_round"]) == 0 and np.array_equal(lower["q_targets"], q)
+
+
+def test_ablation_flags_and_the_run_identity() -> None:
+    """The flags remove networks; stage 3's networks count in a run's identity only when it has stage 3."""
+    from quasisim.errors import QuasisimError
+    from quasisim.method.spec import TransferSpec, networks_from_flags
+
+    assert networks_from_flags(False, False, False) == ("local", "global", "control")
+    assert networks_from_flags(True, False, False) == ("control",)
+    assert networks_from_flags(False, True, True) == ("global",)
+    full = TransferSpec(stages=("1", "2", "3", "sample"), render=False).checked()
+    assert full.identity()["networks"] == ("local", "global", "control")
+    assert "networks" not in TransferSpec(render=False).checked().identity()  # default stages: no stage 3
+    with pytest.raises(QuasisimError, match="valid"):
+        TransferSpec(networks=("locl",)).checked()
+
+
+@pytest.mark.slow
+def test_bench_fit_rows_on_a_short_clip(tmp_path: Path) -> None:
+    """``quasisim bench fit`` on one short clip: a row per simulator variant with finite held-out errors."""
+    from quasisim.bench.fit import VARIANTS, fit_clip
+    from quasisim.data.synthetic import write_example
+    from quasisim.method.config import TransferConfig
+
+    p = write_example("cube_lift", tmp_path, n_frames=24)
+    over = {"stage3.horizon": 3, "stage3.steps": 2, "stage3.batch": 4, "stage3.variants": 1, "stage3.residual_steps": 1,
+            "budgets.fast.substeps": 5, "budgets.fast.n_candidates": 32}  # fmt: skip
+    rows = fit_clip(p, "shadow", TransferConfig.from_yaml(overrides=over), residual=True)
+    assert [r["simulator"] for r in rows] == list(VARIANTS)
+    assert all(np.isfinite(r["obj_pos_cm"]) and np.isfinite(r["obj_rot_deg"]) for r in rows)
+    assert all(r["loss_last"] is not None for r in rows[1:])  # every fitted row trained

@@ -215,7 +215,7 @@ def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> N
     from quasisim.method.spec import TransferSpec
 
     over = {**TINY, "stage3.steps": 2, "stage3.variants": 1, "stage3.horizon": 3, "stage3.batch": 4,
-            "stage3.rounds": 1, "mpc.horizon": 2, "mpc.steps": 1}  # fmt: skip
+            "stage3.rounds": 1, "stage3.residual_steps": 2, "mpc.horizon": 2, "mpc.steps": 1}  # fmt: skip
     cfg = TransferConfig.from_yaml(overrides=over)
     spec = TransferSpec(curriculum="none", stages=("3", "mpc"), render=False, progress=False)
     run_transfer(short_demo, tmp_path / "s3", spec, cfg)
@@ -225,6 +225,15 @@ def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> N
     # one world-model round, judged in MuJoCo; the kept controls are never worse there than the stage's start
     costs, best = s["stage3"]["round_costs"], s["stage3"]["best_round"]
     assert len(costs) == 2 and len(s["stage3"]["round_errors"]) == 1 and costs[best] == min(costs)
+    assert s["stage3"]["networks"] == ["local", "global", "control"]
+    # resumed from the checkpoints: the fitted networks are read back and the MPC plans with them again
+    first = np.load(tmp_path / "s3" / "controls.npz")["q_targets"]
+    run_transfer(short_demo, tmp_path / "s3", spec, cfg, resume=True)
+    np.testing.assert_array_equal(np.load(tmp_path / "s3" / "controls.npz")["q_targets"], first)
+    # an ablation is another run: its stage-3 checkpoint is not the full method's
+    ablation = dataclasses.replace(spec, networks=("global",))
+    with pytest.raises(InputError, match="networks"):
+        run_transfer(short_demo, tmp_path / "s3", ablation, cfg, resume=True)
     assert {"stage3", "mpc"} <= set(s["seconds"])
     with pytest.raises(QuasisimError, match="MuJoCo only"):
         TransferSpec(stages=("3",), target="pybullet").checked()

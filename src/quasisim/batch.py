@@ -86,8 +86,7 @@ class Settings:
 def identity(run: Run, s: Settings) -> dict[str, Any]:
     """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
     match it), as JSON would give it back: the run, its spec and the config settings its stages read."""
-    spec = {k: v for k, v in dataclasses.asdict(run.spec).items() if k != "progress"}
-    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
+    d = {"name": run.name, **run.spec.identity(), "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
     return json.loads(json.dumps(d))
 
 

@@ -13,7 +13,7 @@ from typing import Any
 import click
 
 from quasisim.errors import QuasisimError
-from quasisim.method.spec import METHODS, TransferSpec, parse_stages
+from quasisim.method.spec import METHODS, TransferSpec, networks_from_flags, parse_stages
 from quasisim.targets import TARGETS
 
 # The commands import their modules when they run (JAX, MuJoCo and PyBullet take seconds to load; `--help`
@@ -308,6 +308,17 @@ def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
 _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
 
 
+def _ablation_flags(f: Any) -> Any:
+    """Stage 3's ablation flags (each removes networks from what stage 3 trains)."""
+    for name, what in (
+        ("--no-control-transform", "the control transformation"),
+        ("--no-local-residual", "the local residual network (the global one stays)"),
+        ("--no-residual", "the residual networks (local and global)"),
+    ):
+        f = click.option(name, is_flag=True, help=f"Stage 3 without {what}.")(f)
+    return f
+
+
 @main.command()
 @click.argument("demo", type=click.Path(path_type=Path))
 @click.option(
@@ -350,10 +361,12 @@ _SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
     "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
 )
 @click.option("--render/--no-render", default=_SPEC.render, show_default=True, help="Render the video for the report.")
+@_ablation_flags
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
-    resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool,
+    resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, no_residual: bool,
+    no_local_residual: bool, no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -361,7 +374,8 @@ def transfer(
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.method.pipeline import run_transfer
 
-    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, progress=True)
+    nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
+    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets)
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     if resume and overwrite:
@@ -412,11 +426,12 @@ def transfer(
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
 @click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
 @click.option("--render/--no-render", default=False, show_default=True, help="Render each clip's video.")
+@_ablation_flags
 @_friendly
 def batch(
     data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
     pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
-    sets: tuple[str, ...], render: bool,
+    sets: tuple[str, ...], render: bool, no_residual: bool, no_local_residual: bool, no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
     reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
@@ -424,9 +439,8 @@ def batch(
     _setup_runtime()
     from quasisim.batch import run_batch_command
 
-    spec = TransferSpec(
-        hand, target, curriculum, parse_stages(stages), budget, method, render, progress=False
-    ).checked()
+    nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
+    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, False, nets).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
         data_dir, names, pattern, spec, out, ray_address, workers, threads, config_path, _parse_sets(sets), retries

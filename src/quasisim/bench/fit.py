@@ -1,6 +1,7 @@
 """``quasisim bench fit``: how well the fitted quasi-physical simulator predicts MuJoCo on windows the fit
 never saw (stage 3's measure), per clip and in summary: the analytical nominal simulator, + S and the
-contact/joint constants, + residual networks (local only, global only, both), beside zero motion.
+contact/joint constants, + residual networks (local only, global only, both), + the control
+transformation (alone, and with both residual networks), beside zero motion.
 Resumable: each finished clip's rows are kept in ``OUT/clips/<clip>.json``."""
 
 from __future__ import annotations
@@ -26,7 +27,12 @@ from quasisim.method.retarget import retarget
 from quasisim.runtime import free_compiled_programs
 from quasisim.sim.residual import ResidualConfig
 
-VARIANTS = ("nominal", "+S, constants", "+residual local", "+residual global", "+residual both")
+# row name -> the networks trained on top of S and the constants
+NETWORK_ROWS = {
+    "+residual local": ("local",), "+residual global": ("global",), "+residual both": ("local", "global"),
+    "+control transformation": ("control",), "+residual both, control transformation": ("local", "global", "control"),
+}  # fmt: skip
+VARIANTS = ("nominal", "+S, constants", *NETWORK_ROWS)
 
 
 def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: bool) -> list[dict[str, Any]]:
@@ -38,7 +44,7 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
     cur = load_curriculum("default")
     p0 = prob.params(cur.contact(cur.stiffest))
     t0 = time.perf_counter()
-    train, test = stage3.fit_windows(prob, rt.q, o, cfg.sample_target)
+    train, test, _ = stage3.fit_windows(prob, rt.q, o, cfg.sample_target)
     w = cfg.weights.arrays()
     args = (demo.fps, prob.base_quat)
     t_collect = time.perf_counter() - t0
@@ -49,10 +55,10 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
         "nominal": (prob.model, p0, [], 0.0), "+S, constants": (prob.model, p_fit, losses, t_fit),
     }  # fmt: skip
     if residual and o.residual_steps > 0:
-        for name, loc, glob in (("local", True, False), ("global", False, True), ("both", True, True)):
+        for name, nets in NETWORK_ROWS.items():
             t1 = time.perf_counter()
-            m, p, ls = stage3.fit_residual(prob.model, p_fit, train, *args, o, w, ResidualConfig(), loc, glob)
-            variants[f"+residual {name}"] = (m, p, ls, time.perf_counter() - t1)
+            m, p, ls = stage3.fit_networks(prob.model, p_fit, train, *args, o, w, ResidualConfig(), nets)
+            variants[name] = (m, p, ls, time.perf_counter() - t1)
     rows = []
     for name, (m, p, ls, secs) in variants.items():
         e = predict.prediction_errors(m, p, test, *args)

@@ -20,7 +20,7 @@ from quasisim.method.problem import Problem
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory, simulate_jit
 from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
-from quasisim.sim.types import Params
+from quasisim.sim.types import Model, Params
 
 OUTPUTS = ("controls.npz", *evaluate.OUTPUTS, "summary.json")
 
@@ -47,10 +47,12 @@ class TransferResult:
     out: Path
 
 
-def sim_qpos(prob: Problem, params: Params, traj: Trajectory) -> np.ndarray:
-    """(T, 6 + J) the hand trajectory of ``traj``'s quasi-physical rollout in base coordinates."""
-    states = simulate_jit(prob.model, params, traj, prob.base_quat, prob.demo.fps, prob.obj0)
-    root = np.asarray(prob.model.to_world(states.root_pos), np.float64)
+def sim_qpos(prob: Problem, params: Params, traj: Trajectory, model: Model | None = None) -> np.ndarray:
+    """(T, 6 + J) the hand trajectory of ``traj``'s quasi-physical rollout (in ``model``, default the
+    problem's) in base coordinates."""
+    model = model or prob.model
+    states = simulate_jit(model, params, traj, prob.base_quat, prob.demo.fps, prob.obj0)
+    root = np.asarray(model.to_world(states.root_pos), np.float64)
     R = np_quat_to_mat(np.asarray(states.root_quat))
     eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("ji,tjk->tik", prob.base_rot, R)), axis=0)
     q = np.concatenate([root, eul, np.asarray(states.q, np.float64)], axis=1)

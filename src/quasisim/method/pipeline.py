@@ -43,7 +43,7 @@ from quasisim.optim.adam import Progress
 from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
-from quasisim.sim.types import Params
+from quasisim.sim.types import Model, Params
 from quasisim.targets import make_target
 
 
@@ -89,20 +89,20 @@ def run_transfer(
         plan = _stage2(prob, cur, cfg, spec, ck, plan, objective, kin["q"], progress, record)
         _note_residual_stages(cur, spec, progress, record)
     stiffest = prob.params(cur.contact(cur.stiffest))  # the model of stage 3 and MPC
-    model_params = plan.sysid.apply(stiffest, prob.obj.mass, prob.obj.inertia)
+    model, model_params = prob.model, plan.sysid.apply(stiffest, prob.obj.mass, prob.obj.inertia)
     if "3" in spec.stages:
-        model_params, plan = _stage3(prob, cfg, spec, ck, plan, stiffest, objective, progress, record)
+        model, model_params, plan = _stage3(prob, cfg, spec, ck, plan, stiffest, objective, progress, record)
     q_out, extras = plan.traj.q_targets, {"kinematic_q": np.asarray(kin["q"])}
     if "mpc" in spec.stages:
         extras["plan_q"] = q_out
-        q_out = _closed_loop(prob, cfg, spec, ck, plan.traj, model_params, progress, record)
+        q_out = _closed_loop(prob, cfg, spec, ck, plan.traj, model, model_params, progress, record)
     if "sample" in spec.stages:
         extras["sample_nominal_q"] = q_out
         q_out = _sample_in_target(prob, cfg, spec, ck, q_out, extras["kinematic_q"], progress, record)
     if "select" in spec.stages:
         q_out = _select_in_target(prob, cfg, spec, q_out, plan, extras, progress, record)
     if {"1", "2", "3", "mpc"} & set(spec.stages):
-        extras["sim_qpos"] = sim_qpos(prob, model_params, plan.traj)
+        extras["sim_qpos"] = sim_qpos(prob, model_params, plan.traj, model)
     label = {"ours": "transfer"}.get(spec.method, spec.method)
     controls = Controls(
         hand=spec.hand, demo=demo.name, method=f"{label}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
@@ -188,8 +188,9 @@ def _note_residual_stages(cur: Curriculum, spec: TransferSpec, progress: Progres
     res = [i + 1 for i, s in enumerate(cur.stages) if s.residual]
     if not res:
         return
+    nets = ", ".join(spec.networks) or "no networks"
     how = (
-        "stage 3 fits S and the contact/joint constants to MuJoCo (residual networks are not used by transfer yet)"
+        f"stage 3 fits S, the contact/joint constants and the networks ({nets}) to MuJoCo"
         if "3" in spec.stages
         else "not run: add stage 3 (--stages ...,3) to fit the simulator to the target"
     )
@@ -219,61 +220,69 @@ def _record_simulator(
 def _stage3(
     prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, plan: Plan, params: Params,
     objective: TrackingObjective, progress: Progress, record: RunRecord,
-) -> tuple[Params, Plan]:  # fmt: skip
-    """Stage 3: fit the stiffest simulator (S from stage 2) to MuJoCo rollouts of the plan and its variants,
-    then the world-model rounds (optimise in the fitted simulator, judge and collect in MuJoCo, refit).
-    Returns the fitted simulator (the model of the MPC that follows) and the best plan judged in MuJoCo."""
+) -> tuple[Model, Params, Plan]:  # fmt: skip
+    """Stage 3: fit the stiffest simulator (S from stage 2) to MuJoCo rollouts of the plan and its variants (S,
+    constants, then ``spec.networks``), then the world-model rounds (optimise in the fitted simulator, judge
+    and collect in MuJoCo, refit). Returns the fitted simulator (model and params with S applied: the model
+    of the MPC that follows) and the best plan judged in MuJoCo."""
     o, sb, w2 = cfg.stage3, cfg.budget(spec.budget).sim, cfg.weights.arrays(points=0.0)
-    vg, judge = objective.value_and_grad, make_target(spec.target, prob.scene)
-
-    def improve(traj: Trajectory, f: stage3.SimFit) -> Trajectory:
-        p = f.apply_constants(params)
-        return stage2.one_simulator(vg, traj, f.sysid, p, w2, dataclasses.replace(sb, sysid_steps=0), progress,
-                                    "stage 3 (fitted simulator)")[0]  # fmt: skip
+    nets = spec.networks if o.residual_steps > 0 else ()
+    judge, mass, inertia = make_target(spec.target, prob.scene), prob.obj.mass, prob.obj.inertia
 
     def run() -> dict[str, Any]:
         t0 = time.perf_counter()
-        d, f, buf = stage3.fit_to_target(
-            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, cfg.weights.arrays()
+        w = cfg.weights.arrays()
+        d, model, p, f, buf = stage3.fit_to_target(
+            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, w, nets
         )
+        b, a = d["held_out_before"], d["held_out_after"]
         progress.write(
-            f"stage 3: held-out {o.horizon}-frame error {d['held_out_before'][0]:.2f} cm / {d['held_out_before'][1]:.1f} deg "
-            f"-> {d['held_out_after'][0]:.2f} cm / {d['held_out_after'][1]:.1f} deg"
+            f"stage 3: held-out {o.horizon}-frame error {b[0]:.2f} cm / {b[1]:.1f} deg -> {a[0]:.2f} cm / {a[1]:.1f} deg"
         )
+        vg = dataclasses.replace(objective, model=model).value_and_grad  # the objective in the fitted simulator
+
+        def improve(traj: Trajectory, f: stage3.SimFit, p: Params) -> Trajectory:
+            budget = dataclasses.replace(sb, sysid_steps=0)
+            return stage2.one_simulator(
+                vg, traj, f.sysid, f.apply_constants(p), w2, budget, progress, "stage 3 controls"
+            )[0]
+
         cost = lambda q: clip_cost(prob.demo, judge.rollout(q), cfg.weights)  # noqa: E731
-        rounds = stage3.world_model_rounds(
-            prob, params, plan.traj, f, buf, o, cfg.sample_target, cfg.weights.arrays(), improve, cost, progress
+        rounds, p = stage3.world_model_rounds(
+            prob, model, p, plan.traj, f, buf, o, cfg.sample_target, w, improve, cost, progress
         )
-        return {**d, **rounds, "wall_s": np.array(time.perf_counter() - t0)}
+        return {**d, **rounds, "net_weights": stage3.network_vector(p), "wall_s": np.array(time.perf_counter() - t0)}
 
     expect = {"fit": (8,), "losses": (None,), "held_out_before": (3,), "held_out_after": (3,), "round_fit": (8,),
               "round_costs": (o.rounds + 1,), "round_errors": (o.rounds, 3), "best_round": (), "buffer_rollouts": (),
-              "q_targets": (prob.demo.n_frames, prob.scene.n_dof)}  # fmt: skip
+              "q_targets": (prob.demo.n_frames, prob.scene.n_dof), "net_weights": (None,)}  # fmt: skip
     d = ck.get("stage3", run, expect)
+    model, p = stage3.network_template(prob.model, params, nets, o.seed) if nets else (prob.model, params)
+    p = stage3.from_network_vector(p, d["net_weights"]) if nets else p
+    f = stage3.SimFit.from_array(d["round_fit"])
     record.seconds["stage3"] = float(d["wall_s"])
     record.curves["stage 3 fit (minibatch loss)"] = [float(x) for x in d["losses"]]
-    f = stage3.SimFit.from_array(d["round_fit"])
     b, a = d["held_out_before"], d["held_out_after"]
     record.fit = {
-        "fitted": f.describe(prob.obj.mass), "held_out_before": b.tolist(), "held_out_after": a.tolist(),
+        "fitted": f.describe(mass), "networks": list(nets), "held_out_before": b.tolist(), "held_out_after": a.tolist(),
         "round_costs": d["round_costs"].tolist(), "round_errors": d["round_errors"].tolist(),
         "best_round": int(d["best_round"]), "buffer_rollouts": int(d["buffer_rollouts"]),
     }  # fmt: skip
     progress.write(f"stage 3 done in {record.seconds['stage3']:.0f} s; kept round {int(d['best_round'])}'s controls")
     if int(d["best_round"]) > 0:  # a round's controls did better in the target than the stage's start
         plan = Plan(Trajectory.from_q(d["q_targets"], prob.model.n_points), plan.sysid)
-    return f.apply(params, prob.obj.mass, prob.obj.inertia), plan
+    return model, f.apply(p, mass, inertia), plan
 
 
 def _closed_loop(
-    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, traj: Trajectory, params: Params,
-    progress: Progress, record: RunRecord,
+    prob: Problem, cfg: TransferConfig, spec: TransferSpec, ck: Checkpoints, traj: Trajectory, model: Model,
+    params: Params, progress: Progress, record: RunRecord,
 ) -> np.ndarray:  # fmt: skip
-    """Closed-loop MPC in MuJoCo from ``traj``, with the simulator ``params`` (S applied) as the model."""
+    """Closed-loop MPC in MuJoCo from ``traj``, with the simulator ``model``, ``params`` (S applied) as the model."""
 
     def mpc() -> dict[str, Any]:
         opts = dataclasses.replace(cfg.mpc, soften=cfg.soften_samples if spec.method == "mpc-soften" else 0)
-        r = run_mpc(prob.demo, prob.scene, prob.model, params, traj.q_targets, opts, cfg.weights, spec.progress)
+        r = run_mpc(prob.demo, prob.scene, model, params, traj.q_targets, opts, cfg.weights, spec.progress)
         return {"q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s)}
 
     d = ck.get("mpc", mpc, _q_expect(prob))
@@ -395,7 +404,7 @@ def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
 
 
 # the run settings that concern single stages (the rest, e.g. demo, hand, curriculum, budget, concern every piece)
-_STAGE_KEYS = {"stages": None, "method": None, "mpc": "mpc", "stage3": "3", "sample_target": "sample"}
+_STAGE_KEYS = {"stages": None, "method": None, "mpc": "mpc", "stage3": "3", "networks": "3", "sample_target": "sample"}
 
 
 def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
@@ -427,6 +436,7 @@ def _identity(
         "demo": demo.name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
         "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
         "method": spec.method, **cfg.identity(spec.budget, spec.stages),
+        **({"networks": list(spec.networks)} if "3" in spec.stages else {}),
         "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
         "curriculum_settings": cur_settings,
     }  # fmt: skip

@@ -11,6 +11,11 @@ from quasisim.targets import TARGETS
 
 STAGES = ("1", "2", "3", "mpc", "sample", "select")
 METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
+NETWORKS = (
+    "local",
+    "global",
+    "control",
+)  # stage 3's networks: residual physics (local, global), control transformation
 TWO_HAND_METHODS = ("kinematic", "sample-target")  # methods that transfer a demo with two hands (left_joints)
 
 
@@ -25,6 +30,8 @@ class TransferSpec:
             (``mpc-base``/``mpc-soften`` run only the MPC stage, ``sample-target`` only the sampling stage,
             ``kinematic`` no stage).
         render: render the report's video.  progress: show progress bars.
+        networks: what stage 3 trains on top of S and the constants, of :data:`NETWORKS` (``local`` and
+            ``global`` residual networks, ``control`` transformation); the ablation flags remove them.
     """
 
     hand: str = "shadow"
@@ -35,6 +42,7 @@ class TransferSpec:
     method: str = "ours"
     render: bool = True
     progress: bool = True
+    networks: tuple[str, ...] = ("local", "global", "control")
 
     def checked(self) -> TransferSpec:
         """Validated, with the stages that ``method`` implies."""
@@ -47,12 +55,31 @@ class TransferSpec:
         bad = [s for s in stages if s not in STAGES]
         if bad:
             raise choice_error("stage", bad[0], STAGES)
+        bad = [n for n in self.networks if n not in NETWORKS]
+        if bad:
+            raise choice_error("network", bad[0], NETWORKS)
         if {"3", "mpc"} & set(stages) and self.target != "mujoco":
             raise QuasisimError(
                 f"stage 3 and closed-loop MPC run in MuJoCo only (target {self.target!r}); use --target mujoco or "
                 "leave out stages 3 and mpc"
             )
-        return dataclasses.replace(self, stages=tuple(s for s in STAGES if s in stages))
+        networks = tuple(n for n in NETWORKS if n in self.networks)
+        return dataclasses.replace(self, stages=tuple(s for s in STAGES if s in stages), networks=networks)
+
+    def identity(self) -> dict[str, object]:
+        """The fields that determine the run's results (progress aside; stage 3's networks only with stage 3)."""
+        d = {k: v for k, v in dataclasses.asdict(self).items() if k != "progress"}
+        if "3" not in self.stages:
+            d.pop("networks")
+        return d
+
+
+def networks_from_flags(no_residual: bool, no_local_residual: bool, no_control_transform: bool) -> tuple[str, ...]:
+    """The networks of stage 3 left by the ablation flags ``--no-residual`` (neither residual network),
+    ``--no-local-residual`` and ``--no-control-transform``."""
+    drop = {"local", "global"} if no_residual else {"local"} if no_local_residual else set()
+    drop |= {"control"} if no_control_transform else set()
+    return tuple(n for n in NETWORKS if n not in drop)
 
 
 def check_hands(spec: TransferSpec, n_hands: int, path: str | Path | None = None) -> None:
@@ -75,6 +102,6 @@ def parse_stages(text: str) -> tuple[str, ...]:
     if bad or not stages:
         raise QuasisimError(
             f"unknown stage(s) {', '.join(bad) or '(none given)'}; valid stages: {', '.join(STAGES)} "
-            "(3: fit the simulator's S and constants to MuJoCo; residual networks are not used by transfer yet)"
+            "(3: fit the simulator to MuJoCo: S, constants, residual networks and control transformation)"
         )
     return tuple(s for s in STAGES if s in stages)

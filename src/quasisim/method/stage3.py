@@ -10,7 +10,8 @@ physical environment").
 3. **Fit** (:func:`fit`): Adam on the mean H-frame prediction error of training windows over
    :class:`SimFit`: S (object mass, inertia, velocity damping) and the contact and joint constants
    (contact stiffness scale, friction coefficient, joint damping, PD gain scale), all in log coordinates;
-   then, optionally, the residual networks (:mod:`quasisim.sim.residual`, zero at start) on the same loss.
+   then, optionally, the residual networks and the control transformation (:mod:`quasisim.sim.residual`,
+   zero at start) on the same loss (:func:`fit_networks`).
 4. **Measure** (:func:`quasisim.eval.predict.prediction_errors`): the error after ``h = 1..H`` frames on windows the fit never
    saw (the clip's later frames), beside the zero-motion predictor (the object stays where it is).
 5. **World-model rounds** (:func:`world_model_rounds`): optimise the controls in the fitted simulator, roll
@@ -40,9 +41,9 @@ from quasisim.method.sample_target import SamplingOptions, sample_windows
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
-from quasisim.sim.build import attach_residual
-from quasisim.sim.residual import ResidualConfig, ResidualNets
-from quasisim.sim.types import Model, Params, pytree
+from quasisim.sim.build import attach_control_transform, attach_residual
+from quasisim.sim.residual import ControlTransform, ResidualConfig, ResidualNets
+from quasisim.sim.types import NETWORKS, Model, Params, pytree
 
 Array = jax.Array
 F32 = jnp.float32
@@ -181,21 +182,36 @@ def _fit_vg(
     )(f)
 
 
-def fit_residual(
+NETWORK_NAMES = ("local", "global", "control")  # residual networks (local, global), control transformation
+
+
+def fit_networks(
     model: Model, params: Params, train: Windows, fps: float, base_quat: np.ndarray, opts: FitOptions,
-    weights: dict[str, Array], cfg: ResidualConfig, local: bool = True, glob: bool = True,
+    weights: dict[str, Array], cfg: ResidualConfig, networks: tuple[str, ...] = NETWORK_NAMES,
 ) -> tuple[Model, Params, list[float]]:  # fmt: skip
-    """Attach residual networks (zero at start) to the simulator ``params`` and train their weights on the
-    training windows; ``local`` / ``glob`` switch the two networks. Returns the model, params and losses."""
-    model, p0 = attach_residual(model, params, ResidualNets(cfg, seed=opts.seed), local, glob)
+    """Train the ``networks`` (of :data:`NETWORK_NAMES`) of the simulator ``params`` together on the training
+    windows: those not attached yet are attached first, zero at start (:mod:`quasisim.sim.residual`); attached
+    ones continue from their weights. Returns the model, params and losses."""
+    bad = set(networks) - set(NETWORK_NAMES)
+    if bad:
+        raise QuasisimError(f"unknown network {sorted(bad)[0]!r}; valid: {', '.join(NETWORK_NAMES)}")
+    m, p0 = model, params
+    if {"local", "global"} & set(networks) and params.residual is None:
+        nets = ResidualNets(cfg, seed=opts.seed)
+        m, p0 = attach_residual(m, p0, nets, "local" in networks, "global" in networks)
+    if "control" in networks and params.control_transform is None:
+        m, p0 = attach_control_transform(m, p0, ControlTransform(cfg, model.hand.n_joints, seed=opts.seed))
+    trained = {k: getattr(p0, k) for k in NETWORKS if getattr(p0, k) is not None}
+    if not trained or opts.residual_steps == 0:
+        return m, p0, []
 
     @jax.jit
-    def vg(res: Any, batch: Windows) -> tuple[Array, Any]:
-        loss = lambda r: window_loss(model, p0.replace(residual=r), batch, fps, base_quat, weights)  # noqa: E731
-        return jax.value_and_grad(loss)(res)
+    def vg(nets: dict[str, Any], batch: Windows) -> tuple[Array, Any]:
+        loss = lambda n: window_loss(m, p0.replace(**n), batch, fps, base_quat, weights)  # noqa: E731
+        return jax.value_and_grad(loss)(nets)
 
-    res, losses = _adam(vg, p0.residual, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1)
-    return model, p0.replace(residual=res), losses
+    nets, losses = _adam(vg, trained, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1)
+    return m, p0.replace(**nets), losses
 
 
 def _adam(
@@ -256,78 +272,125 @@ def fit_windows(
 
 def fit_to_target(
     prob: Any, params: Params, plan: np.ndarray, sysid: SysID, opts: FitOptions, noise: SamplingOptions,
-    weights: dict[str, Array],
-) -> tuple[dict[str, Any], SimFit, ReplayBuffer]:  # fmt: skip
+    weights: dict[str, Array], networks: tuple[str, ...] = (),
+) -> tuple[dict[str, Any], Model, Params, SimFit, ReplayBuffer]:  # fmt: skip
     """Stage 3's first fit for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay
     buffer of the plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the
-    training windows, and the held-out ``H``-frame errors before and after. Returns the checkpoint arrays,
-    the fit and the buffer."""
+    training windows, then the ``networks`` (:func:`fit_networks`), and the held-out ``H``-frame errors
+    before and after. Returns the checkpoint arrays, the model and the simulator ``params`` with the networks
+    (S and constants not applied), the fit and the buffer."""
     demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
     train, test, buf = fit_windows(prob, plan, opts, noise)
     start = SimFit.nominal(sysid)
     f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start)
+    m_fit, p_fit, net_losses = m, params, []
+    if networks:
+        m_fit, p_n, net_losses = fit_networks(m, f.apply(params, obj.mass, obj.inertia), train, demo.fps, bq, opts,
+                                              weights, ResidualConfig(), networks)  # fmt: skip
+        p_fit = with_networks(params, p_n)
     before = prediction_errors(m, start.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
-    after = prediction_errors(m, f.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
+    after = prediction_errors(m_fit, f.apply(p_fit, obj.mass, obj.inertia), test, demo.fps, bq)
     d = {
-        "fit": f.as_array(), "losses": np.asarray(losses, np.float64),
+        "fit": f.as_array(), "losses": np.asarray(losses, np.float64), "network_losses": np.asarray(net_losses, np.float64),
         "held_out_before": np.array([before.obj_pos_cm[-1], before.obj_rot_deg[-1], before.keypoints_mm[-1]]),
         "held_out_after": np.array([after.obj_pos_cm[-1], after.obj_rot_deg[-1], after.keypoints_mm[-1]]),
     }  # fmt: skip
-    return d, f, buf
+    return d, m_fit, p_fit, f, buf
+
+
+_NETWORK_FIELDS = (*NETWORKS, "residual_local_on", "residual_global_on")
+
+
+def with_networks(params: Params, source: Params) -> Params:
+    """``params`` with the networks (weights and switches) of ``source``."""
+    return params.replace(**{k: getattr(source, k) for k in _NETWORK_FIELDS})
+
+
+def network_template(model: Model, params: Params, networks: tuple[str, ...], seed: int) -> tuple[Model, Params]:
+    """``model`` and ``params`` with freshly initialised ``networks`` attached (the structure a checkpoint's
+    :func:`network_vector` is read back into)."""
+    opts = FitOptions(horizon=1, held_out=0.5, variants=0, capacity=1, steps=0, lr=0.0, batch=1, residual_steps=0,
+                      residual_lr=0.0, rounds=0, seed=seed)  # fmt: skip
+    m, p, _ = fit_networks(model, params, None, 0.0, np.zeros(4), opts, {}, ResidualConfig(), networks)  # type: ignore[arg-type]
+    return m, p
+
+
+def network_vector(params: Params) -> np.ndarray:
+    """All network weights of ``params`` as one float32 vector (P,) (empty without networks)."""
+    leaves = jax.tree_util.tree_leaves([getattr(params, k) for k in NETWORKS])
+    return np.concatenate([np.ravel(np.asarray(x, np.float32)) for x in leaves]) if leaves else np.zeros(0, np.float32)
+
+
+def from_network_vector(params: Params, vec: np.ndarray) -> Params:
+    """``params`` (with networks attached) with the weights of :func:`network_vector`'s ``vec``."""
+    nets = [getattr(params, k) for k in NETWORKS]
+    leaves, tree = jax.tree_util.tree_flatten(nets)
+    if sum(x.size for x in leaves) != len(vec):
+        raise QuasisimError(
+            f"stage 3 checkpoint: {len(vec)} network weights, the networks have {sum(x.size for x in leaves)}"
+        )
+    out, i = [], 0
+    for x in leaves:
+        out.append(jnp.asarray(vec[i : i + x.size].reshape(x.shape), x.dtype))
+        i += x.size
+    return params.replace(**dict(zip(NETWORKS, jax.tree_util.tree_unflatten(tree, out), strict=True)))
 
 
 def world_model_rounds(
-    prob: Any, params: Params, traj: Trajectory, f: SimFit, buf: ReplayBuffer, opts: FitOptions,
-    noise: SamplingOptions, weights: dict[str, Array], improve: Callable[[Trajectory, SimFit], Trajectory],
+    prob: Any, model: Model, params: Params, traj: Trajectory, f: SimFit, buf: ReplayBuffer, opts: FitOptions,
+    noise: SamplingOptions, weights: dict[str, Array], improve: Callable[[Trajectory, SimFit, Params], Trajectory],
     cost: Callable[[np.ndarray], float], progress: Any = None,
-) -> dict[str, Any]:  # fmt: skip
+) -> tuple[dict[str, Any], Params]:  # fmt: skip
     """The paper's world-model-style loop (appendix "World model-style training"), ``opts.rounds`` times:
 
-    1. ``improve`` the controls in the fitted simulator (``params`` with the fit ``f``);
+    1. ``improve`` the controls in the fitted simulator (``model``, ``params`` with its networks, the fit ``f``);
     2. roll them and ``opts.variants`` noisy variants out in the target and judge them there (``cost``, the
        clip objective of :mod:`quasisim.method.select`); the best controls seen are kept, so a round never
        makes the result worse;
     3. measure the fitted simulator's ``H``-frame prediction error on the new controls' rollout (windows from
        every frame: rollouts the fit has not seen);
     4. add the new rollouts to the buffer (the newest ``capacity`` kept) and refit from ``f`` on the windows
-       of every rollout and frame.
+       of every rollout and frame: S and the constants, then the networks ``params`` holds.
 
-    Returns the best controls (T, 6 + J), the last fit, per round the target cost (round 0: the stage's
-    starting controls) and the prediction error (cm, deg, mm) before the refit, and the buffer's size, as
-    checkpoint arrays."""
-    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    Returns the checkpoint arrays (the best controls (T, 6 + J), the last fit, per round the target cost
+    (round 0: the stage's starting controls) and the prediction error (cm, deg, mm) before the refit, the
+    buffer's size) and the params with the refitted networks."""
+    demo, bq, obj = prob.demo, prob.base_quat, prob.obj
+    attached = tuple(n for n, on in (("local", params.residual is not None), ("global", params.residual is not None),
+                                     ("control", params.control_transform is not None)) if on)  # fmt: skip
     best_q = np.asarray(traj.q_targets, np.float64)
     costs, errors, best = [cost(best_q)], [], 0
+    T = demo.n_frames
     for r in range(1, opts.rounds + 1):
-        traj = improve(traj, f)
+        traj = improve(traj, f, params)
         q = np.asarray(traj.q_targets, np.float64)
         costs.append(cost(q))
         if costs[-1] < costs[best]:
             best, best_q = r, q
-        new = collect(
-            prob.scene, [q, *noisy_variants(q, opts.variants, noise, opts.seed + r, prob.hand.joint_range)], demo.fps
-        )
-        T = demo.n_frames
-        e = prediction_errors(
-            m,
-            f.apply(params, obj.mass, obj.inertia),
-            windows(m, new, [(0, t) for t in range(T - opts.horizon)], opts.horizon, bq),
-            demo.fps,
-            bq,
-        )
+        variants = noisy_variants(q, opts.variants, noise, opts.seed + r, prob.hand.joint_range)
+        new = collect(prob.scene, [q, *variants], demo.fps)
+        fresh = windows(model, new, [(0, t) for t in range(T - opts.horizon)], opts.horizon, bq)
+        e = prediction_errors(model, f.apply(params, obj.mass, obj.inertia), fresh, demo.fps, bq)
         errors.append([e.obj_pos_cm[-1], e.obj_rot_deg[-1], e.keypoints_mm[-1]])
         buf = buf.extended(new, opts.capacity)
-        every = [(i, t) for i in range(buf.n_rollouts) for t in range(T - opts.horizon)]
-        f, _ = fit(m, params, windows(m, buf, every, opts.horizon, bq), demo.fps, bq, obj.mass, obj.inertia,
-                   dataclasses.replace(opts, seed=opts.seed + r), weights, f)  # fmt: skip
+        every = windows(
+            model, buf, [(i, t) for i in range(buf.n_rollouts) for t in range(T - opts.horizon)], opts.horizon, bq
+        )
+        o_r = dataclasses.replace(opts, seed=opts.seed + r)
+        f, _ = fit(model, params, every, demo.fps, bq, obj.mass, obj.inertia, o_r, weights, f)
+        if attached:
+            _, p_n, _ = fit_networks(model, f.apply(params, obj.mass, obj.inertia), every, demo.fps, bq, o_r, weights,
+                                     ResidualConfig(), attached)  # fmt: skip
+            params = with_networks(params, p_n)
         if progress is not None:
             progress.write(
                 f"stage 3 round {r}/{opts.rounds}: objective in the target {costs[-1]:.4f} (best {costs[best]:.4f}); "
                 f"the fitted simulator predicted this round's rollout to {errors[-1][0]:.2f} cm / {errors[-1][1]:.1f} deg "
                 f"after {opts.horizon} frames"
             )
-    return {
+    d = {
         "q_targets": best_q, "round_fit": f.as_array(), "round_costs": np.asarray(costs, np.float64),
         "round_errors": np.asarray(errors, np.float64).reshape(-1, 3), "best_round": np.array(best),
         "buffer_rollouts": np.array(buf.n_rollouts),
     }  # fmt: skip
+    return d, params

@@ -12,7 +12,7 @@ import numpy as np
 
 from quasisim.assets.hand import HandModel
 from quasisim.sim.pointset import HandPoints, sample_hand_points
-from quasisim.sim.types import Model, Params
+from quasisim.sim.types import NETWORKS, Model, Params
 
 F32 = jnp.float32
 CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
@@ -124,12 +124,13 @@ def default_params(
         residual=None,
         residual_local_on=0.0,
         residual_global_on=0.0,
+        control_transform=None,
     )
     unknown = set(overrides) - set(values)
     if unknown:
         raise KeyError(f"unknown simulator parameters {sorted(unknown)}; valid: {sorted(values)}")
     values.update(overrides)
-    return Params(**{k: (v if k == "residual" else jnp.asarray(v, F32)) for k, v in values.items()})
+    return Params(**{k: (v if k in NETWORKS else jnp.asarray(v, F32)) for k, v in values.items()})
 
 
 def attach_residual(
@@ -141,3 +142,10 @@ def attach_residual(
     model = dataclasses.replace(model, residual_static=static)
     params = params.replace(residual=arrays, residual_local_on=float(local_on), residual_global_on=float(global_on))
     return model, params
+
+
+def attach_control_transform(model: Model, params: Params, ct: Any) -> tuple[Model, Params]:
+    """Put a control transformation (:class:`quasisim.sim.residual.ControlTransform`) into the simulator:
+    its arrays become Params leaves (trainable), the rest static Model metadata."""
+    arrays, static = eqx.partition(ct, eqx.is_array)
+    return dataclasses.replace(model, control_transform_static=static), params.replace(control_transform=arrays)

@@ -9,7 +9,13 @@
   (within ``global_radius``) in the same way and predicts a residual force and torque at the object's
   centre of mass.
 
-Both are evaluated once per frame on the frame's starting state; the last layers start at zero, so the
+* The **control transformation** (paper appendix "Controlling the hand in Bullet and Isaac Gym") looks at
+  the ``n_global`` object and hand points nearest to the contact region and at the frame's control (root
+  velocities, joint target error ``q* - q`` and target velocities) and predicts a residual of that control:
+  the quasi-physical simulator applies ``u + g(state, u)`` where the target is given ``u``, so that the
+  simulator driven by the target's PD targets moves as the target does.
+
+All are evaluated once per frame on the frame's starting state; the last layers start at zero, so the
 initial residual is exactly zero. Sizes are configuration (:class:`ResidualConfig`); the defaults are far
 smaller than the paper's ([128, 256, 512, 1024] per-point, [512, 256, 128] head, 100 and 500 points) so that
 fitting runs on a CPU.
@@ -41,6 +47,8 @@ class ResidualConfig:
     global_radius: float = 0.10
     force_scale: float = 1.0  # N: outputs are multiplied by this
     torque_scale: float = 0.05  # N m
+    control_pos_scale: float = 0.02  # rad (m for slide joints): joint-target residuals
+    control_vel_scale: float = 0.05  # m/s, rad/s: root and joint velocity residuals
 
 
 class PointNet(eqx.Module):
@@ -50,24 +58,25 @@ class PointNet(eqx.Module):
     point_mlp: eqx.nn.MLP
     head: eqx.nn.MLP
 
-    def __init__(self, cfg: ResidualConfig, out: int, key: Array) -> None:
+    def __init__(self, cfg: ResidualConfig, out: int, key: Array, extra: int = 0) -> None:
         k1, k2, k3 = jax.random.split(key, 3)
         self.embed = 0.1 * jax.random.normal(k1, (2, cfg.embed))
         width = cfg.point_hidden[-1]
         self.point_mlp = _mlp(cfg.embed + 9, cfg.point_hidden[:-1], width, k2)
-        head = _mlp(width, cfg.head_hidden, out, k3)
+        head = _mlp(width + extra, cfg.head_hidden, out, k3)
         last = head.layers[-1]
         last = eqx.tree_at(lambda l: (l.weight, l.bias), last, (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)))
         self.head = eqx.tree_at(lambda h: h.layers[-1], head, last)
 
-    def __call__(self, feats: Array, kind: Array, mask: Array) -> Array:
-        """``feats`` (P, 9) position, velocity, normal; ``kind`` (P,) 0 object / 1 hand; ``mask`` (P,) valid."""
+    def __call__(self, feats: Array, kind: Array, mask: Array, extra: Array | None = None) -> Array:
+        """``feats`` (P, 9) position, velocity, normal; ``kind`` (P,) 0 object / 1 hand; ``mask`` (P,) valid;
+        ``extra`` (E,) more head input (the control, for the control transformation)."""
         x = jnp.concatenate([self.embed[kind], feats], axis=-1)
         h = jax.vmap(self.point_mlp)(x)
         h = jnp.where(mask[:, None], h, -1e9)
         g = jnp.max(h, axis=0)
         g = jnp.where(jnp.any(mask), g, jnp.zeros_like(g))
-        return self.head(g)
+        return self.head(g if extra is None else jnp.concatenate([g, extra]))
 
 
 def _mlp(inp: int, hidden: tuple[int, ...], out: int, key: Array) -> eqx.nn.MLP:
@@ -90,6 +99,18 @@ class ResidualNets(eqx.Module):
         kl, kg = jax.random.split(jax.random.PRNGKey(seed))
         self.local = PointNet(cfg, 3, kl)
         self.glob = PointNet(cfg, 6, kg)
+        self.cfg = cfg
+
+
+class ControlTransform(eqx.Module):
+    """The control transformation for a hand of ``n_joints`` joints (see module docstring)."""
+
+    net: PointNet
+    cfg: ResidualConfig = eqx.field(static=True)
+
+    def __init__(self, cfg: ResidualConfig, n_joints: int, seed: int = 0) -> None:
+        n = 6 + 2 * n_joints
+        self.net = PointNet(cfg, n, jax.random.PRNGKey(seed + 7919), extra=n)
         self.cfg = cfg
 
 
@@ -118,7 +139,7 @@ def _nearest(points: Array, center: Array, k: int, radius: float) -> tuple[Array
     return idx, -neg <= radius
 
 
-def _region(nets: ResidualNets, x: ResidualInput, center: Array, n: int, radius: float) -> tuple[Array, Array, Array]:
+def _region(x: ResidualInput, center: Array, n: int, radius: float) -> tuple[Array, Array, Array]:
     """Features (2n, 9), kinds (2n,) and mask (2n,) of the object and hand points nearest to ``center``."""
     oi, om = _nearest(x.obj_pts, center, min(n, x.obj_pts.shape[0]), radius)
     hi, hm = _nearest(x.hand_pts, center, min(n, x.hand_pts.shape[0]), radius)
@@ -138,7 +159,7 @@ def residual_forces(nets: ResidualNets, x: ResidualInput) -> tuple[Array, Array,
     active = depth > 0
 
     def one(i: Array) -> Array:
-        feats, kinds, mask = _region(nets, x, x.contact_pt[i], cfg.n_local, cfg.local_radius)
+        feats, kinds, mask = _region(x, x.contact_pt[i], cfg.n_local, cfg.local_radius)
         out = nets.local(feats, kinds, mask)
         n = x.contact_nrm[i]
         t1 = jnp.cross(n, jnp.where(jnp.abs(n[0]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0])))
@@ -147,10 +168,26 @@ def residual_forces(nets: ResidualNets, x: ResidualInput) -> tuple[Array, Array,
         return cfg.force_scale * (out[0] * n + out[1] * t1 + out[2] * t2)
 
     local = jax.vmap(one)(idx) * active[:, None]
-    # global: the region around the deepest contact (the contact region's centre of mass when several)
-    w = jnp.maximum(x.depth, 0.0)
-    center = jnp.where(jnp.sum(w) > 0, jnp.sum(w[:, None] * x.contact_pt, 0) / (jnp.sum(w) + 1e-12), x.obj_pts[0])
-    feats, kinds, mask = _region(nets, x, center, cfg.n_global // 2, cfg.global_radius)
+    feats, kinds, mask = _region(x, _contact_center(x), cfg.n_global // 2, cfg.global_radius)
     g = nets.glob(feats, kinds, mask) * jnp.any(active)
     wrench = jnp.concatenate([cfg.force_scale * g[:3], cfg.torque_scale * g[3:]])
     return wrench, local, idx
+
+
+def _contact_center(x: ResidualInput) -> Array:
+    """The contact region's centre (contact points weighted by depth), or an object point when none."""
+    w = jnp.maximum(x.depth, 0.0)
+    return jnp.where(jnp.sum(w) > 0, jnp.sum(w[:, None] * x.contact_pt, 0) / (jnp.sum(w) + 1e-12), x.obj_pts[0])
+
+
+def control_residual(ct: ControlTransform, x: ResidualInput, control: Array) -> Array:
+    """The control transformation's residual (6 + 2J,) of ``control`` = (root velocity (3,), root angular
+    velocity (3,), joint target error ``q* - q`` (J,), joint target velocity (J,)), in the same layout and
+    units: velocities scaled by ``control_vel_scale``, joint targets by ``control_pos_scale``."""
+    cfg = ct.cfg
+    feats, kinds, mask = _region(x, _contact_center(x), cfg.n_global // 2, cfg.global_radius)
+    out = ct.net(feats, kinds, mask, control)
+    J = (control.shape[0] - 6) // 2
+    scale = jnp.concatenate([jnp.full(6, cfg.control_vel_scale), jnp.full(J, cfg.control_pos_scale),
+                             jnp.full(J, cfg.control_vel_scale)])  # fmt: skip
+    return out * scale

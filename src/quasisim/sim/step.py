@@ -33,7 +33,7 @@ from quasisim.assets.object import SDFArrays, sdf_query
 from quasisim.rotations import quat_mul, quat_to_mat, skew
 from quasisim.sim.articulation import BodyJacobians, body_jacobians, gravity_bias, mass_matrix
 from quasisim.sim.contact import ContactForces, NormalContact, friction, normal_contact, table_sdf
-from quasisim.sim.residual import ResidualInput, residual_forces
+from quasisim.sim.residual import ResidualInput, control_residual, residual_forces
 from quasisim.sim.types import Control, Model, Params, State
 
 Array = jax.Array
@@ -314,8 +314,9 @@ def select_candidates(model: Model, params: Params, state: State) -> Array:
     return idx
 
 
-def residual_terms(model: Model, params: Params, state: State, pts: Points, sub: State) -> tuple[Array, Array]:
-    """The residual networks' wrench (6,) on the object and per-point forces (K, 3), world frame."""
+def residual_input(model: Model, params: Params, state: State, pts: Points, sub: State) -> tuple[ResidualInput, Array]:
+    """What the residual networks and the control transformation see of ``state`` (object frame, about the
+    centre of mass; ``pts``/``sub``: the frame's candidate hand points) and the object's rotation (3, 3)."""
     p, r, bj = hand_points(model, params, sub, pts)
     vb = jnp.einsum("bij,j->bi", bj.jv, sub.qd)
     wb = jnp.einsum("bij,j->bi", bj.jw, sub.qd)
@@ -336,18 +337,37 @@ def residual_terms(model: Model, params: Params, state: State, pts: Points, sub:
         contact_pt=p_loc - sd[:, None] * n_loc - model.obj_com,
         contact_nrm=n_loc,
     )
+    return x, R
+
+
+def residual_terms(model: Model, params: Params, x: ResidualInput, R: Array) -> tuple[Array, Array]:
+    """The residual networks' wrench (6,) on the object and per-point forces (K, 3), world frame."""
     nets = eqx.combine(params.residual, model.residual_static)
     wrench, local, idx = residual_forces(nets, x)
     wrench_w = jnp.concatenate([R @ wrench[:3], R @ wrench[3:]]) * params.residual_global_on
-    point = jnp.zeros_like(p).at[idx].add(local @ R.T) * params.residual_local_on
+    point = jnp.zeros((len(x.hand_pts), 3), wrench.dtype).at[idx].add(local @ R.T) * params.residual_local_on
     return wrench_w, point
+
+
+def transformed_control(model: Model, params: Params, state: State, ctrl: Control, x: ResidualInput) -> Control:
+    """The control transformation: ``u + g(state, u)`` for the frame's root velocities, joint targets and
+    joint target velocities (:func:`quasisim.sim.residual.control_residual`)."""
+    ct = eqx.combine(params.control_transform, model.control_transform_static)
+    u = jnp.concatenate([ctrl.root_vel, ctrl.root_angvel, ctrl.q_target - state.q, ctrl.qd_target])
+    d = control_residual(ct, x, u)
+    J = ctrl.q_target.shape[0]
+    return dataclasses.replace(
+        ctrl, root_vel=ctrl.root_vel + d[:3], root_angvel=ctrl.root_angvel + d[3:6],
+        q_target=ctrl.q_target + d[6 : 6 + J], qd_target=ctrl.qd_target + d[6 + J :],
+    )  # fmt: skip
 
 
 def frame(model: Model, params: Params, state: State, ctrl: Control, res_wrench: Array | None = None) -> State:
     """``model.substeps`` substeps under one frame's control (with a broad phase at the frame's start).
 
     With ``params.residual`` set, the residual networks are evaluated once on the frame's starting state and
-    their forces held over the frame; ``res_wrench`` adds an external wrench (6,) on the object."""
+    their forces held over the frame; with ``params.control_transform`` set, the frame's control is
+    transformed first (:func:`transformed_control`); ``res_wrench`` adds an external wrench (6,) on the object."""
     idx = select_candidates(model, params, state)
     pts = Points(jnp.asarray(model.point_body)[idx], model.point_local[idx])
     sub = dataclasses.replace(
@@ -357,11 +377,15 @@ def frame(model: Model, params: Params, state: State, ctrl: Control, res_wrench:
         anchor=state.anchor[idx],
         in_contact=state.in_contact[idx],
     )
-    sub_ctrl = dataclasses.replace(ctrl, point_force=ctrl.point_force[idx])
     res_point = None
-    if params.residual is not None:
-        w_res, res_point = residual_terms(model, params, state, pts, sub)
-        res_wrench = w_res if res_wrench is None else res_wrench + w_res
+    if params.residual is not None or params.control_transform is not None:
+        x, R = residual_input(model, params, state, pts, sub)
+        if params.control_transform is not None:
+            ctrl = transformed_control(model, params, state, ctrl, x)
+        if params.residual is not None:
+            w_res, res_point = residual_terms(model, params, x, R)
+            res_wrench = w_res if res_wrench is None else res_wrench + w_res
+    sub_ctrl = dataclasses.replace(ctrl, point_force=ctrl.point_force[idx])
 
     def body(s: State, k: Array) -> tuple[State, None]:
         frac = (k + 1.0) / model.substeps

@@ -57,6 +57,7 @@ class Model:
         n_candidates: hand points examined for contact in each frame (the closest to the object at the
             frame's start; a broad phase that bounds the per-substep cost).
         residual_static: the non-array part of the residual networks (their arrays live in Params).
+        control_transform_static: the same for the control transformation.
     """
 
     hand: Any = static()
@@ -74,6 +75,7 @@ class Model:
     substeps: int = static(default=50)
     n_candidates: int = static(default=128)
     residual_static: Any = static(default=None)
+    control_transform_static: Any = static(default=None)
 
     def to_world(self, x: Array) -> Array:
         return x + self.offset
@@ -114,6 +116,8 @@ class Params:
         residual: the array leaves of the residual networks (``eqx.filter(nets, eqx.is_array)``) or None;
             see :func:`quasisim.sim.build.attach_residual`.
         residual_local_on, residual_global_on: 0/1 switches multiplying the residual forces.
+        control_transform: the array leaves of the control transformation or None; see
+            :func:`quasisim.sim.build.attach_control_transform`.
     """
 
     alpha: Array
@@ -142,15 +146,19 @@ class Params:
     residual: Any = None
     residual_local_on: Array = None  # type: ignore[assignment]
     residual_global_on: Array = None  # type: ignore[assignment]
+    control_transform: Any = None
 
     def replace(self, **kw: Any) -> Params:
         """A copy with some leaves replaced (cast to the dtype of the leaf they replace)."""
 
         def cast(k: str, v: Any) -> Any:
             old = getattr(self, k)
-            return v if k == "residual" or old is None else jnp.asarray(v, jnp.asarray(old).dtype)
+            return v if k in NETWORKS or old is None else jnp.asarray(v, jnp.asarray(old).dtype)
 
         return dataclasses.replace(self, **{k: cast(k, v) for k, v in kw.items()})
+
+
+NETWORKS = ("residual", "control_transform")  # Params fields holding network weights (pytrees, not arrays)
 
 
 @pytree
