@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from quasisim.errors import QuasisimError
 from quasisim.method.config import TransferConfig
 from quasisim.method.select import best_in_target, clip_cost
 from quasisim.targets import TargetRollout
@@ -74,6 +75,13 @@ def test_select_is_a_stage() -> None:
     assert [(r.name, r.seed_from) for r in job.runs] == [
         ("default", None), ("default+mpc", "default"), ("default+mpc+select", "default+mpc"),
     ]  # fmt: skip
+    # stage 3's ablations as benchmark rows
+    ablation = run_spec("default+3+mpc:no-residual:no-control-transform", ("1", "2"), base)
+    assert ablation.stages == ("1", "2", "3", "mpc") and ablation.networks == ()
+    assert run_spec("default+3+mpc:no-local-residual", ("1", "2"), base).networks == ("global", "control")
+    for bad in ("default+mpc:no-residual", "default+3:no-thing", "default+4"):
+        with pytest.raises(QuasisimError, match="valid forms"):
+            run_spec(bad, ("1", "2"), base)
 
 
 def test_transfer_with_select_outputs_the_best_seen(example_dir: Path, tmp_path: Path) -> None:

@@ -20,11 +20,12 @@ from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.metrics import SUCCESS_KEYS
 from quasisim.files import save_json_atomic
 from quasisim.method.curriculum import load_curriculum
-from quasisim.method.spec import TransferSpec
+from quasisim.method.spec import TransferSpec, networks_from_flags
 
 RUN_KINDS = (
     "CURRICULUM (stages 1,2), CURRICULUM+3, CURRICULUM+mpc, CURRICULUM+sample, CURRICULUM+3+sample+select, ... "
-    "(those stages after 1,2), mpc-base, mpc-soften, sample-target"
+    "(those stages after 1,2), each optionally with ablations of stage 3 (':no-residual', ':no-local-residual', "
+    "':no-control-transform', e.g. default+3+mpc:no-residual), mpc-base, mpc-soften, sample-target"
 )
 
 
@@ -32,11 +33,15 @@ def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferS
     """A benchmark run name (``default``, ``none+mpc``, ``mpc-base`` ...) as the transfer it stands for."""
     if run in ("mpc-base", "mpc-soften", "sample-target"):
         return dataclasses.replace(base, method=run, curriculum="none").checked()
-    cur, *extra = run.split("+")
-    if not set(extra) <= {"3", "mpc", "sample", "select"} or len(set(extra)) < len(extra):
+    name, *ablations = run.split(":")
+    cur, *extra = name.split("+")
+    flags = {"no-residual", "no-local-residual", "no-control-transform"}
+    bad_extra = not set(extra) <= {"3", "mpc", "sample", "select"} or len(set(extra)) < len(extra)
+    if bad_extra or not set(ablations) <= flags or (ablations and "3" not in extra):
         raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
     load_curriculum(cur)
-    return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, *extra)).checked()
+    nets = networks_from_flags(*(f in ablations for f in ("no-residual", "no-local-residual", "no-control-transform")))
+    return dataclasses.replace(base, method="ours", curriculum=cur, stages=(*stages, *extra), networks=nets).checked()
 
 
 def jobs(paths: list[Path], specs: dict[str, TransferSpec]) -> list[Job]:

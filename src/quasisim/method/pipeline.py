@@ -233,7 +233,7 @@ def _stage3(
         t0 = time.perf_counter()
         w = cfg.weights.arrays()
         d, model, p, f, buf = stage3.fit_to_target(
-            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, w, nets
+            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, w, nets, progress
         )
         b, a = d["held_out_before"], d["held_out_after"]
         progress.write(
@@ -244,7 +244,7 @@ def _stage3(
         def improve(traj: Trajectory, f: stage3.SimFit, p: Params) -> Trajectory:
             budget = dataclasses.replace(sb, sysid_steps=0)
             return stage2.one_simulator(
-                vg, traj, f.sysid, f.apply_constants(p), w2, budget, progress, "stage 3 controls"
+                vg, traj, f.sysid, f.apply_constants(p), w2, budget, progress, "stage 3 (fitted simulator)"
             )[0]
 
         cost = lambda q: clip_cost(prob.demo, judge.rollout(q), cfg.weights)  # noqa: E731

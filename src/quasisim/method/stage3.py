@@ -38,6 +38,7 @@ import optax
 from quasisim.errors import QuasisimError
 from quasisim.eval.predict import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method.sample_target import SamplingOptions, sample_windows
+from quasisim.optim.adam import Progress
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
@@ -160,13 +161,17 @@ class FitOptions:
 def fit(
     model: Model, params: Params, train: Windows, fps: float, base_quat: np.ndarray, mass0: float,
     inertia0: np.ndarray, opts: FitOptions, weights: dict[str, Array], start: SimFit | None = None,
+    progress: Progress | None = None,
 ) -> tuple[SimFit, list[float]]:  # fmt: skip
     """Adam on :class:`SimFit` (from ``start``, default nominal) over random batches of the training
     windows; returns the fit and the losses."""
 
     const = (model, params, jnp.asarray(mass0, jnp.float32), jnp.asarray(inertia0, jnp.float32))
     vg = functools.partial(_fit_vg, const, jnp.asarray(base_quat, jnp.float32), weights, fps=fps)
-    return _adam(vg, start or SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed)
+    desc = "stage 3 fit S and constants"
+    return _adam(
+        vg, start or SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed, progress=progress, desc=desc
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("fps",))
@@ -188,6 +193,7 @@ NETWORK_NAMES = ("local", "global", "control")  # residual networks (local, glob
 def fit_networks(
     model: Model, params: Params, train: Windows, fps: float, base_quat: np.ndarray, opts: FitOptions,
     weights: dict[str, Array], cfg: ResidualConfig, networks: tuple[str, ...] = NETWORK_NAMES,
+    progress: Progress | None = None,
 ) -> tuple[Model, Params, list[float]]:  # fmt: skip
     """Train the ``networks`` (of :data:`NETWORK_NAMES`) of the simulator ``params`` together on the training
     windows: those not attached yet are attached first, zero at start (:mod:`quasisim.sim.residual`); attached
@@ -210,13 +216,16 @@ def fit_networks(
         loss = lambda n: window_loss(m, p0.replace(**n), batch, fps, base_quat, weights)  # noqa: E731
         return jax.value_and_grad(loss)(nets)
 
-    nets, losses = _adam(vg, trained, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1)
+    desc = f"stage 3 fit networks ({', '.join(networks)})"
+    nets, losses = _adam(vg, trained, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1,
+                         progress=progress, desc=desc)  # fmt: skip
     return m, p0.replace(**nets), losses
 
 
 def _adam(
-    vg: Any, x0: Any, train: Windows, steps: int, lr: float, batch: int, seed: int, check_every: int = 10
-) -> tuple[Any, list[float]]:
+    vg: Any, x0: Any, train: Windows, steps: int, lr: float, batch: int, seed: int, check_every: int = 10,
+    progress: Progress | None = None, desc: str = "stage 3 fit",
+) -> tuple[Any, list[float]]:  # fmt: skip
     """Minibatch Adam (``batch`` random training windows per step; ``vg(x, windows)``). Every ``check_every``
     steps the loss on a fixed subset of ``2 batch`` training windows is measured and the best iterate by it
     is returned, so a fit never ends worse on that subset than it started. Returns the iterate and the
@@ -233,20 +242,23 @@ def _adam(
 
     tx = optax.adam(lr)
     x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
-    best, best_x = check_loss(x), x
-    losses: list[float] = []
-    for k in range(1, steps + 1):
-        idx = jnp.asarray(rng.choice(n, size=b, replace=False))
-        loss, g = vg(x, train.take(idx))
-        if not np.isfinite(float(loss)):
-            break
-        losses.append(float(loss))
-        upd, st = tx.update(g, st, x)
-        x = optax.apply_updates(x, upd)
-        if k % check_every == 0 or k == steps:
-            c = check_loss(x)
-            if c < best:
-                best, best_x = c, x
+    with (progress or Progress(False)).steps(desc, steps) as on_step:
+        best, best_x = check_loss(x), x
+        losses: list[float] = []
+        for k in range(1, steps + 1):
+            idx = jnp.asarray(rng.choice(n, size=b, replace=False))
+            loss, g = vg(x, train.take(idx))
+            if not np.isfinite(float(loss)):
+                break
+            losses.append(float(loss))
+            if on_step is not None:
+                on_step(k, float(loss))
+            upd, st = tx.update(g, st, x)
+            x = optax.apply_updates(x, upd)
+            if k % check_every == 0 or k == steps:
+                c = check_loss(x)
+                if c < best:
+                    best, best_x = c, x
     return best_x, losses
 
 
@@ -272,7 +284,7 @@ def fit_windows(
 
 def fit_to_target(
     prob: Any, params: Params, plan: np.ndarray, sysid: SysID, opts: FitOptions, noise: SamplingOptions,
-    weights: dict[str, Array], networks: tuple[str, ...] = (),
+    weights: dict[str, Array], networks: tuple[str, ...] = (), progress: Progress | None = None,
 ) -> tuple[dict[str, Any], Model, Params, SimFit, ReplayBuffer]:  # fmt: skip
     """Stage 3's first fit for one plan (T, 6 + J) of a :class:`~quasisim.method.problem.Problem`: a replay
     buffer of the plan and noisy variants in MuJoCo, the fit of :class:`SimFit` from S ``sysid`` on the
@@ -282,11 +294,11 @@ def fit_to_target(
     demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
     train, test, buf = fit_windows(prob, plan, opts, noise)
     start = SimFit.nominal(sysid)
-    f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start)
+    f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start, progress)
     m_fit, p_fit, net_losses = m, params, []
     if networks:
         m_fit, p_n, net_losses = fit_networks(m, f.apply(params, obj.mass, obj.inertia), train, demo.fps, bq, opts,
-                                              weights, ResidualConfig(), networks)  # fmt: skip
+                                              weights, ResidualConfig(), networks, progress)  # fmt: skip
         p_fit = with_networks(params, p_n)
     before = prediction_errors(m, start.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
     after = prediction_errors(m_fit, f.apply(p_fit, obj.mass, obj.inertia), test, demo.fps, bq)
@@ -339,7 +351,7 @@ def from_network_vector(params: Params, vec: np.ndarray) -> Params:
 def world_model_rounds(
     prob: Any, model: Model, params: Params, traj: Trajectory, f: SimFit, buf: ReplayBuffer, opts: FitOptions,
     noise: SamplingOptions, weights: dict[str, Array], improve: Callable[[Trajectory, SimFit, Params], Trajectory],
-    cost: Callable[[np.ndarray], float], progress: Any = None,
+    cost: Callable[[np.ndarray], float], progress: Progress | None = None,
 ) -> tuple[dict[str, Any], Params]:  # fmt: skip
     """The paper's world-model-style loop (appendix "World model-style training"), ``opts.rounds`` times:
 
@@ -377,10 +389,10 @@ def world_model_rounds(
             model, buf, [(i, t) for i in range(buf.n_rollouts) for t in range(T - opts.horizon)], opts.horizon, bq
         )
         o_r = dataclasses.replace(opts, seed=opts.seed + r)
-        f, _ = fit(model, params, every, demo.fps, bq, obj.mass, obj.inertia, o_r, weights, f)
+        f, _ = fit(model, params, every, demo.fps, bq, obj.mass, obj.inertia, o_r, weights, f, progress)
         if attached:
             _, p_n, _ = fit_networks(model, f.apply(params, obj.mass, obj.inertia), every, demo.fps, bq, o_r, weights,
-                                     ResidualConfig(), attached)  # fmt: skip
+                                     ResidualConfig(), attached, progress)  # fmt: skip
             params = with_networks(params, p_n)
         if progress is not None:
             progress.write(
