@@ -160,3 +160,24 @@ def test_transfer_config_validation(tmp_path) -> None:
     assert parse_stages("2,1") == ("1", "2")
     with pytest.raises(QuasisimError, match="valid stages: 1, 2, 3, mpc, sample"):
         parse_stages("1,4")
+
+
+def test_a_diverged_start_neither_wins_the_restart_guard_nor_stops_stage_2() -> None:
+    """A start whose loss is not finite loses to any finite one; a simulator whose first evaluation diverged
+    (no loss recorded, measured on a real clip) is reported and the run goes on with its start."""
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.outputs import RunRecord
+    from quasisim.method.pipeline import _record_simulator
+    from quasisim.method.stage2 import restart_guard
+    from quasisim.optim.adam import Progress
+
+    def vg(t, *_):
+        return (t, None), None
+
+    best, losses = restart_guard(vg, {"previous": jnp.nan, "kinematic": 0.3, "stage_start": 0.5}, None, None, {})
+    assert best == "kinematic" and losses["previous"] == float("inf")
+    record, cur = RunRecord(), load_curriculum("default")
+    record.seconds["stage2"] = 0.0
+    d = {"losses": np.zeros(0), "wall_s": np.array(1.0), "start_losses": np.array("{}")}
+    _record_simulator(record, cur, 2, d, {"mass_kg": 0.1}, Progress(False))
+    assert record.simulators[0]["steps"] == 0 and record.curves["sim 3"] == []

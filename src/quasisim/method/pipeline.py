@@ -211,6 +211,9 @@ def _record_simulator(
          "wall_s": float(d["wall_s"]), **s_desc,
          "start_losses": _json(d["start_losses"]) if "start_losses" in d else None}
     )  # fmt: skip
+    if not losses:  # the first evaluation diverged: the trajectory is the simulator's start, unchanged
+        progress.write(f"sim {i + 1}: no finite loss (the simulation diverged from its start); kept the start")
+        return
     progress.write(
         f"sim {i + 1}: loss {losses[0]:.5f} -> {min(losses):.5f} in {len(losses)} steps, "
         f"{float(d['wall_s']):.0f} s; mass {s_desc['mass_kg'] * 1e3:.0f} g"

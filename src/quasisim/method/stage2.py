@@ -29,6 +29,7 @@ def restart_guard(
     A trajectory found in a softer simulator can score worse in the next one than the stage's start or the
     kinematic retarget (grasps held from a distance collapse when contact requires touching)."""
     losses = {k: float(vg(t, sysid, params, w)[0][0]) for k, t in candidates.items()}
+    losses = {k: v if np.isfinite(v) else float("inf") for k, v in losses.items()}  # a diverged start never wins
     return min(losses, key=losses.__getitem__), losses
 
 
