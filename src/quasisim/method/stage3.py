@@ -37,6 +37,7 @@ import optax
 
 from quasisim.errors import QuasisimError
 from quasisim.eval.predict import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
+from quasisim.method import spec
 from quasisim.method.sample_target import SamplingOptions, sample_windows
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import tracking_errors, weighted_sum
@@ -187,7 +188,7 @@ def _fit_vg(
     )(f)
 
 
-NETWORK_NAMES = ("local", "global", "control")  # residual networks (local, global), control transformation
+NETWORK_NAMES = spec.NETWORKS  # residual networks (local, global), control transformation: one definition
 
 
 def fit_networks(
