@@ -212,15 +212,23 @@ def fit_networks(
     if not trained or opts.residual_steps == 0:
         return m, p0, []
 
-    @jax.jit
-    def vg(nets: dict[str, Any], batch: Windows) -> tuple[Array, Any]:
-        loss = lambda n: window_loss(m, p0.replace(**n), batch, fps, base_quat, weights)  # noqa: E731
-        return jax.value_and_grad(loss)(nets)
-
+    vg = functools.partial(_networks_vg, (m, p0), jnp.asarray(base_quat, jnp.float32), weights, fps=fps)
     desc = f"stage 3 fit networks ({', '.join(networks)})"
     nets, losses = _adam(vg, trained, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1,
                          progress=progress, desc=desc)  # fmt: skip
     return m, p0.replace(**nets), losses
+
+
+@functools.partial(jax.jit, static_argnames=("fps",))
+def _networks_vg(
+    const: tuple[Model, Params], base_quat: Array, weights: dict[str, Array], nets: dict[str, Any], batch: Windows,
+    fps: float,
+) -> tuple[Array, Any]:  # fmt: skip
+    """Value and gradient of the window loss of a ``batch`` w.r.t. the network weights ``nets``; ``const``: the
+    model and the simulator (with S and the constants applied). Module level, with the model and simulator as
+    arguments, so every round of a clip, and every clip of a hand, reuses one compiled program."""
+    model, params = const
+    return jax.value_and_grad(lambda n: window_loss(model, params.replace(**n), batch, fps, base_quat, weights))(nets)
 
 
 def _adam(
@@ -292,23 +300,26 @@ def fit_to_target(
     training windows, then the ``networks`` (:func:`fit_networks`), and the held-out ``H``-frame errors
     before and after. Returns the checkpoint arrays, the model and the simulator ``params`` with the networks
     (S and constants not applied), the fit and the buffer."""
-    demo, m, bq, obj = prob.demo, prob.model, prob.base_quat, prob.obj
+    demo, bq, obj = prob.demo, prob.base_quat, prob.obj
     train, test, buf = fit_windows(prob, plan, opts, noise)
     start = SimFit.nominal(sysid)
-    f, losses = fit(m, params, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start, progress)
-    m_fit, p_fit, net_losses = m, params, []
+    # the networks are attached (zero at start, so the simulator is the analytical one) before S is fitted: every
+    # fit of S, here and in the rounds, then runs one compiled program, and so do both held-out measurements
+    m, p0 = network_template(prob.model, params, networks, opts.seed) if networks else (prob.model, params)
+    f, losses = fit(m, p0, train, demo.fps, bq, obj.mass, obj.inertia, opts, weights, start, progress)
+    p_fit, net_losses = p0, []
     if networks:
-        m_fit, p_n, net_losses = fit_networks(m, f.apply(params, obj.mass, obj.inertia), train, demo.fps, bq, opts,
-                                              weights, ResidualConfig(), networks, progress)  # fmt: skip
-        p_fit = with_networks(params, p_n)
-    before = prediction_errors(m, start.apply(params, obj.mass, obj.inertia), test, demo.fps, bq)
-    after = prediction_errors(m_fit, f.apply(p_fit, obj.mass, obj.inertia), test, demo.fps, bq)
+        _, p_n, net_losses = fit_networks(m, f.apply(p0, obj.mass, obj.inertia), train, demo.fps, bq, opts, weights,
+                                          ResidualConfig(), networks, progress)  # fmt: skip
+        p_fit = with_networks(p0, p_n)
+    before = prediction_errors(m, start.apply(p0, obj.mass, obj.inertia), test, demo.fps, bq)
+    after = prediction_errors(m, f.apply(p_fit, obj.mass, obj.inertia), test, demo.fps, bq)
     d = {
         "fit": f.as_array(), "losses": np.asarray(losses, np.float64), "network_losses": np.asarray(net_losses, np.float64),
         "held_out_before": np.array([before.obj_pos_cm[-1], before.obj_rot_deg[-1], before.keypoints_mm[-1]]),
         "held_out_after": np.array([after.obj_pos_cm[-1], after.obj_rot_deg[-1], after.keypoints_mm[-1]]),
     }  # fmt: skip
-    return d, m_fit, p_fit, f, buf
+    return d, m, p_fit, f, buf
 
 
 _NETWORK_FIELDS = (*NETWORKS, "residual_local_on", "residual_global_on")
