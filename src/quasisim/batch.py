@@ -260,8 +260,8 @@ def _persist(out: Path, job: Job, s: Settings, result: dict[str, Any]) -> None:
 def _ray_init(s: Settings) -> Any:
     import ray
 
-    threads = f"--xla_cpu_multi_thread_eigen={'true' if s.threads > 1 else 'false'} " \
-              f"intra_op_parallelism_threads={s.threads}"  # fmt: skip
+    # XLA has no flag for a thread count; one core per worker: Eigen's thread pool off (MuJoCo's threads are set apart)
+    threads = f"--xla_cpu_multi_thread_eigen={'true' if s.threads > 1 else 'false'}"
     env = {"XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {threads}".strip()}  # the driver's flags, kept
     if s.ray_address:
         ray.init(address=s.ray_address, runtime_env={"env_vars": env}, log_to_driver=False)
