@@ -206,6 +206,23 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
         run_transfer(short_demo, tmp_path / "st", spec, other, resume=True)
 
 
+def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(short_demo: Path, tmp_path: Path) -> None:
+    """``quasisim bench profile``: one row per checkpointed piece and one for the rest, with compile events
+    counted (a fresh XLA cache, so the sampling stage compiles something)."""
+    from quasisim.bench.profile import GLUE, run_profile
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+
+    cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 6, "sample_target.horizon": 3})
+    spec = TransferSpec(method="sample-target", render=False, progress=False).checked()
+    run_profile(short_demo, spec, cfg, tmp_path / "prof", cold=True, cprofile=False)
+    rows = {r["piece"]: r for r in json.loads((tmp_path / "prof" / "profile.json").read_text())}
+    assert {"kinematic", "sample", GLUE} <= set(rows), sorted(rows)
+    assert all(r["wall_s"] >= 0 and 0 <= r["compile_s"] for r in rows.values())
+    assert rows["sample"]["wall_s"] > 0 and sum(r["n_compiles"] for r in rows.values()) > 0
+    assert (tmp_path / "prof" / "run" / "controls.npz").is_file()
+
+
 @pytest.mark.slow
 def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> None:
     """``--stages 3,mpc``: the simulator is fitted to MuJoCo rollouts of the plan (checkpointed, held-out errors

@@ -73,8 +73,8 @@ GLUE = "setup, outputs, judging, glue"
 
 def _recording_checkpoints(w: _Windows) -> type[Checkpoints]:
     class Recording(Checkpoints):
-        def get(self, name: str, compute: Any) -> dict[str, Any]:
-            return super().get(name, lambda: w.piece(name, compute))
+        def get(self, name: str, compute: Any, expect: Any) -> dict[str, Any]:
+            return super().get(name, lambda: w.piece(name, compute), expect)
 
     return Recording
 
@@ -84,6 +84,7 @@ def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, 
     ``cprofile``: also measure MuJoCo's share, under cProfile, which slows Python-heavy code such as tracing)."""
     w = _Windows(cprofile)
     jax.monitoring.register_event_duration_secs_listener(w.on_event)
+    cache_dir = jax.config.jax_compilation_cache_dir
     if cold:
         jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="quasisim-cold-cache-"))
     original = pipeline.Checkpoints
@@ -97,6 +98,7 @@ def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, 
         w.profiles[GLUE].disable()
         pipeline.Checkpoints = original  # type: ignore[misc]
         jax.monitoring.unregister_event_duration_listener(w.on_event)
+        jax.config.update("jax_compilation_cache_dir", cache_dir)
     total = time.perf_counter() - t0
     rows = [_row(name, wall, w) for name, wall in w.spans]
     rows.append(_row(GLUE, total - sum(wall for _, wall in w.spans), w))
