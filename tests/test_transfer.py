@@ -99,10 +99,10 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     summary = json.loads((out / "summary.json").read_text())
     assert [s["sim"] for s in summary["simulators"]] == [2, 3]
     assert summary["notes"] and "simulator(s) 4 with residual physics: not run" in summary["notes"][0]
-    # restart guard: sim 3 started from the best candidate in sim 3, and its first (identification) step
-    # evaluated exactly that trajectory
+    # restart guard: sim 3 started from the best candidate in sim 3 (d_c 1 cm -> 0: with the touching
+    # hand-off), and its first (identification) step evaluated exactly that trajectory
     s3 = summary["simulators"][1]
-    assert set(s3["start_losses"]) == {"previous", "stage_start", "kinematic"}
+    assert set(s3["start_losses"]) == {"previous", "stage_start", "kinematic", "touching"}
     assert s3["loss_first"] == pytest.approx(min(s3["start_losses"].values()), rel=1e-5)
     assert set(summary["seconds"]) >= {"retarget", "stage1", "stage2"}
     html = (out / "report.html").read_text()

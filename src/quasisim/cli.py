@@ -552,10 +552,13 @@ def bench_sim(
 @click.option(
     "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
 )
+@click.option(
+    "--set", "sets", multiple=True, help="Override a config key (as in transfer), e.g. --set stage2.mode=none."
+)
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
-    out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int,
+    out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -563,13 +566,16 @@ def bench_transfer(
     _setup_runtime()
     from quasisim.batch import Settings
     from quasisim.bench.transfer import run_spec, run_transfer_bench
+    from quasisim.method.config import TransferConfig
 
     st = parse_stages(stages)
     rs = tuple(c.strip() for c in runs.split(",") if c.strip())
     for r in rs:
         run_spec(r, st, TransferSpec())
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    s = Settings(ray_address, workers, keep_scratch=True)
+    overrides = _parse_sets(sets)
+    TransferConfig.from_yaml(overrides=overrides)  # a bad key fails here, before any clip runs
+    s = Settings(ray_address, workers, overrides=overrides, keep_scratch=True)
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s)
 
 

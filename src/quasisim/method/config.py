@@ -13,6 +13,8 @@ from typing import Any
 
 from quasisim.config import apply_overrides, build, read_yaml
 from quasisim.errors import InputError, choice_error
+from quasisim.method.handoff import MODES as HANDOFF_MODES
+from quasisim.method.handoff import HandoffOptions
 from quasisim.method.mpc import MPCOptions
 from quasisim.method.sample_target import SamplingOptions
 from quasisim.method.stage3 import FitOptions
@@ -45,6 +47,7 @@ class TransferConfig:
 
     weights: Weights
     budgets: dict[str, Budget]
+    stage2: HandoffOptions
     mpc: MPCOptions
     soften_samples: int
     sample_target: SamplingOptions
@@ -69,6 +72,8 @@ class TransferConfig:
             raise InputError(
                 path, "mpc", "horizon >= 1, steps >= 0, soften_range < 1 and soften_samples >= 1", str(cfg.mpc)
             )
+        if cfg.stage2.mode not in HANDOFF_MODES:
+            raise InputError(path, "stage2.mode", f"one of {', '.join(HANDOFF_MODES)}", repr(cfg.stage2.mode))
         _check_ranges(cfg, path)
         return cfg
 
@@ -84,6 +89,8 @@ class TransferConfig:
             "budget_settings": dataclasses.asdict(self.budget(budget)),
             "weights": dataclasses.asdict(self.weights),
         }
+        if "2" in stages:
+            out["stage2"] = dataclasses.asdict(self.stage2)
         if "mpc" in stages:
             out["mpc"] = dataclasses.asdict(self.mpc)
             out["soften_samples"] = self.soften_samples

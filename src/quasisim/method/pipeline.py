@@ -28,7 +28,7 @@ from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError
 from quasisim.eval.evaluate import demo_hands
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
-from quasisim.method import outputs, stage1, stage2, stage3
+from quasisim.method import handoff, outputs, stage1, stage2, stage3
 from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
@@ -170,17 +170,32 @@ def _stage2(
     for n, i in enumerate(cur.rigid):
         p = prob.params(cur.contact(i))
         label = f"stage 2 sim {i + 1} ({n + 1}/{len(cur.rigid)})"
-        alternatives = {"stage_start": start, "kinematic": kin_traj} if n > 0 else None
-        d = ck.get(
-            f"stage2_sim{i + 1:02d}",
-            lambda p=p, label=label, alt=alternatives, start=plan: stage2.run_simulator(
-                vg, start.traj, start.sysid, p, w2, sb, progress, label, alt
-            ),
-            _traj_expect(prob, losses=(None,), n_sysid=(), start_losses="str"),
-        )
+
+        def run(p: Params = p, label: str = label, n: int = n, prev: Plan = plan) -> dict[str, Any]:
+            alt = {"stage_start": start, "kinematic": kin_traj} if n > 0 else None
+            if alt is not None and cfg.stage2.mode == "touch":
+                alt.update(_touching(prob, cur, cur.rigid[n - 1], cur.rigid[n], prev, cfg.stage2))
+            return stage2.run_simulator(vg, prev.traj, prev.sysid, p, w2, sb, progress, label, alt)
+
+        d = ck.get(f"stage2_sim{i + 1:02d}", run, _traj_expect(prob, losses=(None,), n_sysid=(), start_losses="str"))
         plan = Plan(*trajectory_from(d))
         _record_simulator(record, cur, i, d, plan.sysid.describe(prob.obj.mass), progress)
     return plan
+
+
+def _touching(
+    prob: Problem, cur: Curriculum, prev: int, nxt: int, plan: Plan, opts: handoff.HandoffOptions
+) -> dict[str, Trajectory]:  # fmt: skip
+    """The touching start (:mod:`quasisim.method.handoff`) for simulator ``nxt`` after ``prev``, where its
+    contact distance is smaller; else none."""
+    if cur.stages[nxt].d_c >= cur.stages[prev].d_c:
+        return {}
+    p = plan.sysid.apply(prob.params(cur.contact(prev)), prob.obj.mass, prob.obj.inertia)
+    traj = handoff.touching(
+        prob.model, p, prob.params(cur.contact(nxt)), plan.traj, prob.base_quat, prob.base_rot, prob.demo.fps,
+        prob.obj0, opts,
+    )  # fmt: skip
+    return {"touching": traj}
 
 
 def _note_residual_stages(cur: Curriculum, spec: TransferSpec, progress: Progress, record: RunRecord) -> None:
@@ -407,12 +422,15 @@ def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
 
 
 # the run settings that concern single stages (the rest, e.g. demo, hand, curriculum, budget, concern every piece)
-_STAGE_KEYS = {"stages": None, "method": None, "mpc": "mpc", "stage3": "3", "networks": "3", "sample_target": "sample"}
+_STAGE_KEYS = {
+    "stages": None, "method": None, "stage2": "2", "mpc": "mpc", "stage3": "3", "networks": "3", "sample_target": "sample",
+}  # fmt: skip
 
 
 def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
     """What determines checkpoint ``name``: the settings every piece shares, the stages that run before its
-    stage and its stage's own settings (a ``+mpc`` run reuses the stage-1/2 checkpoints of its curriculum's)."""
+    stage, their settings and its stage's own (a ``+mpc`` run reuses the stage-1/2 checkpoints of its
+    curriculum's; a change to stage 2's settings recomputes stage 2 and what comes after it, not stage 1)."""
     stage = {"kinematic": "", "stage1": "1", "stage2": "2", "stage3": "3", "mpc": "mpc", "sample": "sample"}[
         name.split("_")[0]
     ]
@@ -420,7 +438,7 @@ def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
     if not stage:
         return shared
     before = [s for s in info["stages"] if STAGES.index(s) < STAGES.index(stage)]
-    own = {k: info[k] for k, st in _STAGE_KEYS.items() if st == stage and k in info}
+    own = {k: info[k] for k, st in _STAGE_KEYS.items() if st in (stage, *before) and k in info}
     if stage == "mpc":
         own["method"] = info["method"]  # mpc-soften samples softened simulators
     return {**shared, "stage": stage, "before": before, **own}

@@ -1,0 +1,80 @@
+"""Stage 2's touching hand-off (quasisim.method.handoff): contacts move the asked distance closer to the
+object, nothing else moves, and the stage-2 restart guard sees the touching start."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quasisim.method.handoff import HandoffOptions
+
+
+@pytest.fixture(scope="module")
+def soft_grasp(tmp_path_factory: pytest.TempPathFactory):
+    """The synthetic cube lift's kinematic retarget rolled out in a soft simulator (d_c = 1 cm)."""
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.method.problem import make_problem
+    from quasisim.method.retarget import retarget
+    from quasisim.optim.trajectory import Trajectory
+
+    demo = load_demo(write_example("cube_lift", tmp_path_factory.mktemp("demo"), n_frames=16))
+    hand = load_hand("shadow")
+    rt = retarget(hand, demo)
+    prob = make_problem(demo, hand, rt.base_rot, 5, 64)
+    soft = {"alpha": 0.0, "d_c": 0.01, "k_n": 4.0e5, "k_f": 1.0e6, "k_d": 1.0e3, "mu": 10.0}
+    return prob, prob.params(soft), Trajectory.from_q(rt.q, prob.model.n_points)
+
+
+def test_touching_moves_each_contact_so_that_it_pushes_as_before(soft_grasp) -> None:
+    from helpers import STIFF
+    from quasisim.method.handoff import force_keeping_shift, state_depths, target_depths, touching
+    from quasisim.optim.trajectory import simulate_jit
+
+    prob, params, traj = soft_grasp
+    stiff = prob.params(STIFF)
+    opts = HandoffOptions(mode="touch", iterations=10, damping=1.0e-5)
+    new = touching(prob.model, params, stiff, traj, prob.base_quat, prob.base_rot, prob.demo.fps, prob.obj0, opts)
+    states = simulate_jit(prob.model, params, traj, jnp.asarray(prob.base_quat, jnp.float32), prob.demo.fps, prob.obj0)
+    contact = np.asarray(states.in_contact) > 0
+    assert contact.sum() >= 10, "the retarget's grasp should touch the cube in the soft simulator"
+
+    # closed form of the shift: a point hovering at d_c moves d_c (1 cm); one at the surface moves
+    # (k_n / k_n') d_c = 1 mm; one pressing 5 mm in moves 3.5 mm out
+    k = params.k_n / stiff.k_n
+    shift = force_keeping_shift(jnp.array([0.01, 0.0, -0.005]), params.d_c, stiff.d_c, k)
+    np.testing.assert_allclose(np.asarray(shift), [0.01, 0.001, -0.0035], atol=1e-7)
+
+    phi = np.asarray(state_depths(prob.model, states))
+    want = np.asarray(force_keeping_shift(phi, params.d_c, stiff.d_c, k))[contact]
+    br = jnp.asarray(prob.base_rot, jnp.float32)
+    before = np.asarray(target_depths(prob.model, br, traj.base[1:], traj.joints[1:], states))
+    after = np.asarray(target_depths(prob.model, br, new.base[1:], new.joints[1:], states))
+    moved = (before - after)[contact]
+    assert np.abs(want).mean() > 1e-3, want  # the test asks for a real move
+    # the least-squares goal: each contact moves its own shift; fingers are chains, so most of it
+    assert np.median(np.abs(moved - want)) < 0.3 * np.abs(want).mean(), (moved, want)
+    assert np.abs(moved - want).mean() < 0.5 * np.abs(want).mean()
+
+    # the base targets, the start pose and every frame without a contact are untouched; limits hold
+    np.testing.assert_array_equal(np.asarray(new.base), np.asarray(traj.base))
+    np.testing.assert_array_equal(np.asarray(new.joints[0]), np.asarray(traj.joints[0]))
+    idle = ~contact.any(axis=1)
+    np.testing.assert_allclose(np.asarray(new.joints[1:])[idle], np.asarray(traj.joints[1:])[idle], atol=1e-6)
+    assert idle.any() and not idle.all()
+    hand = prob.hand
+    q, lo, hi = np.asarray(new.joints), hand.joint_range[:, 0], hand.joint_range[:, 1]
+    assert np.all(~hand.joint_limited | ((q >= lo - 1e-6) & (q <= hi + 1e-6)))
+
+
+def test_handoff_mode_is_validated(tmp_path: Path) -> None:
+    from quasisim.errors import InputError
+    from quasisim.method.config import TransferConfig
+
+    with pytest.raises(InputError, match=r"stage2\.mode.*touch, none"):
+        TransferConfig.from_yaml(overrides={"stage2.mode": "teleport"})
+    assert TransferConfig.from_yaml(overrides={"stage2.mode": "none"}).stage2.mode == "none"
