@@ -37,7 +37,7 @@ def test_touching_moves_each_contact_so_that_it_pushes_as_before(soft_grasp) -> 
 
     prob, params, traj = soft_grasp
     stiff = prob.params(STIFF)
-    opts = HandoffOptions(mode="touch", iterations=10, damping=1.0e-5)
+    opts = HandoffOptions(mode="every", iterations=10, damping=1.0e-5)
     new = touching(prob.model, params, stiff, traj, prob.base_quat, prob.base_rot, prob.demo.fps, prob.obj0, opts)
     states = simulate_jit(prob.model, params, traj, jnp.asarray(prob.base_quat, jnp.float32), prob.demo.fps, prob.obj0)
     contact = np.asarray(states.in_contact) > 0
@@ -75,6 +75,39 @@ def test_handoff_mode_is_validated(tmp_path: Path) -> None:
     from quasisim.errors import InputError
     from quasisim.method.config import TransferConfig
 
-    with pytest.raises(InputError, match=r"stage2\.mode.*touch, none"):
+    with pytest.raises(InputError, match=r"stage2\.mode.*stiffest, every, none"):
         TransferConfig.from_yaml(overrides={"stage2.mode": "teleport"})
     assert TransferConfig.from_yaml(overrides={"stage2.mode": "none"}).stage2.mode == "none"
+
+
+def test_checkpoints_before_the_handoff_are_shared_with_runs_without_it() -> None:
+    """Changing the hand-off recomputes stage 2 from the first simulator it touches on, not before; mode
+    ``none`` is stage 2 as it was before the option existed (same identities, so older runs stay valid)."""
+    import dataclasses
+
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.pipeline import _piece_scope
+
+    cur = load_curriculum("default")
+    cur_settings = {k: v for k, v in dataclasses.asdict(cur).items() if k != "path"}
+
+    def info(mode: str) -> dict:
+        cfg = TransferConfig.from_yaml(overrides={"stage2.mode": mode})
+        stages = ("1", "2", "sample", "select")
+        return {
+            "demo": "d",
+            "curriculum_settings": cur_settings,
+            "stages": list(stages),
+            **cfg.identity("fast", stages),
+        }
+
+    none, every, stiffest = info("none"), info("every"), info("stiffest")
+    assert "stage2" not in none and "stage2" in stiffest
+    assert cur.stiffest + 1 == 9 and cur.rigid[0] + 1 == 2
+    for name, same_every, same_stiffest in [
+        ("stage1_robot", True, True), ("stage2_sim02", True, True), ("stage2_sim03", False, True),
+        ("stage2_sim08", False, True), ("stage2_sim09", False, False), ("sample", False, False),
+    ]:  # fmt: skip
+        assert (_piece_scope(every, name) == _piece_scope(none, name)) is same_every, name
+        assert (_piece_scope(stiffest, name) == _piece_scope(none, name)) is same_stiffest, name

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -65,8 +66,19 @@ def _rows(r: dict[str, Any], run_dir: Path, demo_path: Path, judge: str | None, 
     better = bool(m["T_err_cm"] < k["T_err_cm"] and m["R_err_deg"] < k["R_err_deg"])
     return [
         {"clip": r["clip"], "method": "kinematic", **k, "wall_s": float(r["seconds"].get("retarget", 0.0)), "seconds": {}},
-        {"clip": r["clip"], "method": r["run"], **m, "seconds": r["seconds"], "wall_s": method_seconds(r["seconds"]), "better": better},
+        {"clip": r["clip"], "method": r["run"], **m, "seconds": r["seconds"], "wall_s": method_seconds(r["seconds"]),
+         "better": better, **_stiffest(run_dir / "summary.json")},
     ]  # fmt: skip
+
+
+def _stiffest(summary: Path) -> dict[str, Any]:
+    """Stage 2's last (stiffest) simulator of a run: its best loss and the start the restart guard chose
+    there (``{}`` for a run without stage 2)."""
+    sims = json.loads(summary.read_text()).get("simulators") if summary.is_file() else None
+    if not sims:
+        return {}
+    starts = sims[-1].get("start_losses") or {}
+    return {"stiffest_loss": sims[-1]["loss_best"], "stiffest_start": min(starts, key=starts.get) if starts else "-"}
 
 
 def run_transfer_bench(
@@ -124,23 +136,40 @@ def _markdown(
             f"- {run}: lower T_err and lower R_err than the kinematic replay on {sum(r['better'] for r in rs)} of "
             f"{len(rs)} clips{_versus(rows, rs, 'sample-target')}; mean seconds per stage: "
             + ", ".join(f"{k} {v:.0f}" for k, v in per_stage.items())
+            + _stiffest_line(rs)
         )
     lines += [
         "",
         "Seconds per clip are the sum of the stages' own timings (a stage read back from a checkpoint, e.g. the "
         "curriculum shared by `default` and `default+...`, counts the time it took), judging aside.",
         "",
-        "| clip | method | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | s (stages) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "`stiffest`: stage 2's best loss in its stiffest simulator and the start the restart guard chose there.",
+        "",
+        "| clip | method | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | s (stages) | stiffest |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     yn = lambda b: "y" if b else "-"  # noqa: E731
     for r in rows:
         s = r["success"]
+        st = f"{r['stiffest_loss']:.4f} ({r['stiffest_start']})" if "stiffest_loss" in r else "-"
         lines.append(
             f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
-            f"{r['CD_mm']:.1f} | " + " | ".join(yn(s[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} |"
+            f"{r['CD_mm']:.1f} | " + " | ".join(yn(s[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} | {st} |"
         )
     return lines
+
+
+def _stiffest_line(rs: list[dict[str, Any]]) -> str:
+    """ "; stage 2 in its stiffest simulator: mean loss x (median y), started from: ..." for runs with stage 2."""
+    with_2 = [r for r in rs if "stiffest_loss" in r]
+    if not with_2:
+        return ""
+    loss = [r["stiffest_loss"] for r in with_2]
+    starts = Counter(r["stiffest_start"] for r in with_2)
+    return (
+        f"; stage 2 in its stiffest simulator: mean loss {np.mean(loss):.4f} (median {np.median(loss):.4f}), "
+        "started from " + ", ".join(f"{k} {n}" for k, n in starts.most_common())
+    )
 
 
 def _judged(demo_path: Path, run_dir: Path, judge: str) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -89,7 +89,7 @@ class TransferConfig:
             "budget_settings": dataclasses.asdict(self.budget(budget)),
             "weights": dataclasses.asdict(self.weights),
         }
-        if "2" in stages:
+        if "2" in stages and self.stage2.mode != "none":  # "none" is stage 2 as it was before the hand-off
             out["stage2"] = dataclasses.asdict(self.stage2)
         if "mpc" in stages:
             out["mpc"] = dataclasses.asdict(self.mpc)

@@ -46,8 +46,9 @@ class HandoffOptions:
     """Settings of the hand-off (``configs/transfer.yaml``, key ``stage2``).
 
     Attributes:
-        mode: ``touch`` (add the touching start at every simulator whose ``d_c`` is smaller than the
-            previous one's) or ``none`` (the paper's hand-off: the previous result as it is).
+        mode: where the touching start is added: ``stiffest`` (at the hand-off to the curriculum's stiffest
+            simulator only), ``every`` (at every simulator whose ``d_c`` is smaller than the previous one's)
+            or ``none`` (the paper's hand-off: the previous result as it is).
         iterations: Levenberg-Marquardt steps.  damping: lambda (m^2/rad^2: signed distance against joint motion).
     """
 
@@ -56,7 +57,7 @@ class HandoffOptions:
     damping: float
 
 
-MODES = ("touch", "none")
+MODES = ("stiffest", "every", "none")
 
 
 def _depths(model: Model, root_pos: Array, root_rot: Array, q: Array, s: State) -> Array:

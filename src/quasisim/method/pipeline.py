@@ -173,7 +173,8 @@ def _stage2(
 
         def run(p: Params = p, label: str = label, n: int = n, prev: Plan = plan) -> dict[str, Any]:
             alt = {"stage_start": start, "kinematic": kin_traj} if n > 0 else None
-            if alt is not None and cfg.stage2.mode == "touch":
+            mode = cfg.stage2.mode
+            if alt is not None and (mode == "every" or (mode == "stiffest" and cur.rigid[n] == cur.stiffest)):
                 alt.update(_touching(prob, cur, cur.rigid[n - 1], cur.rigid[n], prev, cfg.stage2))
             return stage2.run_simulator(vg, prev.traj, prev.sysid, p, w2, sb, progress, label, alt)
 
@@ -441,7 +442,18 @@ def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
     own = {k: info[k] for k, st in _STAGE_KEYS.items() if st in (stage, *before) and k in info}
     if stage == "mpc":
         own["method"] = info["method"]  # mpc-soften samples softened simulators
+    if stage == "2" and "stage2" in own and not _after_handoff(info, int(name.removeprefix("stage2_sim"))):
+        own.pop("stage2")  # a simulator before the first touching hand-off is computed as without it
     return {**shared, "stage": stage, "before": before, **own}
+
+
+def _after_handoff(info: dict[str, Any], sim: int) -> bool:
+    """Whether stage 2's simulator ``sim`` (1-based, as in the checkpoint names) comes at or after the first
+    simulator whose start the hand-off mode of ``info`` touches (:mod:`quasisim.method.handoff`)."""
+    stages = info["curriculum_settings"]["stages"]
+    rigid = [i + 1 for i, st in enumerate(stages) if st["alpha"] == 0 and not st["residual"]]
+    first = rigid[-1] if info["stage2"]["mode"] == "stiffest" else rigid[1] if len(rigid) > 1 else sim + 1
+    return sim >= first
 
 
 def _identity(
