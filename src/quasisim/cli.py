@@ -579,6 +579,27 @@ def bench_transfer(
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s)
 
 
+@bench.command("compare")
+@click.argument("folders", nargs=-1, required=True)
+@click.option("--run", "run", default="default+sample+select", show_default=True, help="The run to compare.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/compare"), show_default=True)
+@_friendly
+def bench_compare(folders: tuple[str, ...], run: str, out: Path) -> None:
+    """One run of finished `bench transfer` folders side by side: FOLDERS as LABEL=PATH (or PATH, labelled
+    by its name), the first is the reference. Reads results back; runs nothing."""
+    from quasisim.bench.compare import compare_folders
+
+    pairs = []
+    for f in folders:
+        label, _, path = f.rpartition("=")
+        p = Path(path)
+        if not (p / ".").is_dir():
+            raise QuasisimError(f"bench compare: {p} is not a folder (expected LABEL=PATH of a `bench transfer` --out)")
+        pairs.append((label or p.name, p))
+    _outputs_free(out)
+    compare_folders(pairs, run, out)
+
+
 @bench.command("batch")
 @click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option(

@@ -1,0 +1,49 @@
+"""``quasisim bench compare``: finished benchmark folders side by side (read back, nothing run)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from click.testing import CliRunner
+
+
+def _folder(root: Path, results: dict[str, tuple[float, float, bool, float]]) -> Path:
+    """A `bench transfer` folder holding run default+sample+select: {clip: (R_err, T_err, strict, stiffest loss)}."""
+    for clip, (r, t, strict, loss) in results.items():
+        d = root / clip
+        (d / "default+sample+select").mkdir(parents=True)
+        success = {"10deg_10cm": True, "15deg_15cm": True, "20deg_20cm": True, "strict": strict}
+        row = {"metrics": {"R_err_deg": r, "T_err_cm": t, "success": success}}
+        (d / "clip.json").write_text(
+            json.dumps({"clip": clip, "runs": {"default+sample+select": {"identity": {}, "row": row}}})
+        )
+        sims = [
+            {"sim": 8, "loss_best": 1.0},
+            {"sim": 9, "loss_best": loss, "start_losses": {"previous": 2.0, "touching": loss}},
+        ]
+        (d / "default+sample+select" / "summary.json").write_text(json.dumps({"simulators": sims}))
+    return root
+
+
+def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) -> None:
+    from quasisim.cli import main
+
+    a = _folder(
+        tmp_path / "a", {"c1": (10.0, 2.0, False, 0.5), "c2": (4.0, 1.0, True, 0.1), "c3": (9.0, 9.0, False, 0.9)}
+    )
+    b = _folder(tmp_path / "b", {"c1": (5.0, 1.0, True, 0.2), "c2": (6.0, 0.5, True, 0.3)})
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["bench", "compare", f"old={a}", f"new={b}", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    md = (out / "compare.md").read_text()
+    assert "2 clips held by every folder" in md and "| c3 |" not in md  # c3 is in one folder only
+    assert "| old | 7.0 | 1.50 | 100 / 100 / 100 / 50 | 0.3000 / 0.3000 | - |" in md
+    assert "| new | 5.5 | 0.75 | 100 / 100 / 100 / 100 | 0.2500 / 0.2500 | 1 of 2 |" in md
+    assert "| c1 | 10.0 / 2.00 | 5.0 / 1.00 S | 0.5000 | 0.2000 |" in md
+    assert len(json.loads((out / "compare.json").read_text())) == 4
+
+    r = CliRunner().invoke(main, ["bench", "compare", f"old={a}", f"x={tmp_path / 'nope'}", "--out", str(out)])
+    assert r.exit_code != 0 and "nope" in r.output and "not a folder" in r.output
+    r = CliRunner().invoke(main, ["bench", "compare", str(a), "--run", "sample-target", "--out", str(out)])
+    assert r.exit_code != 0 and "no finished run 'sample-target'" in r.output
