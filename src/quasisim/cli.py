@@ -593,7 +593,7 @@ def bench_compare(folders: tuple[str, ...], run: str, out: Path) -> None:
     for f in folders:
         label, _, path = f.rpartition("=")
         p = Path(path)
-        if not (p / ".").is_dir():
+        if not p.is_dir():
             raise QuasisimError(f"bench compare: {p} is not a folder (expected LABEL=PATH of a `bench transfer` --out)")
         pairs.append((label or p.name, p))
     _outputs_free(out)
