@@ -18,7 +18,7 @@ import numpy as np
 
 from quasisim.batch import CLIP_FILE
 from quasisim.bench.tables import header, publish
-from quasisim.bench.transfer import _stiffest
+from quasisim.bench.transfer import stiffest_simulator
 from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
 
@@ -29,7 +29,7 @@ def folder_rows(folder: Path, run: str) -> dict[str, dict[str, Any]]:
     for p in sorted(folder.glob(f"*/{CLIP_FILE}")):
         runs = json.loads(p.read_text())["runs"]
         if run in runs:
-            rows[p.parent.name] = {**runs[run]["row"]["metrics"], **_stiffest(p.parent / run / "summary.json")}
+            rows[p.parent.name] = {**runs[run]["row"]["metrics"], **stiffest_simulator(p.parent / run / "summary.json")}
     return rows
 
 

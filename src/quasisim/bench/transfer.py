@@ -67,11 +67,11 @@ def _rows(r: dict[str, Any], run_dir: Path, demo_path: Path, judge: str | None, 
     return [
         {"clip": r["clip"], "method": "kinematic", **k, "wall_s": float(r["seconds"].get("retarget", 0.0)), "seconds": {}},
         {"clip": r["clip"], "method": r["run"], **m, "seconds": r["seconds"], "wall_s": method_seconds(r["seconds"]),
-         "better": better, **_stiffest(run_dir / "summary.json")},
+         "better": better, **stiffest_simulator(run_dir / "summary.json")},
     ]  # fmt: skip
 
 
-def _stiffest(summary: Path) -> dict[str, Any]:
+def stiffest_simulator(summary: Path) -> dict[str, Any]:
     """Stage 2's last (stiffest) simulator of a run: its best loss and the start the restart guard chose
     there (``{}`` for a run without stage 2)."""
     sims = json.loads(summary.read_text()).get("simulators") if summary.is_file() else None

@@ -60,6 +60,14 @@ class HandoffOptions:
 MODES = ("stiffest", "every", "none")
 
 
+def touches(mode: str, rigid: list[int], sim: int) -> bool:
+    """Whether ``mode`` adds the touching start at stage 2's simulator ``sim`` (an entry of ``rigid``, the
+    curriculum's rigid simulators, soft to stiff; the first has no previous simulator to hand off from)."""
+    if sim == rigid[0]:
+        return False
+    return mode == "every" or (mode == "stiffest" and sim == rigid[-1])
+
+
 def _depths(model: Model, root_pos: Array, root_rot: Array, q: Array, s: State) -> Array:
     """(N,) signed distances (m) of the hand points at root pose (simulator coordinates) and joints ``q`` to
     the object where state ``s`` holds it."""
@@ -106,14 +114,15 @@ def touching_joints(
             one = jax.tree.map(lambda x: x[None], s)
             return c * (target_depths(model, base_rot, b[None], qq[None], one)[0] - g)
 
-        def cost(qq: Array) -> Array:
-            r = residual(qq)
+        def cost(qq: Array, r: Array) -> Array:  # r: residual(qq)
             return r @ r + damping * jnp.sum((qq - q0) ** 2)
 
-        Jr = jax.jacfwd(residual)(q)  # (N, J)
-        grad = Jr.T @ residual(q) + damping * (q - q0)
+        r, Jr = residual(q), jax.jacfwd(residual)(q)  # (N,), (N, J)
+        grad = Jr.T @ r + damping * (q - q0)
         trial = jnp.clip(q - jnp.linalg.solve(Jr.T @ Jr + (damping + mu) * eye, grad), lo, hi)
-        better = cost(trial) < cost(q)  # Levenberg-Marquardt: keep a step only if it lowers the cost
+        better = cost(trial, residual(trial)) < cost(
+            q, r
+        )  # Levenberg-Marquardt: keep a step only if it lowers the cost
         return jnp.where(better, trial, q), jnp.where(better, mu / 3.0, mu * 4.0)
 
     def body(carry: tuple[Array, Array], _: None) -> tuple[tuple[Array, Array], None]:

@@ -31,7 +31,7 @@ from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orp
 from quasisim.method import handoff, outputs, stage1, stage2, stage3
 from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
 from quasisim.method.config import TransferConfig
-from quasisim.method.curriculum import Curriculum, load_curriculum
+from quasisim.method.curriculum import Curriculum, SimStage, load_curriculum
 from quasisim.method.mpc import run_mpc
 from quasisim.method.outputs import RunRecord, TransferResult, sim_qpos, write_outputs
 from quasisim.method.problem import Problem, make_problem
@@ -173,8 +173,7 @@ def _stage2(
 
         def run(p: Params = p, label: str = label, n: int = n, prev: Plan = plan) -> dict[str, Any]:
             alt = {"stage_start": start, "kinematic": kin_traj} if n > 0 else None
-            mode = cfg.stage2.mode
-            if alt is not None and (mode == "every" or (mode == "stiffest" and cur.rigid[n] == cur.stiffest)):
+            if alt is not None and handoff.touches(cfg.stage2.mode, cur.rigid, cur.rigid[n]):
                 alt.update(_touching(prob, cur, cur.rigid[n - 1], cur.rigid[n], prev, cfg.stage2))
             return stage2.run_simulator(vg, prev.traj, prev.sysid, p, w2, sb, progress, label, alt)
 
@@ -449,11 +448,10 @@ def _piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
 
 def _after_handoff(info: dict[str, Any], sim: int) -> bool:
     """Whether stage 2's simulator ``sim`` (1-based, as in the checkpoint names) comes at or after the first
-    simulator whose start the hand-off mode of ``info`` touches (:mod:`quasisim.method.handoff`)."""
-    stages = info["curriculum_settings"]["stages"]
-    rigid = [i + 1 for i, st in enumerate(stages) if st["alpha"] == 0 and not st["residual"]]
-    first = rigid[-1] if info["stage2"]["mode"] == "stiffest" else rigid[1] if len(rigid) > 1 else sim + 1
-    return sim >= first
+    simulator whose start the hand-off mode of ``info`` touches (:func:`quasisim.method.handoff.touches`)."""
+    c = info["curriculum_settings"]
+    rigid = Curriculum(c["name"], tuple(SimStage(**st) for st in c["stages"]), c["mu"]).rigid
+    return any(handoff.touches(info["stage2"]["mode"], rigid, i) for i in rigid if i < sim)
 
 
 def _identity(
