@@ -38,31 +38,36 @@ def test_root_quats_match_euler_convention() -> None:
     base_rot = Rotation.random(random_state=2).as_matrix()
     base = np.concatenate([rng.normal(size=(5, 3)), rng.uniform(-1, 1, size=(5, 3))], axis=1)
     q = root_quats(jnp.asarray(base, jnp.float32), jnp.asarray(np_mat_to_quat(base_rot), jnp.float32))
-    R = np.asarray(quat_to_mat(q))
+    assert q.shape == (5, 1, 4)  # one hand
+    R = np.asarray(quat_to_mat(q[:, 0]))
     R_ref = base_rot @ np.asarray(euler_xyz_to_mat(jnp.asarray(base[:, 3:])))
     np.testing.assert_allclose(R, R_ref, atol=1e-5)
 
 
-def test_sim_controls_integrate_back_to_the_targets() -> None:
-    """Integrating the root velocities over a frame lands on the next frame's base targets."""
+@pytest.mark.parametrize("H", [1, 2])
+def test_sim_controls_integrate_back_to_the_targets(H: int) -> None:
+    """Integrating each hand's root velocities over a frame lands on the next frame's base targets."""
     from quasisim.rotations import np_mat_to_quat, quat_mul, quat_to_mat
 
     rng = np.random.default_rng(3)
     T, J, fps = 6, 4, 20.0
-    base = np.cumsum(rng.normal(scale=[0.01, 0.01, 0.01, 0.05, 0.05, 0.05], size=(T, 6)), axis=0)
+    base = np.cumsum(rng.normal(scale=[0.01, 0.01, 0.01, 0.05, 0.05, 0.05] * H, size=(T, 6 * H)), axis=0)
     joints = rng.normal(size=(T, J))
     traj = Trajectory(jnp.asarray(base, jnp.float32), jnp.asarray(joints, jnp.float32), jnp.zeros((T - 1, 2, 3)))
-    bq = jnp.asarray(np_mat_to_quat(Rotation.random(random_state=4).as_matrix()), jnp.float32)
+    bq = jnp.asarray(np_mat_to_quat(Rotation.random(H, random_state=4).as_matrix()), jnp.float32)
     c = sim_controls(traj, bq, fps)
     rq = root_quats(traj.base, bq)
+    assert c.root_vel.shape == c.root_angvel.shape == (T - 1, H, 3) and rq.shape == (T, H, 4)
     for t in range(T - 1):
-        np.testing.assert_allclose(base[t, :3] + np.asarray(c.root_vel[t]) / fps, base[t + 1, :3], atol=1e-5)
-        w = np.asarray(c.root_angvel[t]) / fps
-        ang = np.linalg.norm(w)
-        dq = jnp.asarray([np.cos(ang / 2), *(np.sin(ang / 2) * w / max(ang, 1e-12))], jnp.float32)
-        np.testing.assert_allclose(
-            np.asarray(quat_to_mat(quat_mul(dq, rq[t]))), np.asarray(quat_to_mat(rq[t + 1])), atol=1e-5
-        )
+        for h in range(H):
+            b = base[:, 6 * h : 6 * h + 3]
+            np.testing.assert_allclose(b[t] + np.asarray(c.root_vel[t, h]) / fps, b[t + 1], atol=1e-5)
+            w = np.asarray(c.root_angvel[t, h]) / fps
+            ang = np.linalg.norm(w)
+            dq = jnp.asarray([np.cos(ang / 2), *(np.sin(ang / 2) * w / max(ang, 1e-12))], jnp.float32)
+            np.testing.assert_allclose(
+                np.asarray(quat_to_mat(quat_mul(dq, rq[t, h]))), np.asarray(quat_to_mat(rq[t + 1, h])), atol=1e-5
+            )
     np.testing.assert_allclose(np.asarray(c.q_target), joints[1:], atol=1e-6)
     np.testing.assert_allclose(np.asarray(c.qd_target), np.diff(joints, axis=0) * fps, atol=1e-4)
 
@@ -111,7 +116,7 @@ def test_identification_recovers_damping(shadow, tmp_path) -> None:
     F, J = 8, shadow.n_joints
     z = jnp.zeros((F, J))
     q = jnp.broadcast_to(jnp.asarray(shadow.rest_q(), jnp.float32), (F, J))
-    ctrl = Control(jnp.zeros((F, 3)), jnp.zeros((F, 3)), z, q, z, jnp.zeros((F, model.n_points, 3)))
+    ctrl = Control(jnp.zeros((F, 1, 3)), jnp.zeros((F, 1, 3)), z, q, z, jnp.zeros((F, model.n_points, 3)))
 
     def traj(sid: SysID) -> jax.Array:
         return object_pose(model, rollout(model, sid.apply(params, cube.mass, cube.inertia), s0, ctrl))[0]

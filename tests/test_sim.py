@@ -54,7 +54,7 @@ def _zero_ctrl(model, n_pts: int | None = None, frames: int | None = None) -> Co
     n = model.n_points if n_pts is None else n_pts
     lead = () if frames is None else (frames,)
     z = jnp.zeros((*lead, J))
-    return Control(jnp.zeros((*lead, 3)), jnp.zeros((*lead, 3)), z, z, z, jnp.zeros((*lead, n, 3)))
+    return Control(jnp.zeros((*lead, 1, 3)), jnp.zeros((*lead, 1, 3)), z, z, z, jnp.zeros((*lead, n, 3)))
 
 
 def test_free_fall(shadow, cube) -> None:
@@ -248,7 +248,7 @@ def test_gradients_match_finite_differences(shadow, cube) -> None:
         _fd_check(jax.jit(loss_sub), np.full(shadow.n_joints, 0.01), 1e-6)
 
         def loss_frame(x):
-            ctrl = dataclasses.replace(c, root_vel=x[:3])
+            ctrl = dataclasses.replace(c, root_vel=x[None, :3])
             p = params.replace(k_n=x[3] * 1e3, obj_mass=x[4])
             out = frame(model, p, s, ctrl)
             return jnp.dot(out.obj_pos, probe) * 1e3
@@ -330,10 +330,10 @@ def test_control_transformation(shadow, cube) -> None:
     _, p3 = attach_control_transform(model, base, ct)
     shifted = dataclasses.replace(
         ctrl,
-        root_vel=ctrl.root_vel.at[0].add(cfg.control_vel_scale),
+        root_vel=ctrl.root_vel.at[0, 0].add(cfg.control_vel_scale),
         q_target=ctrl.q_target.at[3].add(cfg.control_pos_scale),
     )
     want, got = direct(base, shifted), run(p3)
     for name in ("root_pos", "q", "obj_pos"):
         np.testing.assert_allclose(np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), atol=1e-6)
-    assert float(got.root_pos[0] - out0.root_pos[0]) > 1e-4  # and it did move the root
+    assert float(got.root_pos[0, 0] - out0.root_pos[0, 0]) > 1e-4  # and it did move the root

@@ -26,6 +26,7 @@ import numpy as np
 
 from quasisim.assets.model_edit import ModelEdit, apply_edits, compile_spec, read_spec
 from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.data.demo import N_KEYPOINTS
 from quasisim.errors import InputError, QuasisimError, choice_error
 
 HANDS_DIR = Path(__file__).parent / "hands"
@@ -283,6 +284,64 @@ class HandModel:
 
     def collision_geoms(self) -> tuple[Geom, ...]:
         return tuple(g for g in self.geoms if g.collision)
+
+    @property
+    def roots(self) -> np.ndarray:
+        """(H,) the root bodies, one per hand (a hand set of :func:`join_hands` has several)."""
+        return np.flatnonzero(self.body_parent < 0)
+
+    @property
+    def n_hands(self) -> int:
+        return len(self.roots)
+
+    @property
+    def body_hand(self) -> np.ndarray:
+        """(B,) the hand (index into :attr:`roots`) each body belongs to."""
+        hand = np.zeros(self.n_bodies, dtype=np.int32)
+        hand[self.roots] = np.arange(self.n_hands)
+        for b in range(self.n_bodies):
+            if self.body_parent[b] >= 0:
+                hand[b] = hand[self.body_parent[b]]
+        return hand
+
+    @property
+    def hand_joints(self) -> tuple[int, ...]:
+        """Joints of each hand, in order (a hand's joints are contiguous)."""
+        return tuple(int(n) for n in np.bincount(self.body_hand[self.joint_body], minlength=self.n_hands))
+
+
+@cache
+def join_hands(hands: tuple[HandModel, ...]) -> HandModel:
+    """One hand model holding ``hands`` side by side (the bimanual quasi-physical simulator's hand).
+
+    Bodies, joints, geoms and keypoints are concatenated in the order of ``hands``; each hand keeps its own
+    root (``body_parent`` -1), so the set has one floating base per hand. Keypoint ``human`` indices of hand
+    ``i`` are offset by 21 i: they index the concatenated human keypoints ``[right_joints, left_joints]``
+    (:attr:`quasisim.data.demo.Demo.human_joints`). Joint names are prefixed with the hand's name. One hand
+    is returned as it is. Cached: the same hands give the same object (and the same compiled programs)."""
+    if len(hands) == 1:
+        return hands[0]
+    b0 = np.cumsum([0, *(h.n_bodies for h in hands)])[:-1]
+    cat = lambda f: np.concatenate([getattr(h, f) for h in hands])  # noqa: E731
+    name = " + ".join(h.name for h in hands)
+    return HandModel(
+        config=dataclasses.replace(hands[0].config, name=name),
+        source=hands[0].source,
+        body_names=tuple(f"{h.name}/{n}" for h in hands for n in h.body_names),
+        body_parent=np.concatenate([np.where(h.body_parent < 0, -1, h.body_parent + o) for h, o in zip(hands, b0, strict=True)]),
+        body_pos=cat("body_pos"), body_quat=cat("body_quat"), body_mass=cat("body_mass"), body_ipos=cat("body_ipos"),
+        body_iquat=cat("body_iquat"), body_inertia=cat("body_inertia"),
+        joint_names=tuple(f"{h.name}/{n}" for h in hands for n in h.joint_names),
+        joint_body=np.concatenate([h.joint_body + o for h, o in zip(hands, b0, strict=True)]),
+        joint_type=cat("joint_type"), joint_axis=cat("joint_axis"), joint_pos=cat("joint_pos"),
+        joint_range=cat("joint_range"), joint_limited=cat("joint_limited"),
+        geoms=tuple(dataclasses.replace(g, body=g.body + o) for h, o in zip(hands, b0, strict=True) for g in h.geoms),
+        kp_names=tuple(f"{h.name}/{n}" for h in hands for n in h.kp_names),
+        kp_body=np.concatenate([h.kp_body + o for h, o in zip(hands, b0, strict=True)]),
+        kp_pos=cat("kp_pos"),
+        kp_human=np.concatenate([h.kp_human + N_KEYPOINTS * i for i, h in enumerate(hands)]),
+        kp_weight=cat("kp_weight"), kp_metric=cat("kp_metric"),
+    )  # fmt: skip
 
 
 # ---- loading ------------------------------------------------------------------------------------

@@ -134,7 +134,10 @@ def windows(
         )
     bq = jnp.asarray(base_quat, F32)
     s0 = [observed_state(model, buf.observation(r, t), bq) for r, t in starts]
-    wins = [Trajectory.from_q(buf.q_targets[r, t : t + horizon + 1], model.n_points) for r, t in starts]
+    wins = [
+        Trajectory.from_q(buf.q_targets[r, t : t + horizon + 1], model.n_points, model.hand.hand_joints)
+        for r, t in starts
+    ]
     stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
     sl = [(r, slice(t + 1, t + horizon + 1)) for r, t in starts]
     arr = lambda xs: jnp.asarray(np.stack(xs), F32)  # noqa: E731

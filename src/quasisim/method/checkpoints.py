@@ -142,9 +142,9 @@ def mismatch(d: dict[str, np.ndarray], expect: Expect) -> str:
     return ""
 
 
-def trajectory_expect(T: int, J: int, P: int, **more: tuple[int | None, ...] | str) -> Expect:
-    """What a checkpoint of :func:`trajectory_arrays` holds (T frames, J joints, P hand points)."""
-    return {"base": (T, 6), "joints": (T, J), "point_force": (T - 1, P, 3), "sysid": (4,), "wall_s": (), **more}
+def trajectory_expect(T: int, J: int, P: int, H: int = 1, **more: tuple[int | None, ...] | str) -> Expect:
+    """What a checkpoint of :func:`trajectory_arrays` holds (T frames, J joints, P hand points, H hands)."""
+    return {"base": (T, 6 * H), "joints": (T, J), "point_force": (T - 1, P, 3), "sysid": (4,), "wall_s": (), **more}
 
 
 def trajectory_arrays(traj: Trajectory, sysid: SysID, log: StepLog | None, wall_s: float) -> dict[str, Any]:
@@ -161,7 +161,8 @@ def trajectory_arrays(traj: Trajectory, sysid: SysID, log: StepLog | None, wall_
     return out
 
 
-def trajectory_from(d: dict[str, np.ndarray]) -> tuple[Trajectory, SysID]:
-    """Inverse of :func:`trajectory_arrays` (trajectory and S)."""
-    t = Trajectory(jnp.asarray(d["base"]), jnp.asarray(d["joints"]), jnp.asarray(d["point_force"]))
+def trajectory_from(d: dict[str, np.ndarray], hand_joints: tuple[int, ...] = ()) -> tuple[Trajectory, SysID]:
+    """Inverse of :func:`trajectory_arrays` (trajectory and S); ``hand_joints``: the trajectory's hand layout."""
+    hj = tuple(hand_joints) if len(hand_joints) > 1 else ()
+    t = Trajectory(jnp.asarray(d["base"]), jnp.asarray(d["joints"]), jnp.asarray(d["point_force"]), hj)
     return t, SysID.from_array(d["sysid"])

@@ -25,6 +25,7 @@ whichever start scores best in the new simulator, so the hand-off never makes a 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import partial
 
@@ -34,7 +35,7 @@ import numpy as np
 
 from quasisim.optim.trajectory import Trajectory, simulate_jit
 from quasisim.rotations import quat_to_mat
-from quasisim.sim.kinematics import base_to_root, forward_kinematics, points_world
+from quasisim.sim.kinematics import bases_to_roots, forward_kinematics, points_world
 from quasisim.sim.step import object_origin, sdf_lookup
 from quasisim.sim.types import Model, Params, State
 
@@ -77,11 +78,11 @@ def _depths(model: Model, root_pos: Array, root_rot: Array, q: Array, s: State) 
 
 
 def target_depths(model: Model, base_rot: Array, base: Array, joints: Array, states: State) -> Array:
-    """(T - 1, N) signed distances of the hand points at the PD targets of frames 1..T-1 (``base`` (T - 1, 6),
+    """(T - 1, N) signed distances of the hand points at the PD targets of frames 1..T-1 (``base`` (T - 1, 6 H),
     ``joints`` (T - 1, J)) to the object where ``states`` (the rollout's T - 1 states) hold it."""
 
     def one(b: Array, q: Array, s: State) -> Array:
-        root_pos, root_rot = base_to_root(b, base_rot)
+        root_pos, root_rot = bases_to_roots(b, base_rot)
         return _depths(model, model.to_sim(root_pos), root_rot, q, s)
 
     return jax.vmap(one)(base, joints, states)
@@ -148,4 +149,4 @@ def touching(
         model, jnp.asarray(base_rot, jnp.float32), traj.base[1:], traj.joints[1:], states, shift,
         jnp.float32(opts.damping), jnp.asarray(lo), jnp.asarray(hi), opts.iterations,
     )  # fmt: skip
-    return Trajectory(base=traj.base, joints=traj.joints.at[1:].set(q), point_force=traj.point_force)
+    return dataclasses.replace(traj, joints=traj.joints.at[1:].set(q))

@@ -101,11 +101,11 @@ def run_mpc(
     demo: Demo, scene: Scene, model: Model, params: Params, plan: np.ndarray, opts: MPCOptions, weights: Weights,
     progress: bool = True,
 ) -> MPCResult:  # fmt: skip
-    """Closed-loop MPC in MuJoCo from the PD-target plan ``plan`` (T, 6 + J); ``params`` is the model
+    """Closed-loop MPC in MuJoCo from the PD-target plan ``plan`` (T, D); ``params`` is the model
     (with S already applied). See the module docstring."""
     T, H = len(plan), opts.horizon
     kp_index = np.flatnonzero(model.hand.kp_metric)
-    bq = jnp.asarray(np_mat_to_quat(scene.base_rot), F32)
+    bq = jnp.asarray(np_mat_to_quat(np.stack(scene.base_rots)), F32)
     vg = _gradient_fn(make_window_objective(model, bq, demo.fps, kp_index), weights.arrays(), opts)
     rng = np.random.default_rng(opts.seed)
     refs = window_references(demo, model.hand.kp_human, kp_index, H)
@@ -127,7 +127,7 @@ def run_mpc(
             fn = lambda x, s0=s0, ref=ref, scales=scales: vg(x, s0, params, scales, *ref)  # noqa: E731
         else:
             fn = lambda x, s0=s0, ref=ref: vg(x, s0, params, *ref)  # noqa: E731
-        win0 = Trajectory.from_q(plan[t : t + H + 1], model.n_points)
+        win0 = Trajectory.from_q(plan[t : t + H + 1], model.n_points, model.hand.hand_joints)
         win, log = adam_steps(fn, win0, opts.steps, opts.lr, opts.steps + 1, 0.0, mask=_mask_first_frame)
         losses.append((log.best, log.losses[0] if log.losses else np.nan))
         plan[t : t + H + 1] = win.q_targets

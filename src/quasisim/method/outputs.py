@@ -18,7 +18,7 @@ from quasisim.eval.report import loss_plot
 from quasisim.files import output_set, save_json_atomic
 from quasisim.method.problem import Problem
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory, simulate_jit
+from quasisim.optim.trajectory import Trajectory, join_q, simulate_jit
 from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
 from quasisim.sim.types import Model, Params
 
@@ -48,14 +48,15 @@ class TransferResult:
 
 
 def sim_qpos(prob: Problem, params: Params, traj: Trajectory, model: Model | None = None) -> np.ndarray:
-    """(T, 6 + J) the hand trajectory of ``traj``'s quasi-physical rollout (in ``model``, default the
-    problem's) in base coordinates."""
+    """(T, D) the hands' trajectory of ``traj``'s quasi-physical rollout (in ``model``, default the
+    problem's) in base coordinates, laid out as the targets' PD targets."""
     model = model or prob.model
     states = simulate_jit(model, params, traj, prob.base_quat, prob.demo.fps, prob.obj0)
-    root = np.asarray(model.to_world(states.root_pos), np.float64)
-    R = np_quat_to_mat(np.asarray(states.root_quat))
-    eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("ji,tjk->tik", prob.base_rot, R)), axis=0)
-    q = np.concatenate([root, eul, np.asarray(states.q, np.float64)], axis=1)
+    root = np.asarray(model.to_world(states.root_pos), np.float64)  # (T - 1, H, 3)
+    R = np_quat_to_mat(np.asarray(states.root_quat, np.float64))  # (T - 1, H, 3, 3)
+    eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("hji,thjk->thik", prob.base_rots, R)), axis=0)
+    base = np.concatenate([root, eul], axis=-1).reshape(len(root), -1)
+    q = join_q(base, np.asarray(states.q, np.float64), prob.hand_joints)
     return np.concatenate([np.asarray(traj.q_targets[:1]), q], axis=0)
 
 

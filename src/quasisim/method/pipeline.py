@@ -38,7 +38,7 @@ from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget_hands
 from quasisim.method.sample_target import run_sample_target
 from quasisim.method.select import best_in_target, clip_cost
-from quasisim.method.spec import STAGES, TransferSpec, check_hands
+from quasisim.method.spec import STAGES, TransferSpec
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
@@ -66,7 +66,6 @@ def run_transfer(
     cfg = config or TransferConfig.from_yaml()
     bud, cur, out = cfg.budget(spec.budget), load_curriculum(spec.curriculum), Path(out)
     demo = load_demo(demo_path)
-    check_hands(spec, len(demo.sides), demo_path)  # two hands: only the methods that support them
     hands = demo_hands(spec.hand, demo.sides)
     hand = hands[0]
     _check_run_dir(out, resume, overwrite)
@@ -81,7 +80,7 @@ def run_transfer(
     record.seconds["retarget"] = float(kin["wall_s"])
     left = (hands[1], np.asarray(kin["left_base_rot"], np.float64)) if len(hands) > 1 else None
     prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates, left=left)
-    plan = Plan(Trajectory.from_q(kin["q"], prob.model.n_points), SysID.init())
+    plan = Plan(prob.trajectory(kin["q"]), SysID.init())
     objective = prob.objective(prob.reference())
     if "1" in spec.stages and cur.relaxed:
         plan, objective = _stage1(prob, cur, cfg, spec, ck, plan, kin["q"], progress, record)
@@ -138,7 +137,7 @@ def _stage1(
     )
     human_points = np.asarray(hp["points"], np.float32)
     record.curves["1b human point set"] = list(hp.get("losses", []))
-    point_index = stage1.correspondences(prob, kinematic_q, human_points)
+    point_index = stage1.correspondences(prob, kinematic_q, human_points, hp.get("point_hand"))
     objective = prob.objective(prob.reference(human_points, point_index))
     vg = objective.value_and_grad
     p1 = prob.params(contact)
@@ -150,7 +149,7 @@ def _stage1(
         return trajectory_arrays(traj, plan.sysid, log, log.wall_s)
 
     rp = ck.get("stage1_robot", robot, _traj_expect(prob, losses=(None,)))
-    traj, sysid = trajectory_from(rp)
+    traj, sysid = trajectory_from(rp, prob.hand_joints)
     record.curves[f"1d robot point set ({label})"] = list(rp.get("losses", []))
     record.seconds["stage1_human"], record.seconds["stage1_robot"] = float(hp["wall_s"]), float(rp["wall_s"])
     record.seconds["stage1"] = record.seconds["stage1_human"] + record.seconds["stage1_robot"]
@@ -165,7 +164,7 @@ def _stage2(
     """Stage 2: each rigid simulator of the curriculum, soft to stiff (:mod:`quasisim.method.stage2`)."""
     vg = objective.value_and_grad
     w2, sb = cfg.weights.arrays(points=0.0), cfg.budget(spec.budget).sim
-    start, kin_traj = plan.traj, Trajectory.from_q(kinematic_q, prob.model.n_points)
+    start, kin_traj = plan.traj, prob.trajectory(kinematic_q)
     record.seconds["stage2"] = 0.0
     for n, i in enumerate(cur.rigid):
         p = prob.params(cur.contact(i))
@@ -178,7 +177,7 @@ def _stage2(
             return stage2.run_simulator(vg, prev.traj, prev.sysid, p, w2, sb, progress, label, alt)
 
         d = ck.get(f"stage2_sim{i + 1:02d}", run, _traj_expect(prob, losses=(None,), n_sysid=(), start_losses="str"))
-        plan = Plan(*trajectory_from(d))
+        plan = Plan(*trajectory_from(d, prob.hand_joints))
         _record_simulator(record, cur, i, d, plan.sysid.describe(prob.obj.mass), progress)
     return plan
 
@@ -192,7 +191,7 @@ def _touching(
         return {}
     p = plan.sysid.apply(prob.params(cur.contact(prev)), prob.obj.mass, prob.obj.inertia)
     traj = handoff.touching(
-        prob.model, p, prob.params(cur.contact(nxt)), plan.traj, prob.base_quat, prob.base_rot, prob.demo.fps,
+        prob.model, p, prob.params(cur.contact(nxt)), plan.traj, prob.base_quat, prob.base_rots, prob.demo.fps,
         prob.obj0, opts,
     )  # fmt: skip
     return {"touching": traj}
@@ -288,7 +287,7 @@ def _stage3(
     }  # fmt: skip
     progress.write(f"stage 3 done in {record.seconds['stage3']:.0f} s; kept round {int(d['best_round'])}'s controls")
     if int(d["best_round"]) > 0:  # a round's controls did better in the target than the stage's start
-        plan = Plan(Trajectory.from_q(d["q_targets"], prob.model.n_points), plan.sysid)
+        plan = Plan(prob.trajectory(d["q_targets"]), plan.sysid)
     return model, f.apply(p, mass, inertia), plan
 
 
@@ -378,7 +377,9 @@ def _timed(ck: Checkpoints, name: str, fn: Callable[[], dict[str, Any]], expect:
 
 
 def _traj_expect(prob: Problem, **more: Any) -> Expect:
-    return trajectory_expect(prob.demo.n_frames, prob.hand.n_joints, prob.model.n_points, **more)
+    return trajectory_expect(
+        prob.demo.n_frames, prob.model.n_joints, prob.model.n_points, prob.model.hand.n_hands, **more
+    )
 
 
 def _q_expect(prob: Problem) -> Expect:

@@ -11,14 +11,14 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from quasisim.assets.hand import HandModel
+from quasisim.assets.hand import HandModel, join_hands
 from quasisim.assets.object import ObjectAsset
 from quasisim.data.demo import Demo
 from quasisim.eval.evaluate import load_object_for
 from quasisim.optim.objective import Reference, TrackingObjective, make_objective
-from quasisim.optim.trajectory import Trajectory, simulate
+from quasisim.optim.trajectory import Trajectory, simulate, split_q
 from quasisim.rotations import np_mat_to_quat
-from quasisim.sim.build import SimOptions, build_model, default_params
+from quasisim.sim.build import SimOptions, build_model, default_params, hand_set_points
 from quasisim.sim.kinematics import fk_full, points_world
 from quasisim.sim.types import Model, Params, State
 from quasisim.targets.scene import Scene, make_scene
@@ -42,12 +42,27 @@ class Problem:
 
     @property
     def base_rot(self) -> np.ndarray:
-        """(3, 3) the fixed frame of the floating base's angles."""
+        """(3, 3) the fixed frame of the (first) hand's floating base angles."""
         return self.scene.base_rot
 
     @property
+    def base_rots(self) -> np.ndarray:
+        """(H, 3, 3) the base frames of the simulator's hands."""
+        return np.stack(self.scene.base_rots)
+
+    @property
     def base_quat(self) -> np.ndarray:
-        return np_mat_to_quat(self.scene.base_rot)
+        """(H, 4) :attr:`base_rots` as quaternions (w x y z)."""
+        return np_mat_to_quat(self.base_rots)
+
+    @property
+    def hand_joints(self) -> tuple[int, ...]:
+        """The simulator trajectory's hand layout (:class:`~quasisim.optim.trajectory.Trajectory`)."""
+        return self.model.hand.hand_joints
+
+    def trajectory(self, q: np.ndarray) -> Trajectory:
+        """The simulator trajectory of the targets' PD targets ``q`` (T, D) (no free point forces)."""
+        return Trajectory.from_q(q, self.model.n_points, self.hand_joints)
 
     @property
     def obj0(self) -> tuple[np.ndarray, np.ndarray]:
@@ -59,9 +74,9 @@ class Problem:
         return default_params(self.model, self.obj.mass, self.obj.inertia, contact)
 
     def reference(self, points: np.ndarray | None = None, point_index: np.ndarray | None = None) -> Reference:
-        """The demo as the objective's reference: the hand's metric keypoints, the object, optional points."""
-        metric = np.flatnonzero(self.hand.kp_metric)
-        return Reference.from_demo(self.demo, self.hand.kp_human, metric, points, point_index)
+        """The demo as the objective's reference: the hands' metric keypoints, the object, optional points."""
+        hand = self.model.hand
+        return Reference.from_demo(self.demo, hand.kp_human, np.flatnonzero(hand.kp_metric), points, point_index)
 
     def objective(self, ref: Reference) -> TrackingObjective:
         """:func:`~quasisim.optim.objective.make_objective` for this problem."""
@@ -74,9 +89,15 @@ class Problem:
         return simulate(self.model, params, traj, self.base_quat, self.demo.fps, self.obj0)
 
     def points_at(self, q: np.ndarray) -> np.ndarray:
-        """(N, 3) world positions of the simulator's hand points at generalized position ``q`` (6 + J)."""
-        poses = fk_full(self.hand, jnp.asarray(self.base_rot, jnp.float32), jnp.asarray(q, jnp.float32))
+        """(N, 3) world positions of the simulator's hand points at the targets' generalized position ``q`` (D,)."""
+        qs = np.concatenate(split_q(np.asarray(q), self.hand_joints))
+        poses = fk_full(self.model.hand, jnp.asarray(self.base_rots, jnp.float32), jnp.asarray(qs, jnp.float32))
         return np.asarray(points_world(poses, self.model.point_body, self.model.point_local))
+
+    @property
+    def point_hand(self) -> np.ndarray:
+        """(N,) the hand (0: right, 1: left) of each simulator hand point."""
+        return self.model.hand.body_hand[np.asarray(self.model.point_body)]
 
 
 def make_problem(
@@ -85,10 +106,12 @@ def make_problem(
 ) -> Problem:  # fmt: skip
     """The scene (table sized from the demo) and the simulator (``substeps`` per frame, origin at the
     object's first position) for ``demo`` and ``hand`` with base frame ``base_rot``; ``left``: the left hand
-    and its base frame of a two-hand demo. The quasi-physical simulator models ``hand`` alone: the stages
-    that use it refuse two-hand demos up front (:func:`quasisim.method.spec.check_hands`); the scene (the
-    targets, ``sample-target``, the evaluation) holds both hands."""
+    and its base frame of a two-hand demo. The quasi-physical simulator of two hands holds both as one
+    hand set (:func:`~quasisim.assets.hand.join_hands`: one kinematic root per hand), whose points are the
+    points of each hand sampled on its own (so a hand has the same points alone and in a pair)."""
     obj = obj if obj is not None else load_object_for(demo)
     scene = make_scene(demo, hand, base_rot, obj, left=left)
     opts = SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates)
-    return Problem(demo, scene, build_model(hand, obj, scene.table, opts, demo.object_pos[0]))
+    points = hand_set_points(scene.hands, opts)
+    model = build_model(join_hands(scene.hands), obj, scene.table, opts, demo.object_pos[0], points)
+    return Problem(demo, scene, model)

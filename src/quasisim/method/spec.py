@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
 
-from quasisim.errors import InputError, QuasisimError, choice_error
+from quasisim.errors import QuasisimError, choice_error
 from quasisim.targets import TARGETS
 
 STAGES = ("1", "2", "3", "mpc", "sample", "select")
@@ -16,7 +15,6 @@ NETWORKS = (
     "global",
     "control",
 )  # stage 3's networks: residual physics (local, global), control transformation
-TWO_HAND_METHODS = ("kinematic", "sample-target")  # methods that transfer a demo with two hands (left_joints)
 
 
 @dataclass(frozen=True)
@@ -80,19 +78,6 @@ def networks_from_flags(no_residual: bool, no_local_residual: bool, no_control_t
     drop = {"local", "global"} if no_residual else {"local"} if no_local_residual else set()
     drop |= {"control"} if no_control_transform else set()
     return tuple(n for n in NETWORKS if n not in drop)
-
-
-def check_hands(spec: TransferSpec, n_hands: int, path: str | Path | None = None) -> None:
-    """Refuse, before any work, a two-hand demo (``path``) for a method that handles one hand only (the
-    quasi-physical stages 1/2/3, ``mpc-*``, ``ours``): an :class:`InputError` naming the methods that
-    support two hands."""
-    if n_hands < 2:
-        return
-    if spec.method not in TWO_HAND_METHODS:
-        raise InputError(
-            path, "left_joints", f"a one-hand demo for --method {spec.method} (two-hand demos run with --method "
-            f"{' or '.join(TWO_HAND_METHODS)})", "a demo with two hands",
-        )  # fmt: skip
 
 
 def parse_stages(text: str) -> tuple[str, ...]:

@@ -45,41 +45,56 @@ def motion_onset(demo: Demo, pos_tol: float = 0.005, deg_tol: float = 5.0) -> in
     return int(moved[0]) if len(moved) else demo.n_frames // 2
 
 
-def fit_human_hand(human: HandModel, demo: Demo) -> RetargetResult:
-    """Stage 1a: per-frame keypoint IK of the dynamic human hand to the demo's keypoints (tight settings:
-    the human hand can reach every demo pose). ``q`` (T, 6 + J), the base frame and the errors."""
-    return retarget(human, demo, RetargetOptions(**RETARGET_SETTINGS))
+def fit_human_hand(human: HandModel, demo: Demo, side: str = "right") -> RetargetResult:
+    """Stage 1a: per-frame keypoint IK of the dynamic human hand to the demo's ``side`` keypoints (tight
+    settings: the human hand can reach every demo pose). ``q`` (T, 6 + J), the base frame and the errors."""
+    return retarget(human, demo, RetargetOptions(**RETARGET_SETTINGS), side=side)
+
+
+def human_problem(demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int) -> tuple[Problem, np.ndarray, float]:
+    """Stage 1a for each of the demo's hands: the dynamic human hands (built from each side's own keypoints)
+    fitted to the demo, as a problem (one hand set for two hands); their PD targets (T, D) and mean metric
+    keypoint error (mm)."""
+    hands = tuple(
+        build_human_hand(demo.joints_of(s), name="human" if s == "right" else f"human-{s}") for s in demo.sides
+    )
+    fits = [fit_human_hand(h, demo, s) for h, s in zip(hands, demo.sides, strict=True)]
+    left = (hands[1], fits[1].base_rot) if len(hands) > 1 else None
+    prob = make_problem(demo, hands[0], fits[0].base_rot, substeps, n_candidates, obj, left=left)
+    q = np.concatenate([f.q for f in fits], axis=1)
+    return prob, q, float(np.mean([f.mean_metric_error_mm for f in fits]))
 
 
 def human_point_set(
     demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, contact: dict[str, float], weights: Weights,
     sb: StepBudget, progress: Progress, label: str,
 ) -> dict[str, Any]:  # fmt: skip
-    """Stages 1a and 1b. Returns ``points``: the human point set per frame (T, P, 3) m, ``losses``, the
-    human hand's kinematic fit error and the wall time."""
+    """Stages 1a and 1b. Returns ``points``: the human point set per frame (T, P, 3) m, ``point_hand``
+    (P,) the hand of each point (0 right, 1 left), ``losses``, the human hands' kinematic fit error and the
+    wall time."""
     t0 = time.perf_counter()
-    human = build_human_hand(demo.right_joints)
-    fit = fit_human_hand(human, demo)
-    prob = make_problem(demo, human, fit.base_rot, substeps, n_candidates, obj)
+    prob, q, fit_error_mm = human_problem(demo, obj, substeps, n_candidates)
     params = prob.params(contact)
+    human = prob.model.hand
     ref = Reference.from_demo(demo, human.kp_human, np.arange(len(human.kp_human)))
     vg = prob.objective(ref).value_and_grad
     sysid, w = SysID.init(), weights.arrays(points=0.0)
     traj, log = minimise(
-        lambda x: pick_grad(vg(x, sysid, params, w), 0), Trajectory.from_q(fit.q, prob.model.n_points), sb.control_steps,
+        lambda x: pick_grad(vg(x, sysid, params, w), 0), prob.trajectory(q), sb.control_steps,
         sb.control_lr, sb, progress, f"stage 1b human point set ({label})",
     )  # fmt: skip
     return {
         "points": np.asarray(_point_set(prob, params, traj), np.float32),
+        "point_hand": prob.point_hand.astype(np.int32),
         "losses": np.asarray(log.losses, np.float64),
-        "human_fit_error_mm": np.array(float(fit.mean_metric_error_mm)),
+        "human_fit_error_mm": np.array(fit_error_mm),
         "wall_s": np.array(time.perf_counter() - t0),
     }
 
 
 def _point_set(prob: Problem, params: Params, traj: Trajectory) -> jax.Array:
     """(T, P, 3): all hand points at frame 0 and along the rollout of ``traj``."""
-    base_rot = jnp.asarray(prob.base_rot, jnp.float32)
+    base_rot = jnp.asarray(prob.base_rots, jnp.float32)
     return _points_over_time(prob.model, params, traj, prob.base_quat, base_rot, prob.obj0, prob.demo.fps)
 
 
@@ -97,10 +112,19 @@ def _points_over_time(
     return jnp.concatenate([points_world(poses, model.point_body, model.point_local)[None], p], axis=0)
 
 
-def correspondences(prob: Problem, kinematic_q: np.ndarray, human_points: np.ndarray) -> np.ndarray:
-    """(P,) for each human point the nearest robot point, both at the object's motion onset."""
+def correspondences(
+    prob: Problem, kinematic_q: np.ndarray, human_points: np.ndarray, human_hand: np.ndarray | None = None
+) -> np.ndarray:
+    """(P,) for each human point the nearest robot point of the same hand (``human_hand`` (P,), the hand
+    of each human point; None: one hand), both at the object's motion onset."""
     onset = motion_onset(prob.demo)
-    _, index = cKDTree(prob.points_at(kinematic_q[onset])).query(human_points[onset])
+    robot, robot_hand = prob.points_at(kinematic_q[onset]), prob.point_hand
+    human_hand = np.zeros(human_points.shape[1], int) if human_hand is None else np.asarray(human_hand)
+    index = np.zeros(human_points.shape[1], int)
+    for h in np.unique(human_hand):
+        mine = np.flatnonzero(robot_hand == h)
+        _, nearest = cKDTree(robot[mine]).query(human_points[onset, human_hand == h])
+        index[human_hand == h] = mine[nearest]
     return index
 
 

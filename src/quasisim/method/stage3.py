@@ -38,7 +38,7 @@ import optax
 from quasisim.errors import QuasisimError
 from quasisim.eval.predict import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method import spec
-from quasisim.method.sample_target import SamplingOptions, sample_windows
+from quasisim.method.sample_target import SamplingOptions, noise_std, sample_windows
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
@@ -46,20 +46,20 @@ from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.build import attach_control_transform, attach_residual
 from quasisim.sim.residual import ControlTransform, ResidualConfig, ResidualNets
 from quasisim.sim.types import NETWORKS, Model, Params, pytree
+from quasisim.targets.scene import Scene
 
 Array = jax.Array
 F32 = jnp.float32
 OBS_KEYS = ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel", "keypoints")
 
 
-def noisy_variants(
-    plan: np.ndarray, n: int, noise: SamplingOptions, seed: int, joint_range: np.ndarray
-) -> list[np.ndarray]:
-    """``n`` smooth perturbations of ``plan`` (T, 6 + J) with the sampling baseline's noise model (knots
-    every ~6 frames, the noise scales cycled), joints kept within ``joint_range`` (J, 2)."""
+def noisy_variants(plan: np.ndarray, n: int, noise: SamplingOptions, seed: int, scene: Scene) -> list[np.ndarray]:
+    """``n`` smooth perturbations of ``plan`` (T, D) with the sampling baseline's noise model (knots every
+    ~6 frames, the noise scales cycled), joints kept within the joint ranges of ``scene``'s hands."""
     T = len(plan)
     opts = dataclasses.replace(noise, samples=n + 1, horizon=T - 1, knots=max(2, (T - 1) // 6))
-    wins = sample_windows(np.random.default_rng(seed), plan, opts, joint_range[:, 0], joint_range[:, 1])
+    std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
+    wins = sample_windows(np.random.default_rng(seed), plan, opts, *scene.joint_bounds(), std)
     return [w for w in wins[1:]]
 
 
@@ -207,7 +207,9 @@ def fit_networks(
         nets = ResidualNets(cfg, seed=opts.seed)
         m, p0 = attach_residual(m, p0, nets, "local" in networks, "global" in networks)
     if "control" in networks and params.control_transform is None:
-        m, p0 = attach_control_transform(m, p0, ControlTransform(cfg, model.hand.n_joints, seed=opts.seed))
+        m, p0 = attach_control_transform(
+            m, p0, ControlTransform(cfg, model.hand.n_joints, model.hand.n_hands, seed=opts.seed)
+        )
     trained = {k: getattr(p0, k) for k in NETWORKS if getattr(p0, k) is not None}
     if not trained or opts.residual_steps == 0:
         return m, p0, []
@@ -284,7 +286,7 @@ def fit_windows(
             f"stage 3: the clip's {demo.n_frames} frames are too few for {opts.horizon}-frame windows with the last "
             f"{100 * opts.held_out:.0f} % held out; lower stage3.horizon or stage3.held_out (--set), or leave out stage 3"
         )
-    plans = [plan, *noisy_variants(plan, opts.variants, noise, opts.seed, prob.hand.joint_range)]
+    plans = [plan, *noisy_variants(plan, opts.variants, noise, opts.seed, prob.scene)]
     buf = collect(prob.scene, plans, demo.fps)
     train = windows(m, buf, train_s, opts.horizon, bq)
     test = windows(m, buf, [s for s in test_s if s[0] == 0], opts.horizon, bq)
@@ -391,7 +393,7 @@ def world_model_rounds(
         costs.append(cost(q))
         if costs[-1] < costs[best]:
             best, best_q = r, q
-        variants = noisy_variants(q, opts.variants, noise, opts.seed + r, prob.hand.joint_range)
+        variants = noisy_variants(q, opts.variants, noise, opts.seed + r, prob.scene)
         new = collect(prob.scene, [q, *variants], demo.fps)
         fresh = windows(model, new, [(0, t) for t in range(T - opts.horizon)], opts.horizon, bq)
         e = prediction_errors(model, f.apply(params, obj.mass, obj.inertia), fresh, demo.fps, bq)

@@ -90,12 +90,13 @@ class Reference:
         demo: Demo, kp_human: np.ndarray, kp_index: np.ndarray, points: np.ndarray | None = None,
         point_index: np.ndarray | None = None,
     ) -> Reference:  # fmt: skip
-        """The demo's frames 1..T-1; robot keypoint ``kp_index[k]`` follows human keypoint ``kp_human[kp_index[k]]``;
-        ``points`` (T, P, 3) per frame, when given."""
+        """The demo's frames 1..T-1; robot keypoint ``kp_index[k]`` follows human keypoint ``kp_human[kp_index[k]]``
+        (an index into the keypoints of all the demo's hands, ``Demo.human_joints``); ``points`` (T, P, 3) per
+        frame, when given."""
         f, i = (lambda x: jnp.asarray(x, F32)), (lambda x: jnp.asarray(x, jnp.int32))
         return Reference(
             obj_pos=f(demo.object_pos[1:]), obj_quat=f(demo.object_quat[1:]),
-            keypoints=f(demo.right_joints[1:, kp_human[kp_index]]), kp_index=i(kp_index),
+            keypoints=f(demo.human_joints[1:, kp_human[kp_index]]), kp_index=i(kp_index),
             points=None if points is None else f(points[1:]), point_index=None if point_index is None else i(point_index),
         )  # fmt: skip
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from quasisim.rotations import quat_conj, quat_log, quat_mul
 from quasisim.sim.step import initial_state, rollout
-from quasisim.sim.types import Control, Model, Params, State, pytree
+from quasisim.sim.types import Control, Model, Params, State, pytree, static
 
 Array = jax.Array
 F32 = jnp.float32
@@ -32,30 +32,63 @@ class Trajectory:
     """Decision variables of the control optimisation.
 
     Attributes:
-        base: (T, 6) base PD targets per frame: x, y, z (m, world) and intrinsic x-y-z angles (rad) about
-            the clip's fixed frame ``base_rot`` (see :mod:`quasisim.sim.kinematics`).
-        joints: (T, J) joint PD targets per frame (rad or m).
+        base: (T, 6 H) base PD targets per frame of each of the H hands: x, y, z (m, world) and intrinsic
+            x-y-z angles (rad) about the hand's fixed frame ``base_rot`` (see :mod:`quasisim.sim.kinematics`).
+        joints: (T, J) joint PD targets per frame (rad or m), all hands' joints in order.
         point_force: (T - 1, N, 3) free force on each hand point per frame (N); only acts while alpha > 0.
+        hand_joints: (static) joints of each hand when there are two or more (``HandModel.hand_joints``);
+            empty for one hand. The target simulators' layout puts each hand's base before its joints.
     """
 
     base: Array
     joints: Array
     point_force: Array
+    hand_joints: tuple[int, ...] = static(default=())
 
     @property
     def q_targets(self) -> np.ndarray:
-        """(T, 6 + J) PD targets for the target simulators (numpy, float64)."""
-        return np.concatenate([np.asarray(self.base, np.float64), np.asarray(self.joints, np.float64)], axis=1)
+        """(T, D) PD targets for the target simulators (numpy, float64): ``[base (6), joints (J)]`` per hand."""
+        return join_q(np.asarray(self.base, np.float64), np.asarray(self.joints, np.float64), self.hand_joints)
 
     @staticmethod
-    def from_q(q: np.ndarray, n_points: int) -> Trajectory:
-        """A trajectory of PD targets ``q`` (T, 6 + J) with no free point forces."""
-        q = np.asarray(q)
+    def from_q(q: np.ndarray, n_points: int, hand_joints: tuple[int, ...] = ()) -> Trajectory:
+        """A trajectory of the target simulators' PD targets ``q`` (T, D) with no free point forces."""
+        base, joints = split_q(np.asarray(q), hand_joints)
         return Trajectory(
-            base=jnp.asarray(q[:, :6], F32),
-            joints=jnp.asarray(q[:, 6:], F32),
+            base=jnp.asarray(base, F32),
+            joints=jnp.asarray(joints, F32),
             point_force=jnp.zeros((len(q) - 1, n_points, 3), F32),
+            hand_joints=tuple(hand_joints) if len(hand_joints) > 1 else (),
         )
+
+
+def _hand_columns(hand_joints: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of the bases and of the joints in the target layout ``[base_1, joints_1, base_2, joints_2, ...]``."""
+    base, joints, start = [], [], 0
+    for J in hand_joints:
+        base.append(np.arange(start, start + 6))
+        joints.append(np.arange(start + 6, start + 6 + J))
+        start += 6 + J
+    return np.concatenate(base), np.concatenate(joints)
+
+
+def split_q(q: np.ndarray, hand_joints: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
+    """Target layout (..., D) -> bases (..., 6 H) and joints (..., J) (``hand_joints``: see :class:`Trajectory`)."""
+    if len(hand_joints) <= 1:
+        return q[..., :6], q[..., 6:]
+    b, j = _hand_columns(hand_joints)
+    return q[..., b], q[..., j]
+
+
+def join_q(base: np.ndarray, joints: np.ndarray, hand_joints: tuple[int, ...] = ()) -> np.ndarray:
+    """Inverse of :func:`split_q`."""
+    q = np.concatenate([base, joints], axis=-1)
+    if len(hand_joints) <= 1:
+        return q
+    b, j = _hand_columns(hand_joints)
+    out = np.empty_like(q)
+    out[..., b], out[..., j] = base, joints
+    return out
 
 
 def _axis_quat(axis: int, angle: Array) -> Array:
@@ -65,19 +98,26 @@ def _axis_quat(axis: int, angle: Array) -> Array:
 
 
 def root_quats(base: Array, base_quat: Array) -> Array:
-    """(T, 4) root orientations ``base_rot Rx(a) Ry(b) Rz(c)`` as quaternions (w, x, y, z)."""
-    q = quat_mul(_axis_quat(0, base[:, 3]), quat_mul(_axis_quat(1, base[:, 4]), _axis_quat(2, base[:, 5])))
-    return quat_mul(jnp.broadcast_to(base_quat, q.shape), q)
+    """(T, H, 4) root orientations ``base_rot Rx(a) Ry(b) Rz(c)`` of each hand as quaternions (w, x, y, z)
+    from bases (T, 6 H) and the hands' base frames ``base_quat`` (H, 4) (or (4,): one hand)."""
+    b = base.reshape(base.shape[0], -1, 6)
+    q = quat_mul(_axis_quat(0, b[..., 3]), quat_mul(_axis_quat(1, b[..., 4]), _axis_quat(2, b[..., 5])))
+    return quat_mul(jnp.broadcast_to(jnp.reshape(base_quat, (-1, 4)), q.shape), q)
+
+
+def root_positions(base: Array) -> Array:
+    """(T, H, 3) root positions from bases (T, 6 H)."""
+    return base.reshape(base.shape[0], -1, 6)[..., :3]
 
 
 def sim_controls(traj: Trajectory, base_quat: Array, fps: float) -> Control:
-    """Per-frame simulator controls (T - 1 frames) that drive the hand along ``traj``'s PD targets:
-    root linear/angular velocity from frame t to t + 1, joint targets of frame t + 1 and their velocity."""
+    """Per-frame simulator controls (T - 1 frames) that drive the hands along ``traj``'s PD targets:
+    root linear/angular velocities from frame t to t + 1, joint targets of frame t + 1 and their velocity."""
     rq = root_quats(traj.base, base_quat)
     rel = quat_mul(rq[1:], quat_conj(rq[:-1]))
     dj = jnp.diff(traj.joints, axis=0) * fps
     return Control(
-        root_vel=jnp.diff(traj.base[:, :3], axis=0) * fps,
+        root_vel=jnp.diff(root_positions(traj.base), axis=0) * fps,
         root_angvel=quat_log(rel) * fps,
         tau=jnp.zeros_like(dj),
         q_target=traj.joints[1:],
@@ -89,7 +129,7 @@ def sim_controls(traj: Trajectory, base_quat: Array, fps: float) -> Control:
 def start_state(model: Model, traj: Trajectory, base_quat: Array, obj_pos0: np.ndarray, obj_quat0: np.ndarray) -> State:
     """The resting state at frame 0: hand at the first targets, object at the demo's first pose."""
     rq = root_quats(traj.base[:1], base_quat)[0]
-    return initial_state(model, traj.base[0, :3], rq, traj.joints[0], obj_pos0, obj_quat0)
+    return initial_state(model, root_positions(traj.base[:1])[0], rq, traj.joints[0], obj_pos0, obj_quat0)
 
 
 def simulate(
@@ -108,12 +148,13 @@ simulate_jit = jax.jit(simulate, static_argnames=("fps",))
 
 def observed_state(model: Model, obs: dict[str, np.ndarray], base_quat: Array) -> State:
     """The quasi-physical state of a target observation (contacts start fresh)."""
-    q = jnp.asarray(obs["qpos"], F32)
-    rq = root_quats(q[None, :6], base_quat)[0]
-    s = initial_state(model, q[:3], rq, q[6:], obs["obj_pos"], obs["obj_quat"])
+    hj = model.hand.hand_joints
+    base, joints = (jnp.asarray(x, F32) for x in split_q(np.asarray(obs["qpos"]), hj))
+    rq = root_quats(base[None], base_quat)[0]
+    s = initial_state(model, root_positions(base[None])[0], rq, joints, obs["obj_pos"], obs["obj_quat"])
     return dataclasses.replace(
         s,
-        qd=jnp.asarray(obs["qvel"][6:], F32),
+        qd=jnp.asarray(split_q(np.asarray(obs["qvel"]), hj)[1], F32),
         obj_vel=jnp.asarray(obs["obj_vel"], F32),
         obj_angvel=jnp.asarray(obs["obj_angvel"], F32),
     )

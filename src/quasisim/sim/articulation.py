@@ -40,9 +40,9 @@ def ancestor_mask(model: HandModel) -> np.ndarray:
     mask = np.zeros((B, J), bool)
     for b in range(B):
         a = b
-        while a >= 0:
+        while a >= 0:  # up to the hand's root (parent -1)
             mask[b, model.joint_body == a] = True
-            a = int(model.body_parent[a]) if a > 0 else -1
+            a = int(model.body_parent[a])
     return mask
 
 

@@ -51,13 +51,7 @@ def build_model(
     """``obj`` is an :class:`~quasisim.assets.object.ObjectAsset`; ``table`` a :class:`~quasisim.targets.scene.Table`;
     ``offset`` (3,) the world position of the simulator origin (e.g. the object's initial position)."""
     if points is None:
-        cfg = hand.config.points
-        points = sample_hand_points(
-            hand,
-            opts.point_spacing if opts.point_spacing is not None else cfg.spacing,
-            opts.point_offset if opts.point_offset is not None else cfg.offset,
-            cfg.seed,
-        )
+        points = hand_set_points((hand,), opts)
     grid = obj.sdf(spacing=opts.sdf_spacing)
     surf, normals = obj.surface_points(opts.n_surface, seed=0)
     return Model(
@@ -85,6 +79,25 @@ def build_model(
         substeps=int(opts.substeps),
         n_candidates=int(min(opts.n_candidates, points.n)),
     )
+
+
+def hand_set_points(hands: tuple[HandModel, ...], opts: SimOptions) -> HandPoints:
+    """The point sets of ``hands``, each sampled on its own hand (its config's spacing, offset and seed unless
+    ``opts`` sets them), concatenated with body indices of the hand set :func:`~quasisim.assets.hand.join_hands`."""
+    parts, b0 = [], 0
+    for hand in hands:
+        cfg = hand.config.points
+        pts = sample_hand_points(
+            hand,
+            opts.point_spacing if opts.point_spacing is not None else cfg.spacing,
+            opts.point_offset if opts.point_offset is not None else cfg.offset,
+            cfg.seed,
+        )
+        parts.append(dataclasses.replace(pts, body=pts.body + b0))
+        b0 += hand.n_bodies
+    if len(parts) == 1:
+        return parts[0]
+    return HandPoints(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("body", "local", "normal")))
 
 
 CONTACT_KEYS = ("alpha", "d_c", "k_n", "k_f", "k_d", "mu")

@@ -42,6 +42,7 @@ class _Tree:
     """Per-depth batches of bodies so that FK is a handful of vectorised steps (fast to compile)."""
 
     levels: tuple[np.ndarray, ...]
+    roots: np.ndarray
     parent: np.ndarray
     local_rot: np.ndarray
     local_pos: np.ndarray
@@ -61,8 +62,8 @@ def _tree(model: HandModel) -> _Tree:
         return cached
     B = model.n_bodies
     depth = np.zeros(B, dtype=int)
-    for b in range(1, B):
-        depth[b] = depth[model.body_parent[b]] + 1
+    for b in range(B):
+        depth[b] = depth[model.body_parent[b]] + 1 if model.body_parent[b] >= 0 else 0
     levels = tuple(np.flatnonzero(depth == d) for d in range(1, depth.max() + 1))
     M = max(1, max(len(model.body_joints(b)) for b in range(B)))
     jidx = -np.ones((B, M), dtype=int)
@@ -75,7 +76,17 @@ def _tree(model: HandModel) -> _Tree:
             jhinge[b, m] = model.joint_type[j] == HINGE
             jaxis[b, m] = model.joint_axis[j]
             jpos[b, m] = model.joint_pos[j]
-    tree = _Tree(levels, model.body_parent, np_quat_to_mat(model.body_quat), model.body_pos, jidx, jhinge, jaxis, jpos)
+    tree = _Tree(
+        levels,
+        model.roots,
+        model.body_parent,
+        np_quat_to_mat(model.body_quat),
+        model.body_pos,
+        jidx,
+        jhinge,
+        jaxis,
+        jpos,
+    )
     _TREES[model] = tree
     return tree
 
@@ -88,7 +99,9 @@ class JointFrames(NamedTuple):
 
 
 def forward_kinematics(model: HandModel, root_pos: Array, root_rot: Array, q: Array) -> BodyPoses:
-    """World poses of every body for root pose (``root_pos`` (3,), ``root_rot`` (3, 3)) and joints ``q`` (J,)."""
+    """World poses of every body for root pose (``root_pos`` (3,), ``root_rot`` (3, 3)) and joints ``q`` (J,);
+    a hand set of H hands (:func:`~quasisim.assets.hand.join_hands`) takes one root pose per hand, (H, 3) and
+    (H, 3, 3)."""
     return forward_kinematics_with_joints(model, root_pos, root_rot, q)[0]
 
 
@@ -99,8 +112,9 @@ def forward_kinematics_with_joints(
     tr = _tree(model)
     B, J = model.n_bodies, model.n_joints
     dtype = jnp.result_type(root_pos, root_rot, q, tr.local_pos)  # as the arithmetic below promotes
-    pos = jnp.zeros((B, 3), dtype).at[0].set(root_pos)
-    rot = jnp.zeros((B, 3, 3), dtype).at[0].set(root_rot)
+    roots = jnp.asarray(tr.roots)
+    pos = jnp.zeros((B, 3), dtype).at[roots].set(jnp.reshape(root_pos, (-1, 3)))
+    rot = jnp.zeros((B, 3, 3), dtype).at[roots].set(jnp.reshape(root_rot, (-1, 3, 3)))
     jaxis = jnp.zeros((J + 1, 3), dtype)  # row J collects writes of padded (absent) joints
     janchor = jnp.zeros((J + 1, 3), dtype)
     qpad = jnp.concatenate([q, jnp.zeros(1, q.dtype)])  # index -1 -> 0 displacement
@@ -132,10 +146,20 @@ def forward_kinematics_with_joints(
     return BodyPoses(pos, rot), JointFrames(jaxis[:J], janchor[:J])
 
 
+def bases_to_roots(base: Array, base_rot: Array) -> tuple[Array, Array]:
+    """:func:`base_to_root` of every hand: base coordinates (6 H,) (hand after hand) and frames (H, 3, 3)
+    (or (3, 3) for one hand) -> root positions (H, 3), rotations (H, 3, 3)."""
+    b = jnp.reshape(base, (-1, 6))
+    R = jnp.reshape(base_rot, (-1, 3, 3))
+    return b[:, :3], jnp.einsum("hij,hjk->hik", R, euler_xyz_to_mat(b[:, 3:6]))
+
+
 def fk_full(model: HandModel, base_rot: Array, qfull: Array) -> BodyPoses:
-    """Forward kinematics from a full generalized position ``[base (6), joints (J)]``."""
-    p, R = base_to_root(qfull[:6], base_rot)
-    return forward_kinematics(model, p, R, qfull[6:])
+    """Forward kinematics from a full generalized position ``[base (6), joints (J)]``; a hand set of H hands
+    takes ``[bases (6 H), joints (J)]`` and ``base_rot`` (H, 3, 3)."""
+    n = 6 * model.n_hands
+    p, R = bases_to_roots(qfull[:n], base_rot)
+    return forward_kinematics(model, p, R, qfull[n:])
 
 
 def points_world(poses: BodyPoses, body: Array | np.ndarray, local: Array) -> Array:

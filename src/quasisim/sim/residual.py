@@ -103,13 +103,13 @@ class ResidualNets(eqx.Module):
 
 
 class ControlTransform(eqx.Module):
-    """The control transformation for a hand of ``n_joints`` joints (see module docstring)."""
+    """The control transformation for ``n_hands`` hands of ``n_joints`` joints in all (see module docstring)."""
 
     net: PointNet
     cfg: ResidualConfig = eqx.field(static=True)
 
-    def __init__(self, cfg: ResidualConfig, n_joints: int, seed: int = 0) -> None:
-        n = 6 + 2 * n_joints
+    def __init__(self, cfg: ResidualConfig, n_joints: int, n_hands: int = 1, seed: int = 0) -> None:
+        n = 6 * n_hands + 2 * n_joints
         self.net = PointNet(cfg, n, jax.random.PRNGKey(seed + 7919), extra=n)
         self.cfg = cfg
 
@@ -180,14 +180,15 @@ def _contact_center(x: ResidualInput) -> Array:
     return jnp.where(jnp.sum(w) > 0, jnp.sum(w[:, None] * x.contact_pt, 0) / (jnp.sum(w) + 1e-12), x.obj_pts[0])
 
 
-def control_residual(ct: ControlTransform, x: ResidualInput, control: Array) -> Array:
-    """The control transformation's residual (6 + 2J,) of ``control`` = (root velocity (3,), root angular
-    velocity (3,), joint target error ``q* - q`` (J,), joint target velocity (J,)), in the same layout and
-    units: velocities scaled by ``control_vel_scale``, joint targets by ``control_pos_scale``."""
+def control_residual(ct: ControlTransform, x: ResidualInput, control: Array, n_hands: int = 1) -> Array:
+    """The control transformation's residual (6 H + 2J,) of ``control`` = (root velocities (3 H,), root
+    angular velocities (3 H,), joint target errors ``q* - q`` (J,), joint target velocities (J,)) of H hands,
+    in the same layout and units: velocities scaled by ``control_vel_scale``, joint targets by
+    ``control_pos_scale``."""
     cfg = ct.cfg
     feats, kinds, mask = _region(x, _contact_center(x), cfg.n_global // 2, cfg.global_radius)
     out = ct.net(feats, kinds, mask, control)
-    J = (control.shape[0] - 6) // 2
-    scale = jnp.concatenate([jnp.full(6, cfg.control_vel_scale), jnp.full(J, cfg.control_pos_scale),
+    J = (control.shape[0] - 6 * n_hands) // 2
+    scale = jnp.concatenate([jnp.full(6 * n_hands, cfg.control_vel_scale), jnp.full(J, cfg.control_pos_scale),
                              jnp.full(J, cfg.control_vel_scale)])  # fmt: skip
     return out * scale

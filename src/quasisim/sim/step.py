@@ -8,7 +8,7 @@ One substep (``dt``), with the hand's points ``p_i`` attached to their bodies (p
    ``(M_o + dt D_o + dt^2 K_o) nu+ = (M_o + dt D_o) nu + dt F_o + dt^2 sum_i B_i^T K_i v_i`` where
    ``B_i = [I, -[r_i]x]`` maps ``nu`` to the velocity of the object point under ``p_i``, ``K_o = sum B_i^T K_i B_i``
    and ``F_o`` holds contact forces, gravity, velocity damping, gyroscopic torque and the residual wrench.
-3. Hand: the root follows its velocity controls (kinematic); the joints obey
+3. Hand: each hand's root follows its velocity controls (kinematic); the joints obey
    ``M(q) qdd = u + (1 - alpha) J^T f - g(q) - c qd - k q + f_limit`` (f: reaction of the contacts, with the
    object already moved), integrated linearly implicitly in joint space with the contact stiffness projected
    through the body Jacobians. Coriolis/centrifugal terms of the light finger links and the fictitious
@@ -47,10 +47,10 @@ class Points(NamedTuple):
 
 
 def _integrate_quat(q: Array, w: Array, dt: float) -> Array:
-    """q+ = normalize(q + dt/2 [0, w] q) for a world-frame angular velocity ``w``."""
-    dq = 0.5 * dt * quat_mul(jnp.concatenate([jnp.zeros(1, q.dtype), w]), q)
+    """q+ = normalize(q + dt/2 [0, w] q) for world-frame angular velocities ``w`` (..., 3), ``q`` (..., 4)."""
+    dq = 0.5 * dt * quat_mul(jnp.concatenate([jnp.zeros((*w.shape[:-1], 1), q.dtype), w], axis=-1), q)
     q = q + dq
-    return q / jnp.linalg.norm(q)
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def solve3(A: Array, b: Array) -> Array:
@@ -141,17 +141,18 @@ class Contacts(NamedTuple):
 
 
 def point_velocities(
-    state: State, ctrl: Control, bj: BodyJacobians, pts: Points, p: Array, r: Array, alpha: Array
+    model: Model, state: State, ctrl: Control, bj: BodyJacobians, pts: Points, p: Array, r: Array, alpha: Array
 ) -> Array:
-    """(K, 3) world velocities of the hand points: joint motion, the root's velocity controls and, while
-    relaxed, the points' own offset velocity."""
+    """(K, 3) world velocities of the hand points: joint motion, their hand's root velocity controls and,
+    while relaxed, the points' own offset velocity."""
     vb = jnp.sum(bj.jv * state.qd, axis=-1)
     wb = jnp.sum(bj.jw * state.qd, axis=-1)
+    h = jnp.asarray(model.hand.body_hand)[pts.body]  # (K,) the hand of each point
     return (
         vb[pts.body]
         + jnp.cross(wb[pts.body], r)
-        + ctrl.root_vel
-        + jnp.cross(ctrl.root_angvel, p - state.root_pos)
+        + ctrl.root_vel[h]
+        + jnp.cross(ctrl.root_angvel[h], p - state.root_pos[h])
         + alpha * state.delta_vel
     )
 
@@ -280,7 +281,7 @@ def substep(
     """
     dt = model.dt
     p, r, bj = hand_points(model, params, state, pts)
-    v = point_velocities(state, ctrl, bj, pts, p, r, params.alpha)
+    v = point_velocities(model, state, ctrl, bj, pts, p, r, params.alpha)
     c = contacts(model, params, state, p, v, res_point)
     nu_new = object_step(model, params, state, c, v, res_wrench)
     f_hand = hand_reaction(model, c, nu_new)
@@ -353,12 +354,12 @@ def transformed_control(model: Model, params: Params, state: State, ctrl: Contro
     """The control transformation: ``u + g(state, u)`` for the frame's root velocities, joint targets and
     joint target velocities (:func:`quasisim.sim.residual.control_residual`)."""
     ct = eqx.combine(params.control_transform, model.control_transform_static)
-    u = jnp.concatenate([ctrl.root_vel, ctrl.root_angvel, ctrl.q_target - state.q, ctrl.qd_target])
-    d = control_residual(ct, x, u)
-    J = ctrl.q_target.shape[0]
+    u = jnp.concatenate([ctrl.root_vel.ravel(), ctrl.root_angvel.ravel(), ctrl.q_target - state.q, ctrl.qd_target])
+    n, J = ctrl.root_vel.size, ctrl.q_target.shape[0]
+    d = control_residual(ct, x, u, n // 3)
     return dataclasses.replace(
-        ctrl, root_vel=ctrl.root_vel + d[:3], root_angvel=ctrl.root_angvel + d[3:6],
-        q_target=ctrl.q_target + d[6 : 6 + J], qd_target=ctrl.qd_target + d[6 + J :],
+        ctrl, root_vel=ctrl.root_vel + d[:n].reshape(-1, 3), root_angvel=ctrl.root_angvel + d[n : 2 * n].reshape(-1, 3),
+        q_target=ctrl.q_target + d[2 * n : 2 * n + J], qd_target=ctrl.qd_target + d[2 * n + J :],
     )  # fmt: skip
 
 
@@ -425,7 +426,8 @@ def rollout(model: Model, params: Params, state0: State, controls: Control, chec
 
 
 def initial_state(model: Model, root_pos: Array, root_quat: Array, q: Array, obj_pos: Array, obj_quat: Array) -> State:
-    """A resting state from world-frame poses: hand root and joints ``q``; object frame origin and orientation."""
+    """A resting state from world-frame poses: hand roots (H, 3), (H, 4) (or (3,), (4,) for one hand) and
+    joints ``q``; object frame origin and orientation."""
     f32 = jnp.float32
     R = quat_to_mat(jnp.asarray(obj_quat, f32))
     com = model.to_sim(jnp.asarray(obj_pos, f32)) + R @ model.obj_com
@@ -433,8 +435,8 @@ def initial_state(model: Model, root_pos: Array, root_quat: Array, q: Array, obj
     z3 = jnp.zeros(3, dtype=f32)
     q = jnp.asarray(q, f32)
     return State(
-        root_pos=model.to_sim(jnp.asarray(root_pos, f32)),
-        root_quat=jnp.asarray(root_quat, f32),
+        root_pos=model.to_sim(jnp.reshape(jnp.asarray(root_pos, f32), (-1, 3))),
+        root_quat=jnp.reshape(jnp.asarray(root_quat, f32), (-1, 4)),
         q=q,
         qd=jnp.zeros_like(q),
         delta=jnp.zeros((N, 3), f32),

@@ -42,7 +42,8 @@ class Model:
     """The simulated scene.
 
     Attributes:
-        hand: the parsed :class:`~quasisim.assets.hand.HandModel` (static).
+        hand: the parsed :class:`~quasisim.assets.hand.HandModel` (static); for two hands, the hand set of
+            :func:`~quasisim.assets.hand.join_hands` (one root per hand, joints and points concatenated).
         point_body: (N,) int32 body index of each hand point.
         point_local: (N, 3) hand points in their body frames.
         sdf_values: (nx, ny, nz) object signed distances (m), negative inside.
@@ -166,7 +167,7 @@ class State:
     """Dynamic state.
 
     Attributes:
-        root_pos: (3,) hand root position.  root_quat: (4,) w x y z.
+        root_pos: (H, 3) position of each hand's root (H = 1 for one hand).  root_quat: (H, 4) w x y z.
         q, qd: (J,) joint positions and velocities.
         delta, delta_vel: (N, 3) free displacement of the relaxed points from their bodies and its velocity.
         obj_pos: (3,) object centre of mass (world).  obj_quat: (4,) object orientation.
@@ -199,7 +200,7 @@ class Control:
     ``q_target`` at velocity ``qd_target`` (the same PD law and interpolation as the target simulators).
 
     Attributes:
-        root_vel, root_angvel: (3,) root linear (m/s) and angular (rad/s, world) velocity.
+        root_vel, root_angvel: (H, 3) each hand root's linear (m/s) and angular (rad/s, world) velocity.
         tau: (J,) joint forces (N m).  q_target: (J,) joint targets at the frame's end (rad).
         qd_target: (J,) joint target velocity over the frame (rad/s).
         point_force: (N, 3) free actuation of the relaxed points (N), used while alpha > 0.
