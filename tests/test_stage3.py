@@ -28,7 +28,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
     prob = make_problem(demo, hand, rt.base_rot, 5, 32)
     cfg = TransferConfig.from_yaml()
     cur = load_curriculum("default")
-    variants = noisy_variants(rt.q, 1, cfg.sample_target, 0, hand.joint_range)
+    variants = noisy_variants(rt.q, 1, cfg.sample_target, 0, prob.scene)
     buf = collect(prob.scene, [rt.q, *variants], demo.fps)
     return prob, cfg, prob.params(cur.contact(cur.stiffest)), buf, rt.q, variants
 
