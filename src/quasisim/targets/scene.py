@@ -247,8 +247,7 @@ def make_scene(
     if left is None and demo.left_joints is not None:  # a one-hand code path reached with a two-hand demo
         raise QuasisimError(
             f"{demo.path or demo.name}: a demo with two hands (left_joints); this command handles one-hand demos "
-            "only (two hands: quasisim retarget, quasisim evaluate, quasisim bench baseline, quasisim transfer --method "
-            "kinematic or sample-target)"
+            "only (two hands: quasisim retarget, evaluate, transfer, bench baseline, bench transfer)"
         )
     table, notes = size_table(demo, obj)
     return Scene(
