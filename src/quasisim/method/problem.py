@@ -34,6 +34,7 @@ class Problem:
 
     @property
     def hand(self) -> HandModel:
+        """The demo's (right) robot hand; the simulator's hands are ``model.hand`` (a hand set for two)."""
         return self.scene.hand
 
     @property
