@@ -171,9 +171,10 @@ def _cli(*args: str):
 
 @pytest.mark.slow
 def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
-    """The whole method (stages 1 and 2 with both hands in the quasi-physical simulator, MPC, sampling and the
-    selection in MuJoCo) on the synthetic two-hand clip, with tiny budgets: the controls drive both hands,
-    stage 1's human points pair with robot points of their own hand, and the result is judged in MuJoCo."""
+    """Every stage (1 and 2 with both hands in the quasi-physical simulator, 3 fitting it to MuJoCo with its
+    networks, MPC, sampling and the selection in MuJoCo) on the synthetic two-hand clip, with tiny budgets:
+    the controls drive both hands, stage 1's human points pair with robot points of their own hand, and the
+    result is judged in MuJoCo."""
     import json
 
     from quasisim.data.controls import load_controls
@@ -185,10 +186,12 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     from test_transfer import CURRICULUM, TINY
 
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
-    more = {"sample_target.samples": 4, "sample_target.horizon": 3, "mpc.steps": 1, "mpc.horizon": 2}
+    more = {"sample_target.samples": 4, "sample_target.horizon": 3, "mpc.steps": 1, "mpc.horizon": 2,
+            "stage3.steps": 2, "stage3.variants": 1, "stage3.horizon": 3, "stage3.batch": 4, "stage3.rounds": 1,
+            "stage3.residual_steps": 2}  # fmt: skip
     cfg = TransferConfig.from_yaml(overrides={**TINY, **more})
     spec = TransferSpec(
-        curriculum=str(tmp_path / "tiny.yaml"), stages=("1", "2", "mpc", "sample", "select"), render=False,
+        curriculum=str(tmp_path / "tiny.yaml"), stages=("1", "2", "3", "mpc", "sample", "select"), render=False,
         progress=False,
     )  # fmt: skip
     out = tmp_path / "ours"
@@ -205,6 +208,9 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     assert set(np.unique(hp["point_hand"]).tolist()) == {0, 1}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["hand"] == "shadow + shadow-left" and len(summary["simulators"]) == 2  # the rigid ones
+    assert np.all(np.isfinite(summary["stage3"]["held_out_after"])) and summary["stage3"]["networks"] == [
+        "local", "global", "control"
+    ]  # fmt: skip
     m = res.metrics
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"]]).all()
     assert evaluate_controls(load_demo(two_hand_clip), c, "mujoco", None, render=False).metrics == m
