@@ -1,7 +1,9 @@
 """A dynamic human hand built from a demonstration's own keypoints (stage 1: "a dynamic MANO hand").
 
 Without MANO we build an articulated capsule hand whose palm shape and bone lengths are the medians of
-the clip's right-hand keypoints (MediaPipe order, metres). It is an ordinary MJCF compiled by MuJoCo and
+the clip's keypoints of one hand (MediaPipe order, metres; stage 1 builds one per side of a two-hand demo:
+from a left hand's keypoints the palm normal below points to the back of the hand, so positive flexion
+bends backwards; the joint ranges are symmetric, so the hand reaches the same poses). It is an ordinary MJCF compiled by MuJoCo and
 loaded through :func:`quasisim.assets.hand.load_hand`, so everything that takes a robot
 :class:`~quasisim.assets.hand.HandModel` (kinematics, point sets, simulators, retargeting) takes it too.
 
