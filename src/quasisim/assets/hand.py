@@ -17,7 +17,7 @@ import dataclasses
 import importlib.util
 import os
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 from typing import Any
 
@@ -285,7 +285,7 @@ class HandModel:
     def collision_geoms(self) -> tuple[Geom, ...]:
         return tuple(g for g in self.geoms if g.collision)
 
-    @property
+    @cached_property
     def roots(self) -> np.ndarray:
         """(H,) the root bodies, one per hand (a hand set of :func:`join_hands` has several)."""
         return np.flatnonzero(self.body_parent < 0)
@@ -294,7 +294,7 @@ class HandModel:
     def n_hands(self) -> int:
         return len(self.roots)
 
-    @property
+    @cached_property
     def body_hand(self) -> np.ndarray:
         """(B,) the hand (index into :attr:`roots`) each body belongs to."""
         hand = np.zeros(self.n_bodies, dtype=np.int32)
@@ -304,7 +304,7 @@ class HandModel:
                 hand[b] = hand[self.body_parent[b]]
         return hand
 
-    @property
+    @cached_property
     def hand_joints(self) -> tuple[int, ...]:
         """Joints of each hand, in order (a hand's joints are contiguous)."""
         return tuple(int(n) for n in np.bincount(self.body_hand[self.joint_body], minlength=self.n_hands))

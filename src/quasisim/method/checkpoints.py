@@ -24,7 +24,7 @@ from quasisim.errors import InputError, QuasisimError
 from quasisim.files import remove_orphans, save_json_atomic, save_npz_atomic
 from quasisim.optim.adam import StepLog
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory
+from quasisim.optim.trajectory import Trajectory, hand_layout
 
 IDENTITY_KEY = "run_identity"
 # what a checkpoint must hold: array name -> shape (None: any length on that axis) or "str" (a 0-d string)
@@ -163,6 +163,6 @@ def trajectory_arrays(traj: Trajectory, sysid: SysID, log: StepLog | None, wall_
 
 def trajectory_from(d: dict[str, np.ndarray], hand_joints: tuple[int, ...] = ()) -> tuple[Trajectory, SysID]:
     """Inverse of :func:`trajectory_arrays` (trajectory and S); ``hand_joints``: the trajectory's hand layout."""
-    hj = tuple(hand_joints) if len(hand_joints) > 1 else ()
-    t = Trajectory(jnp.asarray(d["base"]), jnp.asarray(d["joints"]), jnp.asarray(d["point_force"]), hj)
+    arrays = (jnp.asarray(d[k]) for k in ("base", "joints", "point_force"))
+    t = Trajectory(*arrays, hand_layout(hand_joints))
     return t, SysID.from_array(d["sysid"])

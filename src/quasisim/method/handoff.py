@@ -121,9 +121,8 @@ def touching_joints(
         r, Jr = residual(q), jax.jacfwd(residual)(q)  # (N,), (N, J)
         grad = Jr.T @ r + damping * (q - q0)
         trial = jnp.clip(q - jnp.linalg.solve(Jr.T @ Jr + (damping + mu) * eye, grad), lo, hi)
-        better = cost(trial, residual(trial)) < cost(
-            q, r
-        )  # Levenberg-Marquardt: keep a step only if it lowers the cost
+        # Levenberg-Marquardt: keep a step only if it lowers the cost
+        better = cost(trial, residual(trial)) < cost(q, r)
         return jnp.where(better, trial, q), jnp.where(better, mu / 3.0, mu * 4.0)
 
     def body(carry: tuple[Array, Array], _: None) -> tuple[tuple[Array, Array], None]:

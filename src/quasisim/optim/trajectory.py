@@ -58,8 +58,14 @@ class Trajectory:
             base=jnp.asarray(base, F32),
             joints=jnp.asarray(joints, F32),
             point_force=jnp.zeros((len(q) - 1, n_points, 3), F32),
-            hand_joints=tuple(hand_joints) if len(hand_joints) > 1 else (),
+            hand_joints=hand_layout(hand_joints),
         )
+
+
+def hand_layout(hand_joints: tuple[int, ...]) -> tuple[int, ...]:
+    """:attr:`Trajectory.hand_joints` for hands of ``hand_joints`` joints: empty for one hand, so that every
+    one-hand trajectory has the same tree structure (and compiled programs)."""
+    return tuple(int(j) for j in hand_joints) if len(hand_joints) > 1 else ()
 
 
 def _hand_columns(hand_joints: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
