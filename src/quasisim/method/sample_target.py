@@ -50,8 +50,10 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
 
 from __future__ import annotations
 
+import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -212,6 +214,14 @@ def sample_windows(
     hi = np.maximum(joint_hi, nominal[1:, c:])
     wins[1:, 1:, c:] = np.clip(wins[1:, 1:, c:], lo, hi)
     return wins
+
+
+def scene_sampler(opts: SamplingOptions, scene: Scene) -> Callable[[np.random.Generator, np.ndarray], np.ndarray]:
+    """:func:`sample_windows` for ``scene``: ``sample(rng, nominal)`` keeps every hand's joints within its
+    ranges and uses the noise std of the scene's hands (one or two)."""
+    lo, hi = scene.joint_bounds()  # every column of every hand (the base unbounded)
+    std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
+    return functools.partial(sample_windows, opts=opts, joint_lo=lo, joint_hi=hi, std=std)
 
 
 def window_costs(
@@ -485,8 +495,7 @@ def _control_loop(
 ) -> SampleResult:  # fmt: skip
     T, H, fps = len(plan), opts.horizon, float(demo.fps)
     ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
-    lo, hi = scene.joint_bounds()  # every column of every hand (the base unbounded)
-    std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
+    sample = scene_sampler(opts, scene)
     base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
     base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
     work = padded(plan, H)  # the plan, shifted as we go
@@ -496,10 +505,10 @@ def _control_loop(
     runner.begin(plan[0], None)
     t0 = time.perf_counter()
     for t in tqdm(range(T - 1), desc="sample-target", unit="frame", disable=not progress, leave=False):
-        wins = sample_windows(rng, work[t : t + H + 1], opts, lo, hi, std)
+        wins = sample(rng, work[t : t + H + 1])
         for alt in alts:  # windows around another plan, from the targets this step starts from
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
-            wins = np.concatenate([wins, sample_windows(rng, nominal, opts, lo, hi, std)])
+            wins = np.concatenate([wins, sample(rng, nominal)])
         pred = runner.predict(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)

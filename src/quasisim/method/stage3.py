@@ -38,7 +38,7 @@ import optax
 from quasisim.errors import QuasisimError
 from quasisim.eval.predict import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method import spec
-from quasisim.method.sample_target import SamplingOptions, noise_std, sample_windows
+from quasisim.method.sample_target import SamplingOptions, scene_sampler
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
@@ -58,9 +58,8 @@ def noisy_variants(plan: np.ndarray, n: int, noise: SamplingOptions, seed: int, 
     ~6 frames, the noise scales cycled), joints kept within the joint ranges of ``scene``'s hands."""
     T = len(plan)
     opts = dataclasses.replace(noise, samples=n + 1, horizon=T - 1, knots=max(2, (T - 1) // 6))
-    std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
-    wins = sample_windows(np.random.default_rng(seed), plan, opts, *scene.joint_bounds(), std)
-    return [w for w in wins[1:]]
+    wins = scene_sampler(opts, scene)(np.random.default_rng(seed), plan)
+    return list(wins[1:])
 
 
 @pytree

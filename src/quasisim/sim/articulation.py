@@ -20,7 +20,7 @@ import numpy as np
 
 from quasisim.assets.hand import HINGE, HandModel
 from quasisim.rotations import axis_angle_to_mat, np_quat_to_mat
-from quasisim.sim.kinematics import BodyPoses, base_to_root, forward_kinematics_with_joints
+from quasisim.sim.kinematics import BodyPoses, bases_to_roots, forward_kinematics_with_joints
 
 Array = jnp.ndarray
 
@@ -60,7 +60,7 @@ def body_jacobians(
     coordinates are the floating base (3 world slides, 3 intrinsic hinges about ``base_rot``'s axes).
     """
     if base is not None:
-        root_pos, root_rot = base_to_root(base, base_rot)
+        root_pos, root_rot = bases_to_roots(base, base_rot)
     poses, frames = forward_kinematics_with_joints(model, root_pos, root_rot, q)
     mask = jnp.asarray(ancestor_mask(model), dtype=poses.pos.dtype)  # (B, J)
     hinge = jnp.asarray(model.joint_type == HINGE)

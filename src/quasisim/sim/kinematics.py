@@ -32,11 +32,6 @@ class BodyPoses(NamedTuple):
     rot: Array
 
 
-def base_to_root(base: Array, base_rot: Array) -> tuple[Array, Array]:
-    """Base coordinates (6,) and fixed frame ``base_rot`` (3, 3) -> root position (3,), rotation (3, 3)."""
-    return base[:3], base_rot @ euler_xyz_to_mat(base[3:6])
-
-
 @dataclass(frozen=True, eq=False)
 class _Tree:
     """Per-depth batches of bodies so that FK is a handful of vectorised steps (fast to compile)."""
@@ -147,8 +142,9 @@ def forward_kinematics_with_joints(
 
 
 def bases_to_roots(base: Array, base_rot: Array) -> tuple[Array, Array]:
-    """:func:`base_to_root` of every hand: base coordinates (6 H,) (hand after hand) and frames (H, 3, 3)
-    (or (3, 3) for one hand) -> root positions (H, 3), rotations (H, 3, 3)."""
+    """Floating-base coordinates to root poses, hand after hand: bases (6 H,) (per hand: position m, then
+    intrinsic x-y-z Euler angles rad about the fixed frame) and frames ``base_rot`` (H, 3, 3) (or (3, 3)
+    for one hand) -> root positions (H, 3), rotations (H, 3, 3) = ``base_rot @ R_xyz(angles)``."""
     b = jnp.reshape(base, (-1, 6))
     R = jnp.reshape(base_rot, (-1, 3, 3))
     return b[:, :3], jnp.einsum("hij,hjk->hik", R, euler_xyz_to_mat(b[:, 3:6]))
