@@ -8,13 +8,20 @@ from pathlib import Path
 from click.testing import CliRunner
 
 
-def _folder(root: Path, results: dict[str, tuple[float, float, bool, float]]) -> Path:
-    """A `bench transfer` folder holding run default+sample+select: {clip: (R_err, T_err, strict, stiffest loss)}."""
+def _metrics(r: float, t: float, strict: bool) -> dict:
+    success = {"10deg_10cm": True, "15deg_15cm": True, "20deg_20cm": True, "strict": strict}
+    return {"R_err_deg": r, "T_err_cm": t, "MPJPE_mm": 2 * r, "success": success, "object_motion": {"lift_ok": strict}}
+
+
+def _folder(root: Path, results: dict[str, tuple[float, float, bool, float]], with_kinematic: bool = True) -> Path:
+    """A `bench transfer` folder holding run default+sample+select: {clip: (R_err, T_err, strict, stiffest loss)},
+    each with a kinematic replay twice as far off and never strict."""
     for clip, (r, t, strict, loss) in results.items():
         d = root / clip
         (d / "default+sample+select").mkdir(parents=True)
-        success = {"10deg_10cm": True, "15deg_15cm": True, "20deg_20cm": True, "strict": strict}
-        row = {"metrics": {"R_err_deg": r, "T_err_cm": t, "success": success}}
+        row = {"metrics": _metrics(r, t, strict)}
+        if with_kinematic:
+            row["kinematic_metrics"] = _metrics(2 * r, 2 * t, False)
         (d / "clip.json").write_text(
             json.dumps({"clip": clip, "runs": {"default+sample+select": {"identity": {}, "row": row}}})
         )
@@ -38,8 +45,8 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
     assert r.exit_code == 0, r.output
     md = (out / "compare.md").read_text()
     assert "2 clips held by every folder" in md and "| c3 |" not in md  # c3 is in one folder only
-    assert "| old | 7.0 | 1.50 | 100 / 100 / 100 / 50 | 0.3000 / 0.3000 | - |" in md
-    assert "| new | 5.5 | 0.75 | 100 / 100 / 100 / 100 | 0.2500 / 0.2500 | 1 of 2 |" in md
+    assert "| old | 7.0 | 1.50 | 14.0 | 100 / 100 / 100 / 50 | 1 of 2 | 0.3000 / 0.3000 | - |" in md
+    assert "| new | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 0.2500 / 0.2500 | 1 of 2 |" in md
     assert "| c1 | 10.0 / 2.00 | 5.0 / 1.00 S | 0.5000 | 0.2000 |" in md
     assert len(json.loads((out / "compare.json").read_text())) == 4
 
@@ -47,3 +54,26 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
     assert r.exit_code != 0 and "nope" in r.output and "not a folder" in r.output
     r = CliRunner().invoke(main, ["bench", "compare", str(a), "--run", "sample-target", "--out", str(out)])
     assert r.exit_code != 0 and "no finished run 'sample-target'" in r.output
+
+
+def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Path) -> None:
+    from quasisim.cli import main
+
+    a = _folder(tmp_path / "shadow", {"c1": (10.0, 2.0, False, 0.5), "c2": (4.0, 1.0, True, 0.1)})
+    b = _folder(tmp_path / "allegro", {"c1": (5.0, 1.0, True, 0.2), "c2": (6.0, 0.5, True, 0.3)})
+    for d in (a, b):  # a folder kept in git: clip.json only, so no stage 2 losses
+        for s in d.glob("*/default+sample+select/summary.json"):
+            s.unlink()
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["bench", "compare", str(a), str(b), "--kinematic", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    md = (out / "compare.md").read_text()
+    assert "shadow vs allegro, 2 clips" in md and "stiffest loss" not in md
+    assert "| shadow kinematic | 14.0 | 3.00 | 28.0 | 100 / 100 / 100 / 0 | 0 of 2 | 0 of 2 |" in md
+    assert "| allegro | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 1 of 2 |" in md
+    assert "| clip | shadow | shadow kinematic | allegro | allegro kinematic |" in md
+    assert "| c1 | 10.0 / 2.00 | 20.0 / 4.00 | 5.0 / 1.00 S | 10.0 / 2.00 |" in md
+
+    c = _folder(tmp_path / "old", {"c1": (1.0, 1.0, True, 0.1)}, with_kinematic=False)
+    r = CliRunner().invoke(main, ["bench", "compare", str(a), str(c), "--kinematic", "--out", str(tmp_path / "o2")])
+    assert r.exit_code != 0 and "old kinematic" in r.output

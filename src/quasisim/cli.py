@@ -582,9 +582,12 @@ def bench_transfer(
 @bench.command("compare")
 @click.argument("folders", nargs=-1, required=True)
 @click.option("--run", "run", default="default+sample+select", show_default=True, help="The run to compare.")
+@click.option(
+    "--kinematic", is_flag=True, help="Each folder's kinematic replay beside its run (e.g. one folder per hand)."
+)
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/compare"), show_default=True)
 @_friendly
-def bench_compare(folders: tuple[str, ...], run: str, out: Path) -> None:
+def bench_compare(folders: tuple[str, ...], run: str, kinematic: bool, out: Path) -> None:
     """One run of finished `bench transfer` folders side by side: FOLDERS as LABEL=PATH (or PATH, labelled
     by its name), the first is the reference. Reads results back; runs nothing."""
     from quasisim.bench.compare import compare_folders
@@ -597,7 +600,7 @@ def bench_compare(folders: tuple[str, ...], run: str, out: Path) -> None:
             raise QuasisimError(f"bench compare: {p} is not a folder (expected LABEL=PATH of a `bench transfer` --out)")
         pairs.append((label or p.name, p))
     _outputs_free(out)
-    compare_folders(pairs, run, out)
+    compare_folders(pairs, run, out, kinematic)
 
 
 @bench.command("batch")

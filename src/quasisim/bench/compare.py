@@ -5,7 +5,8 @@ settings); this command reads the folders' results back (each clip's ``clip.json
 ``summary.json``; nothing is run or checked against the current settings) and tabulates the clips they
 share: per clip R_err / T_err / strict success and stage 2's loss in its stiffest simulator (where the run's
 ``summary.json`` is there: a folder kept in git holds only ``clip.json``), then a summary with each folder
-against the first.
+against the first. With ``--kinematic`` each folder's kinematic replay (judged beside the run, in the same
+target with the same hand) joins the table, e.g. one hand per folder: every hand's replay and ours.
 """
 
 from __future__ import annotations
@@ -23,38 +24,54 @@ from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
 
 
-def folder_rows(folder: Path, run: str) -> dict[str, dict[str, Any]]:
-    """{clip: metrics of ``run`` (+ stage 2's stiffest loss where the run has stage 2)} of a folder."""
+def folder_rows(folder: Path, run: str, kinematic: bool = False) -> dict[str, dict[str, Any]]:
+    """{clip: metrics of ``run`` (+ stage 2's stiffest loss where the run has stage 2)} of a folder; with
+    ``kinematic``, the metrics of the kinematic replay judged beside the run instead."""
     rows = {}
     for p in sorted(folder.glob(f"*/{CLIP_FILE}")):
         runs = json.loads(p.read_text())["runs"]
-        if run in runs:
-            rows[p.parent.name] = {**runs[run]["row"]["metrics"], **stiffest_simulator(p.parent / run / "summary.json")}
+        if run not in runs:
+            continue
+        row = runs[run]["row"]
+        if not kinematic:
+            rows[p.parent.name] = {**row["metrics"], **stiffest_simulator(p.parent / run / "summary.json")}
+        elif "kinematic_metrics" in row:
+            rows[p.parent.name] = row["kinematic_metrics"]
     return rows
 
 
-def compare_folders(folders: list[tuple[str, Path]], run: str, out: Path) -> str:
-    """Markdown of ``run`` in each ``(label, folder)`` on the clips every folder holds (written to ``out``)."""
-    per = {label: folder_rows(f, run) for label, f in folders}
-    empty = [f"{label} ({f})" for label, f in folders if not per[label]]
+def compare_folders(folders: list[tuple[str, Path]], run: str, out: Path, kinematic: bool = False) -> str:
+    """Markdown of ``run`` in each ``(label, folder)`` on the clips every folder holds (written to ``out``);
+    with ``kinematic``, each folder's kinematic replay (its hand, its target) beside it as ``LABEL kinematic``."""
+    per: dict[str, dict[str, dict[str, Any]]] = {}
+    for label, f in folders:
+        per[label] = folder_rows(f, run)
+        if kinematic:
+            per[f"{label} kinematic"] = folder_rows(f, run, kinematic=True)
+    empty = [label for label, rows in per.items() if not rows]
     if empty:
-        raise QuasisimError(f"no finished run {run!r} in: {', '.join(empty)} (folders of `quasisim bench transfer`)")
+        where = ", ".join(f"{label} ({f})" for label, f in folders)
+        raise QuasisimError(
+            f"no finished run {run!r} (or no kinematic replay beside it) for: {', '.join(empty)}; folders: {where} "
+            "(folders of `quasisim bench transfer`)"
+        )
     shared = sorted(set.intersection(*(set(r) for r in per.values())))
-    labels = [label for label, _ in folders]
+    labels = list(per)
+    with_loss = any("stiffest_loss" in r for rows in per.values() for r in rows.values())
     lines = [
-        header(f"{run}: {' vs '.join(labels)}, {len(shared)} clips held by every folder"),
-        *_summary(per, labels, shared),
-    ]
-    lines += [
+        header(f"{run}: {' vs '.join(label for label, _ in folders)}, {len(shared)} clips held by every folder"),
+        *_summary(per, labels, shared, with_loss),
         "",
-        "Per clip: R_err (deg) / T_err (cm), `S` strict success; stage 2's best loss in its stiffest simulator.",
+        "Per clip: R_err (deg) / T_err (cm), `S` strict success"
+        + ("; stage 2's best loss in its stiffest simulator." if with_loss else "."),
         "",
     ]
-    lines += ["| clip | " + " | ".join(labels) + " | " + " | ".join(f"stiffest loss {x}" for x in labels) + " |"]
-    lines += ["|---" * (1 + 2 * len(labels)) + "|"]
+    loss_labels = labels if with_loss else []
+    lines += ["| clip | " + " | ".join(labels + [f"stiffest loss {x}" for x in loss_labels]) + " |"]
+    lines += ["|---" * (1 + len(labels) + len(loss_labels)) + "|"]
     for c in shared:
         cells = [_cell(per[x][c]) for x in labels]
-        losses = [f"{per[x][c]['stiffest_loss']:.4f}" if "stiffest_loss" in per[x][c] else "-" for x in labels]
+        losses = [f"{per[x][c]['stiffest_loss']:.4f}" if "stiffest_loss" in per[x][c] else "-" for x in loss_labels]
         lines.append(f"| {c} | " + " | ".join(cells + losses) + " |")
     rows = [{"clip": c, "folder": x, **per[x][c]} for c in shared for x in labels]
     return publish(out, "compare", rows, lines)
@@ -64,16 +81,26 @@ def _cell(m: dict[str, Any]) -> str:
     return f"{m['R_err_deg']:.1f} / {m['T_err_cm']:.2f}" + (" S" if m["success"]["strict"] else "")
 
 
-def _summary(per: dict[str, dict[str, dict[str, Any]]], labels: list[str], clips: list[str]) -> list[str]:
+def _mean(rs: list[dict[str, Any]], key: str, fmt: str) -> str:
+    """Mean of ``key`` over ``rs`` formatted, or ``-`` where a row lacks it."""
+    return format(float(np.mean([r[key] for r in rs])), fmt) if all(key in r for r in rs) else "-"
+
+
+def _summary(
+    per: dict[str, dict[str, dict[str, Any]]], labels: list[str], clips: list[str], with_loss: bool
+) -> list[str]:
+    loss_head = " stiffest loss (mean / median) |" if with_loss else ""
     out = [
-        "| folder | R_err (deg) | T_err (cm) | succ 10 / 15 / 20 / strict (%) | stiffest loss (mean / median) | "
-        f"lower R_err and T_err than {labels[0]} |",
-        "|---|---|---|---|---|---|",
+        "| folder | R_err (deg) | T_err (cm) | MPJPE (mm) | succ 10 / 15 / 20 / strict (%) | lifted |"
+        f"{loss_head} lower R_err and T_err than {labels[0]} |",
+        "|---" * (7 + with_loss) + "|",
     ]
     base = per[labels[0]]
     for x in labels:
         rs = [per[x][c] for c in clips]
         succ = " / ".join(f"{100.0 * np.mean([r['success'][k] for r in rs]):.0f}" for k in SUCCESS_KEYS)
+        moved = [r.get("object_motion", {}).get("lift_ok") for r in rs]
+        lifted = "-" if None in moved else f"{sum(moved)} of {len(rs)}"
         losses = [r["stiffest_loss"] for r in rs if "stiffest_loss" in r]
         loss = f"{np.mean(losses):.4f} / {np.median(losses):.4f}" if len(losses) == len(rs) else "-"  # all or none
         better = sum(
@@ -81,7 +108,7 @@ def _summary(per: dict[str, dict[str, dict[str, Any]]], labels: list[str], clips
         )
         vs = "-" if x == labels[0] else f"{better} of {len(clips)}"
         out.append(
-            f"| {x} | {np.mean([r['R_err_deg'] for r in rs]):.1f} | {np.mean([r['T_err_cm'] for r in rs]):.2f} | "
-            f"{succ} | {loss} | {vs} |"
+            f"| {x} | {_mean(rs, 'R_err_deg', '.1f')} | {_mean(rs, 'T_err_cm', '.2f')} | {_mean(rs, 'MPJPE_mm', '.1f')} | "
+            f"{succ} | {lifted} |" + (f" {loss} |" if with_loss else "") + f" {vs} |"
         )
     return out
