@@ -278,3 +278,23 @@ def test_arctic_transfer_end_to_end(arctic_clip, tmp_path, method) -> None:
     m = json.loads((out / "metrics.json").read_text())
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"], m["CD_mm"]]).all() and not m["unstable"]
     assert json.loads((out / "summary.json").read_text())["hand"] == "shadow + shadow-left"
+
+
+@pytest.mark.slow
+def test_simulator_benchmarks_take_two_hands(two_hand_clip, tmp_path) -> None:
+    """`bench predict` and `bench sim`'s replay hold both hands: the quasi-physical simulator, given each
+    window's MuJoCo state, follows the same PD targets as MuJoCo with both hands (keypoints within a few mm
+    after 2 frames), and the replay's controls drive two roots."""
+    import json
+
+    from quasisim.bench.sim import kinematic_replay
+
+    r = _cli("bench", "predict", str(two_hand_clip.parent), "--clips", two_hand_clip.stem, "--horizon", "2",
+             "--sim", "9", "--out", str(tmp_path / "pred"))  # fmt: skip
+    assert r.exit_code == 0, r.output
+    (row,) = json.loads((tmp_path / "pred" / "predict.json").read_text())
+    assert row["n_windows"] == 12 - 2 and row["n_diverged"] == 0
+    assert row["keypoints_mm"] < 10.0 and np.isfinite([row["obj_pos_cm"], row["obj_rot_deg"]]).all()
+    rp = kinematic_replay(two_hand_clip, "shadow", substeps=10)
+    assert rp.q_kin.shape == (12, 2 * (6 + 22)) and rp.ctrl.root_vel.shape == (11, 2, 3)
+    assert rp.s0.root_pos.shape == (2, 3)

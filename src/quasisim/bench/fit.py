@@ -14,7 +14,6 @@ from typing import Any
 
 from tqdm import tqdm
 
-from quasisim.assets.hand import load_hand
 from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.eval import predict
@@ -22,8 +21,7 @@ from quasisim.files import save_json_atomic
 from quasisim.method import stage3
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
-from quasisim.method.problem import make_problem
-from quasisim.method.retarget import retarget
+from quasisim.method.problem import kinematic_problem
 from quasisim.runtime import free_compiled_programs
 from quasisim.sim.residual import ResidualConfig
 
@@ -38,13 +36,12 @@ VARIANTS = ("nominal", "+S, constants", *NETWORK_ROWS)
 def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: bool) -> list[dict[str, Any]]:
     """Rows (one per simulator variant) of one clip: held-out H-frame errors, fit losses, seconds."""
     o, bud = cfg.stage3, cfg.budget("fast")
-    demo, hand = load_demo(demo_path), load_hand(hand_name)
-    rt = retarget(hand, demo)
-    prob = make_problem(demo, hand, rt.base_rot, bud.substeps, bud.n_candidates)
+    demo = load_demo(demo_path)
+    prob, q_kin = kinematic_problem(demo, hand_name, bud.substeps, bud.n_candidates)
     cur = load_curriculum("default")
     p0 = prob.params(cur.contact(cur.stiffest))
     t0 = time.perf_counter()
-    train, test, _ = stage3.fit_windows(prob, rt.q, o, cfg.sample_target)
+    train, test, _ = stage3.fit_windows(prob, q_kin, o, cfg.sample_target)
     w = cfg.weights.arrays()
     args = (demo.fps, prob.base_quat)
     t_collect = time.perf_counter() - t0

@@ -9,15 +9,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from quasisim.assets.hand import load_hand
 from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
 from quasisim.eval.predict import collect, prediction_errors, windows
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
-from quasisim.method.problem import make_problem
-from quasisim.method.retarget import retarget
+from quasisim.method.problem import kinematic_problem
 from quasisim.runtime import free_compiled_programs
 
 
@@ -47,13 +45,11 @@ def run_predict_bench(
     pairs = _simulators(cur, sims, mus)
     paths = clips(data_dir, pattern, clip_names)
     bud = TransferConfig.from_yaml().budget("fast")
-    hand = load_hand(hand_name)
     rows: list[dict[str, Any]] = []
     for p in tqdm(paths, desc="clips", unit="clip"):
         free_compiled_programs()
         demo = load_demo(p)
-        rt = retarget(hand, demo)
-        prob = make_problem(demo, hand, rt.base_rot, bud.substeps, bud.n_candidates)
+        prob, q_kin = kinematic_problem(demo, hand_name, bud.substeps, bud.n_candidates)
         params = {
             f"sim {i + 1} (d_c {100 * cur.stages[i].d_c:g} cm{f', mu {m:g}' if mus else ''})": prob.params(
                 {**cur.contact(i), "mu": m}
@@ -61,7 +57,7 @@ def run_predict_bench(
             for i, m in pairs
         }
         t0 = time.perf_counter()
-        buf = collect(prob.scene, [rt.q], demo.fps)
+        buf = collect(prob.scene, [q_kin], demo.fps)
         w = windows(prob.model, buf, [(0, t) for t in range(demo.n_frames - horizon)], horizon, prob.base_quat)
         for name, par in params.items():
             e = prediction_errors(prob.model, par, w, demo.fps, prob.base_quat)

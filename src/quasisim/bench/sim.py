@@ -14,14 +14,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quasisim.assets.hand import load_hand
 from quasisim.bench.tables import header, peak_rss_mb
 from quasisim.data.demo import load_demo
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
-from quasisim.method.problem import Problem, make_problem
-from quasisim.method.retarget import RetargetResult, retarget
-from quasisim.optim.trajectory import Trajectory, sim_controls, start_state
+from quasisim.method.problem import Problem, kinematic_problem
+from quasisim.optim.trajectory import sim_controls, start_state
 from quasisim.sim.step import object_pose, rollout
 from quasisim.sim.types import Control, Params, State
 from quasisim.targets.mujoco_target import MujocoTarget
@@ -30,24 +28,23 @@ from quasisim.targets.mujoco_target import MujocoTarget
 @dataclass(frozen=True, eq=False)
 class Replay:
     """A clip's kinematic retarget as simulator input: the problem, the stiffest analytical simulator of the
-    default curriculum, the start state and the per-frame controls."""
+    default curriculum, the start state, the per-frame controls and the retarget's PD targets (T, D)."""
 
     prob: Problem
     params: Params
     s0: State
     ctrl: Control
-    rt: RetargetResult
+    q_kin: np.ndarray
 
 
 def kinematic_replay(demo_path: Path, hand_name: str, substeps: int, n_candidates: int = 128) -> Replay:
-    demo, hand = load_demo(demo_path), load_hand(hand_name)
-    rt = retarget(hand, demo)
-    prob = make_problem(demo, hand, rt.base_rot, substeps, n_candidates)
+    demo = load_demo(demo_path)
+    prob, q = kinematic_problem(demo, hand_name, substeps, n_candidates)
     cur = load_curriculum("default")
-    traj = Trajectory.from_q(rt.q, prob.model.n_points)
+    traj = prob.trajectory(q)
     bq = jnp.asarray(prob.base_quat, jnp.float32)
     s0 = start_state(prob.model, traj, bq, *prob.obj0)
-    return Replay(prob, prob.params(cur.contact(cur.stiffest)), s0, sim_controls(traj, bq, demo.fps), rt)
+    return Replay(prob, prob.params(cur.contact(cur.stiffest)), s0, sim_controls(traj, bq, demo.fps), q)
 
 
 def _timed(fn: Callable[..., Any], *args: Any, reps: int = 2) -> float:
@@ -71,13 +68,13 @@ def speed(r: Replay) -> dict[str, Any]:
 
     t_fb = _timed(jax.jit(jax.value_and_grad(loss)), r.ctrl, r.params, r.s0)
     frames = r.ctrl.root_vel.shape[0]
-    mj = MujocoTarget(r.prob.scene).rollout(r.rt.q)
+    mj = MujocoTarget(r.prob.scene).rollout(r.q_kin)
     res: dict[str, Any] = {
         "clip": r.prob.demo.name, "n_points": int(model.n_points), "n_candidates": int(model.n_candidates),
         "dt": float(model.dt), "substeps_per_frame": n, "frames": frames,
         "forward_substeps_per_s": frames * n / t_fwd, "fwd_bwd_substeps_per_s": frames * n / t_fb,
         "rollout60_fwd_bwd_s": t_fb * 59.0 / frames, "rollout60_forward_s": t_fwd * 59.0 / frames,
-        "peak_memory_mb": peak_rss_mb(), "mujoco_steps_per_s": (len(r.rt.q) - 1) * mj.substeps / mj.wall_s,
+        "peak_memory_mb": peak_rss_mb(), "mujoco_steps_per_s": (len(r.q_kin) - 1) * mj.substeps / mj.wall_s,
         "mujoco_dt": mj.dt,
     }  # fmt: skip
     res["simulated_seconds_per_wall_second"] = {

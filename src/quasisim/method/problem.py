@@ -14,7 +14,8 @@ import numpy as np
 from quasisim.assets.hand import HandModel, join_hands
 from quasisim.assets.object import ObjectAsset
 from quasisim.data.demo import Demo
-from quasisim.eval.evaluate import load_object_for
+from quasisim.eval.evaluate import demo_hands, load_object_for
+from quasisim.method.retarget import retarget_hands
 from quasisim.optim.objective import Reference, TrackingObjective, make_objective
 from quasisim.optim.trajectory import Trajectory, simulate, split_q
 from quasisim.rotations import np_mat_to_quat
@@ -116,3 +117,14 @@ def make_problem(
     points = hand_set_points(scene.hands, opts)
     model = build_model(join_hands(scene.hands), obj, scene.table, opts, demo.object_pos[0], points)
     return Problem(demo, scene, model)
+
+
+def kinematic_problem(demo: Demo, hand: str, substeps: int, n_candidates: int) -> tuple[Problem, np.ndarray]:
+    """:func:`make_problem` for ``demo`` and robot hand ``hand`` (a name or YAML; a two-hand demo gets it
+    and its mirror image) on the base frames of the kinematic retarget, and that retarget's PD targets
+    (T, D) in the targets' layout (right hand, then left)."""
+    hands = demo_hands(hand, demo.sides)
+    rts = retarget_hands(hands, demo)
+    left = (hands[1], rts[1].base_rot) if len(hands) > 1 else None
+    prob = make_problem(demo, hands[0], rts[0].base_rot, substeps, n_candidates, left=left)
+    return prob, np.concatenate([r.q for r in rts], axis=1)
