@@ -24,20 +24,19 @@ from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
 
 
-def folder_rows(folder: Path, run: str, kinematic: bool = False) -> dict[str, dict[str, Any]]:
-    """{clip: metrics of ``run`` (+ stage 2's stiffest loss where the run has stage 2)} of a folder; with
-    ``kinematic``, the metrics of the kinematic replay judged beside the run instead."""
-    rows = {}
+def folder_rows(folder: Path, run: str) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
+    """A folder's ``run``, read once: {clip: metrics (+ stage 2's stiffest loss where the run has stage 2)}
+    and {clip: metrics of the kinematic replay judged beside it} (the clips that have one)."""
+    rows, kin = {}, {}
     for p in sorted(folder.glob(f"*/{CLIP_FILE}")):
         runs = json.loads(p.read_text())["runs"]
         if run not in runs:
             continue
-        row = runs[run]["row"]
-        if not kinematic:
-            rows[p.parent.name] = {**row["metrics"], **stiffest_simulator(p.parent / run / "summary.json")}
-        elif "kinematic_metrics" in row:
-            rows[p.parent.name] = row["kinematic_metrics"]
-    return rows
+        clip, row = p.parent.name, runs[run]["row"]
+        rows[clip] = {**row["metrics"], **stiffest_simulator(p.parent / run / "summary.json")}
+        if "kinematic_metrics" in row:
+            kin[clip] = row["kinematic_metrics"]
+    return rows, kin
 
 
 def compare_folders(folders: list[tuple[str, Path]], run: str, out: Path, kinematic: bool = False) -> str:
@@ -45,9 +44,9 @@ def compare_folders(folders: list[tuple[str, Path]], run: str, out: Path, kinema
     with ``kinematic``, each folder's kinematic replay (its hand, its target) beside it as ``LABEL kinematic``."""
     per: dict[str, dict[str, dict[str, Any]]] = {}
     for label, f in folders:
-        per[label] = folder_rows(f, run)
+        per[label], kin = folder_rows(f, run)
         if kinematic:
-            per[f"{label} kinematic"] = folder_rows(f, run, kinematic=True)
+            per[f"{label} kinematic"] = kin
     empty = [label for label, rows in per.items() if not rows]
     if empty:
         where = ", ".join(f"{label} ({f})" for label, f in folders)

@@ -15,7 +15,7 @@ from quasisim.assets.hand import HandModel, join_hands
 from quasisim.assets.object import ObjectAsset
 from quasisim.data.demo import Demo
 from quasisim.eval.evaluate import demo_hands, load_object_for
-from quasisim.method.retarget import retarget_hands
+from quasisim.method.retarget import RetargetResult, retarget_hands
 from quasisim.optim.objective import Reference, TrackingObjective, make_objective
 from quasisim.optim.trajectory import Trajectory, simulate, split_q
 from quasisim.rotations import np_mat_to_quat
@@ -119,12 +119,19 @@ def make_problem(
     return Problem(demo, scene, model)
 
 
+def fitted_problem(
+    demo: Demo, hands: tuple[HandModel, ...], fits: tuple[RetargetResult, ...], substeps: int, n_candidates: int,
+    obj: ObjectAsset | None = None,
+) -> tuple[Problem, np.ndarray]:  # fmt: skip
+    """:func:`make_problem` for ``demo`` with ``hands`` (one per side of the demo) on the base frames of their
+    keypoint fits ``fits``, and the fits' PD targets (T, D) in the targets' layout (right hand, then left)."""
+    left = (hands[1], fits[1].base_rot) if len(hands) > 1 else None
+    prob = make_problem(demo, hands[0], fits[0].base_rot, substeps, n_candidates, obj, left=left)
+    return prob, np.concatenate([f.q for f in fits], axis=1)
+
+
 def kinematic_problem(demo: Demo, hand: str, substeps: int, n_candidates: int) -> tuple[Problem, np.ndarray]:
-    """:func:`make_problem` for ``demo`` and robot hand ``hand`` (a name or YAML; a two-hand demo gets it
-    and its mirror image) on the base frames of the kinematic retarget, and that retarget's PD targets
-    (T, D) in the targets' layout (right hand, then left)."""
+    """:func:`fitted_problem` of the kinematic retarget of ``demo`` to robot hand ``hand`` (a name or YAML;
+    a two-hand demo gets it and its mirror image)."""
     hands = demo_hands(hand, demo.sides)
-    rts = retarget_hands(hands, demo)
-    left = (hands[1], rts[1].base_rot) if len(hands) > 1 else None
-    prob = make_problem(demo, hands[0], rts[0].base_rot, substeps, n_candidates, left=left)
-    return prob, np.concatenate([r.q for r in rts], axis=1)
+    return fitted_problem(demo, hands, retarget_hands(hands, demo), substeps, n_candidates)

@@ -25,7 +25,7 @@ from quasisim.assets.hand import HandModel
 from quasisim.assets.human_hand import RETARGET_SETTINGS, build_human_hand
 from quasisim.assets.object import ObjectAsset
 from quasisim.data.demo import Demo
-from quasisim.method.problem import Problem, make_problem
+from quasisim.method.problem import Problem, fitted_problem
 from quasisim.method.retarget import RetargetOptions, RetargetResult, retarget
 from quasisim.optim.adam import Progress, StepBudget, StepLog, minimise
 from quasisim.optim.objective import Reference, Weights, hand_point_positions
@@ -58,10 +58,8 @@ def human_problem(demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int
     hands = tuple(
         build_human_hand(demo.joints_of(s), name="human" if s == "right" else f"human-{s}") for s in demo.sides
     )
-    fits = [fit_human_hand(h, demo, s) for h, s in zip(hands, demo.sides, strict=True)]
-    left = (hands[1], fits[1].base_rot) if len(hands) > 1 else None
-    prob = make_problem(demo, hands[0], fits[0].base_rot, substeps, n_candidates, obj, left=left)
-    q = np.concatenate([f.q for f in fits], axis=1)
+    fits = tuple(fit_human_hand(h, demo, s) for h, s in zip(hands, demo.sides, strict=True))
+    prob, q = fitted_problem(demo, hands, fits, substeps, n_candidates, obj)
     return prob, q, float(np.mean([f.mean_metric_error_mm for f in fits]))
 
 
