@@ -28,7 +28,7 @@ DEMO, MESH, CONTROLS, HAND = "cube_lift.npz", "meshes/cube_lift.obj", "controls.
 @pytest.fixture(scope="module")
 def base(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder with a valid demo (16 frames), its mesh, controls for it and a copy of the Shadow hand YAML."""
-    import quasisim.method.pipeline  # noqa: F401  (JAX and the pipeline imported before the corpus runs)
+    import quasisim.pipeline  # noqa: F401  (JAX and the pipeline imported before the corpus runs)
     from quasisim.assets.hand import HANDS_DIR, load_hand
     from quasisim.data.controls import Controls
     from quasisim.data.demo import content_hash, load_demo

@@ -50,7 +50,7 @@ def _batch_cli(clips_dir: Path, out: Path, *extra: str, fault: str = "") -> subp
 @pytest.mark.slow  # three Ray batches in subprocesses (~50 s cold)
 def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_path: Path) -> None:
     from quasisim.method.config import TransferConfig
-    from quasisim.method.pipeline import run_transfer
+    from quasisim.pipeline import run_transfer
 
     out = tmp_path / "out"
     good = sorted(p.stem for p in clips_dir.glob("*.npz") if p.stem != "broken")

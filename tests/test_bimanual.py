@@ -181,8 +181,8 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     from quasisim.data.demo import load_demo
     from quasisim.eval.evaluate import evaluate_controls
     from quasisim.method.config import TransferConfig
-    from quasisim.method.pipeline import run_transfer
     from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
     from test_transfer import CURRICULUM, TINY
 
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)

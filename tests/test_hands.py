@@ -87,8 +87,8 @@ def test_transfer_runs_with_other_hands(name: str, tmp_path, request: pytest.Fix
     from quasisim.data.synthetic import write_example
     from quasisim.eval.evaluate import evaluate_controls
     from quasisim.method.config import TransferConfig
-    from quasisim.method.pipeline import run_transfer
     from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
     from test_transfer import CURRICULUM, TINY
 
     if name == "allegro":

@@ -171,9 +171,9 @@ def test_a_diverged_start_neither_wins_the_restart_guard_nor_stops_stage_2() -> 
     """A start whose loss is not finite loses to any finite one; a simulator whose first evaluation diverged
     (no loss recorded, measured on a real clip) is reported and the run goes on with its start."""
     from quasisim.method.curriculum import load_curriculum
-    from quasisim.method.outputs import RunRecord
-    from quasisim.method.pipeline import _record_simulator
+    from quasisim.method.stage import RunRecord
     from quasisim.method.stage2 import restart_guard
+    from quasisim.method.stages.contact_curriculum import _record_simulator
     from quasisim.optim.adam import Progress
 
     def vg(t, *_):

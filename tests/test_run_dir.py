@@ -85,7 +85,7 @@ def test_damaged_checkpoints_are_recomputed(tmp_path: Path, capsys, damage: str)
 def test_each_checkpoint_is_named_by_what_determines_it() -> None:
     """A ``+mpc`` run (the bench copies its curriculum run's checkpoints) reuses the stage-1/2 pieces; the MPC
     piece depends on the stages before it and on the method."""
-    from quasisim.method.pipeline import _piece_scope
+    from quasisim.pipeline import piece_scope as _piece_scope
 
     info = {"demo_content": "d", "hand": "shadow", "budget": "fast", "weights": {"w": 1.0}}
     base = {**info, "stages": ["1", "2"], "method": "ours"}

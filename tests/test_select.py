@@ -90,8 +90,8 @@ def test_transfer_with_select_outputs_the_best_seen(example_dir: Path, tmp_path:
     import json
 
     from quasisim.data.controls import load_controls
-    from quasisim.method.pipeline import run_transfer
     from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
 
     cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 4, "sample_target.horizon": 3})
     spec = TransferSpec(stages=("sample", "select"), render=False, progress=False)

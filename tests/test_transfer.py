@@ -45,8 +45,8 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     from quasisim.data.demo import load_demo
     from quasisim.eval.evaluate import evaluate_controls
     from quasisim.method.config import TransferConfig
-    from quasisim.method.pipeline import run_transfer
     from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
 
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
     spec = TransferSpec(curriculum=str(tmp_path / "tiny.yaml"), stages=("1", "2"), render=False, progress=False)
@@ -188,8 +188,8 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
     from quasisim.data.demo import load_demo
     from quasisim.eval.evaluate import evaluate_controls
     from quasisim.method.config import TransferConfig
-    from quasisim.method.pipeline import run_transfer
     from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
 
     cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 6, "sample_target.horizon": 3})
     spec = TransferSpec(method="sample-target", render=False, progress=False)
@@ -228,8 +228,8 @@ def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> N
     """``--stages 3,mpc``: the simulator is fitted to MuJoCo rollouts of the plan (checkpointed, held-out errors
     in the summary) and the MPC plans with it; stage 3 is refused for PyBullet."""
     from quasisim.method.config import TransferConfig
-    from quasisim.method.pipeline import run_transfer
     from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
 
     over = {**TINY, "stage3.steps": 2, "stage3.variants": 1, "stage3.horizon": 3, "stage3.batch": 4,
             "stage3.rounds": 1, "stage3.residual_steps": 2, "mpc.horizon": 2, "mpc.steps": 1}  # fmt: skip

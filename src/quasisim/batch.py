@@ -91,10 +91,11 @@ def identity(run: Run, s: Settings) -> dict[str, Any]:
 
 
 @functools.cache
-def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[str, ...]) -> str:
+def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[str, ...], method: str) -> str:
     from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.method.registry import METHODS
 
-    cfg = TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides))
+    cfg = METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
     content = cfg.identity(budget, stages)
     content.get("sample_target", {}).pop("threads", None)
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -104,7 +105,9 @@ def config_hash(s: Settings, spec: TransferSpec) -> str:
     """Hash of the config settings that determine ``spec``'s results (the YAML with the overrides applied;
     settings of stages the run does not have and rollout threads aside): adding a stage-3 setting does not
     invalidate a finished sample-target run."""
-    return _config_hash(s.config_path, json.dumps(s.overrides, sort_keys=True), spec.budget, tuple(spec.stages))
+    return _config_hash(
+        s.config_path, json.dumps(s.overrides, sort_keys=True), spec.budget, tuple(spec.stages), spec.method
+    )
 
 
 # ---- the worker's side -------------------------------------------------------------------------------
@@ -173,7 +176,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
     """Run ``job``'s transfers in ``scratch`` (resumed from the checkpoints there); returns their output
     files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
     from quasisim.method.config import CONFIG_PATH, TransferConfig
-    from quasisim.method.pipeline import run_transfer
+    from quasisim.pipeline import run_transfer
     from quasisim.runtime import configure, free_compiled_programs
 
     configure()
@@ -420,13 +423,13 @@ def throughput(res: BatchResult) -> dict[str, Any]:
     }  # fmt: skip
 
 
-STAGE_KEYS = ("retarget", "stage1", "stage2", "stage3", "mpc", "sample", "select")
-
-
 def method_seconds(seconds: dict[str, float]) -> float:
-    """A run's compute time from its stages' own timings (``summary.json`` ``seconds``; stages read back from
-    checkpoints keep the time they took), so a resumed or seeded run counts what its result cost."""
-    return float(sum(seconds.get(k, 0.0) for k in STAGE_KEYS))
+    """A run's compute time from its stages' own timings (``summary.json`` ``seconds``: the retarget's and
+    each stage's, :attr:`~quasisim.method.stage.Stage.word`; stages read back from checkpoints keep the time
+    they took), so a resumed or seeded run counts what its result cost."""
+    from quasisim.method.registry import stages
+
+    return float(sum(seconds.get(k, 0.0) for k in ("retarget", *(st.word for st in stages()))))
 
 
 def _order(r: dict[str, Any]) -> tuple[str, bool, str]:

@@ -13,6 +13,7 @@ from typing import Any
 import click
 
 from quasisim.errors import QuasisimError
+from quasisim.method.registry import METHODS as REGISTERED_METHODS
 from quasisim.method.spec import METHODS, TransferSpec, networks_from_flags, parse_stages
 from quasisim.targets import TARGETS
 
@@ -346,9 +347,7 @@ def _ablation_flags(f: Any) -> Any:
     type=click.Choice(METHODS),
     default=_SPEC.method,
     show_default=True,
-    help="ours: the stages given; mpc-base / mpc-soften: gradient MPC baselines without the curriculum; "
-    "sample-target: sampling MPC with the target itself as the model, from the kinematic retarget; "
-    "kinematic: the kinematic retarget only.",
+    help="; ".join(f"{name}: {m.summary}" for name, m in REGISTERED_METHODS.items()) + ".",
 )
 @click.option("--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
@@ -372,7 +371,7 @@ def transfer(
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
     _setup_runtime()
     from quasisim.method.config import CONFIG_PATH, TransferConfig
-    from quasisim.method.pipeline import run_transfer
+    from quasisim.pipeline import run_transfer
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
     spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets)

@@ -3,8 +3,9 @@ stage-2 simulator, stage 3, MPC, sampling, outputs): XLA compilation (JAX's own 
 (the time inside MuJoCo's C functions, from :mod:`cProfile`), and the rest (JAX execution, forward and
 backward, and Python).
 
-The pieces are the run's checkpoints: :class:`Checkpoints` is wrapped so that each ``get`` that computes
-records its time window; compile events and MuJoCo calls are assigned to the window they fall in.
+The pieces are the run's checkpoints: the run's piece hook (``run_transfer(..., piece_hook=...)``) records
+the time window of each piece it computes; compile events and MuJoCo calls are assigned to the window they
+fall in.
 """
 
 from __future__ import annotations
@@ -19,9 +20,8 @@ from typing import Any
 
 import jax
 
+from quasisim import pipeline
 from quasisim.bench.tables import header, publish
-from quasisim.method import pipeline
-from quasisim.method.checkpoints import Checkpoints
 from quasisim.method.config import TransferConfig
 from quasisim.method.spec import TransferSpec
 
@@ -71,14 +71,6 @@ class _Windows:
 GLUE = "setup, outputs, judging, glue"
 
 
-def _recording_checkpoints(w: _Windows) -> type[Checkpoints]:
-    class Recording(Checkpoints):
-        def get(self, name: str, compute: Any, expect: Any) -> dict[str, Any]:
-            return super().get(name, lambda: w.piece(name, compute), expect)
-
-    return Recording
-
-
 def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, cold: bool, cprofile: bool) -> str:
     """Profile one transfer of ``demo`` into ``out/run`` (from scratch; ``cold``: an empty XLA cache;
     ``cprofile``: also measure MuJoCo's share, under cProfile, which slows Python-heavy code such as tracing)."""
@@ -87,16 +79,13 @@ def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, 
     cache_dir = jax.config.jax_compilation_cache_dir
     if cold:
         jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="quasisim-cold-cache-"))
-    original = pipeline.Checkpoints
-    pipeline.Checkpoints = _recording_checkpoints(w)  # type: ignore[misc]
     t0 = time.perf_counter()
     try:
         if cprofile:
             w.profiles[GLUE].enable()
-        pipeline.run_transfer(demo, out / "run", spec, cfg, resume=False)
+        pipeline.run_transfer(demo, out / "run", spec, cfg, resume=False, piece_hook=w.piece)
     finally:
         w.profiles[GLUE].disable()
-        pipeline.Checkpoints = original  # type: ignore[misc]
         jax.monitoring.unregister_event_duration_listener(w.on_event)
         jax.config.update("jax_compilation_cache_dir", cache_dir)
     total = time.perf_counter() - t0

@@ -20,6 +20,7 @@ from quasisim.errors import QuasisimError
 from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.metrics import SUCCESS_KEYS
 from quasisim.files import save_json_atomic
+from quasisim.method import registry
 from quasisim.method.curriculum import load_curriculum
 from quasisim.method.spec import TransferSpec, networks_from_flags
 
@@ -31,13 +32,16 @@ RUN_KINDS = (
 
 
 def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferSpec:
-    """A benchmark run name (``default``, ``none+mpc``, ``mpc-base`` ...) as the transfer it stands for."""
-    if run in ("mpc-base", "mpc-soften", "sample-target"):
+    """A benchmark run name (``default``, ``none+mpc``, ``mpc-base`` ...) as the transfer it stands for: a
+    method with stages of its own (:data:`quasisim.method.registry.METHODS`), or a curriculum with ``stages``
+    and the stages after stage 2 named after it."""
+    if registry.METHODS.get(run) is not None and registry.METHODS[run].stages:
         return dataclasses.replace(base, method=run, curriculum="none").checked()
     name, *ablations = run.split(":")
     cur, *extra = name.split("+")
     flags = {"no-residual", "no-local-residual", "no-control-transform"}
-    bad_extra = not set(extra) <= {"3", "mpc", "sample", "select"} or len(set(extra)) < len(extra)
+    after = set(list(registry.STAGES)[list(registry.STAGES).index("2") + 1 :])
+    bad_extra = not set(extra) <= after or len(set(extra)) < len(extra)
     if bad_extra or not set(ablations) <= flags or (ablations and "3" not in extra):
         raise QuasisimError(f"unknown benchmark run {run!r}; valid forms: {RUN_KINDS}")
     load_curriculum(cur)

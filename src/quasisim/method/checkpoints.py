@@ -46,9 +46,12 @@ class Checkpoints:
     def __init__(
         self, folder: Path, run_info: dict[str, Any], resume: bool, overwrite: bool = False,
         scope: Callable[[str], dict[str, Any]] | None = None,
+        hook: Callable[[str, Callable[[], dict[str, Any]]], dict[str, Any]] | None = None,
     ) -> None:  # fmt: skip
-        """``scope(name)``: the part of ``run_info`` that determines checkpoint ``name`` (default: all of it)."""
+        """``scope(name)``: the part of ``run_info`` that determines checkpoint ``name`` (default: all of it);
+        ``hook(name, compute)``: called instead of ``compute()`` for a piece that is computed (profiling)."""
         self.folder = folder
+        self._hook = hook
         self._scope = scope or (lambda name: run_info)
         info_path = folder / "run.json"
         remove_orphans(folder)  # what a killed atomic write left behind
@@ -103,7 +106,7 @@ class Checkpoints:
         and saved."""
         d = self.load(name, expect)
         if d is None:
-            d = compute()
+            d = compute() if self._hook is None else self._hook(name, compute)
             problem = mismatch({k: np.asarray(v) for k, v in d.items()}, expect)
             if problem:
                 raise RuntimeError(f"checkpoint {name}: the computed arrays do not match their description: {problem}")

@@ -83,21 +83,22 @@ class TransferConfig:
             raise choice_error("budget", name, list(self.budgets))
         return self.budgets[name]
 
-    def identity(self, budget: str, stages: tuple[str, ...]) -> dict[str, Any]:
-        """The settings that determine the results of a run of ``stages`` (recorded in its checkpoints)."""
+    def identity(self, budget: str, stages: tuple[str, ...], spec: Any = None) -> dict[str, Any]:
+        """The settings that determine the results of a run of ``stages``: the budget, the weights, and each
+        stage's own (its declared config keys, :class:`~quasisim.method.stage.Stage`; keys that are fields
+        of ``spec``, e.g. stage 3's ``networks``, are read from it when it is given)."""
+        from quasisim.method import registry
+
         out: dict[str, Any] = {
             "budget_settings": dataclasses.asdict(self.budget(budget)),
             "weights": dataclasses.asdict(self.weights),
         }
-        if "2" in stages and self.stage2.mode != "none":  # "none" is stage 2 as it was before the hand-off
-            out["stage2"] = dataclasses.asdict(self.stage2)
-        if "mpc" in stages:
-            out["mpc"] = dataclasses.asdict(self.mpc)
-            out["soften_samples"] = self.soften_samples
-        if "3" in stages:
-            out["stage3"] = dataclasses.asdict(self.stage3)
-        if "sample" in stages:
-            out["sample_target"] = dataclasses.asdict(self.sample_target)
+        for st in registry.stages(stages):
+            for key in st.config:
+                if hasattr(self, key):
+                    out[key] = dataclasses.asdict(getattr(self, key))
+                elif spec is not None:
+                    out[key] = list(getattr(spec, key))
         return out
 
 

@@ -6,10 +6,11 @@ import dataclasses
 from dataclasses import dataclass
 
 from quasisim.errors import QuasisimError, choice_error
+from quasisim.method import registry
 from quasisim.targets import TARGETS
 
-STAGES = ("1", "2", "3", "mpc", "sample", "select")
-METHODS = ("ours", "mpc-base", "mpc-soften", "sample-target", "kinematic")
+STAGES = tuple(registry.STAGES)  # the stages' names, in run order (checks read the registry itself)
+METHODS = tuple(registry.METHODS)  # the named methods (presets of stages and settings)
 NETWORKS = (
     "local",
     "global",
@@ -23,10 +24,10 @@ class TransferSpec:
 
     Attributes:
         hand: built-in hand name or hand YAML path.  target: simulator that judges the result.
-        curriculum: built-in curriculum name or YAML path.  stages: of :data:`~quasisim.method.config.STAGES`.
-        budget: a budget of the transfer config.  method: of :data:`~quasisim.method.config.METHODS`
-            (``mpc-base``/``mpc-soften`` run only the MPC stage, ``sample-target`` only the sampling stage,
-            ``kinematic`` no stage).
+        curriculum: built-in curriculum name or YAML path.  stages: of :data:`STAGES`.
+        budget: a budget of the transfer config.  method: of :data:`METHODS`
+            (:data:`quasisim.method.registry.METHODS`: ``ours`` runs ``stages``; ``mpc-base``/``mpc-soften``
+            only the MPC stage, ``sample-target`` only the sampling stage, ``kinematic`` no stage).
         render: render the report's video.  progress: show progress bars.
         networks: what stage 3 trains on top of S and the constants, of :data:`NETWORKS` (``local`` and
             ``global`` residual networks, ``control`` transformation); the ablation flags remove them.
@@ -46,13 +47,13 @@ class TransferSpec:
         """Validated, with the stages that ``method`` implies."""
         if self.target not in TARGETS:
             raise choice_error("target", self.target, TARGETS)
-        if self.method not in METHODS:
-            raise choice_error("method", self.method, METHODS)
-        implied = {"kinematic": (), "mpc-base": ("mpc",), "mpc-soften": ("mpc",), "sample-target": ("sample",)}
-        stages = implied.get(self.method, self.stages)
-        bad = [s for s in stages if s not in STAGES]
+        if self.method not in registry.METHODS:
+            raise choice_error("method", self.method, list(registry.METHODS))
+        preset = registry.METHODS[self.method].stages
+        stages = self.stages if preset is None else preset
+        bad = [s for s in stages if s not in registry.STAGES]
         if bad:
-            raise choice_error("stage", bad[0], STAGES)
+            raise choice_error("stage", bad[0], list(registry.STAGES))
         bad = [n for n in self.networks if n not in NETWORKS]
         if bad:
             raise choice_error("network", bad[0], NETWORKS)
@@ -62,7 +63,7 @@ class TransferSpec:
                 "leave out stages 3 and mpc"
             )
         networks = tuple(n for n in NETWORKS if n in self.networks)
-        return dataclasses.replace(self, stages=tuple(s for s in STAGES if s in stages), networks=networks)
+        return dataclasses.replace(self, stages=registry.order(stages), networks=networks)
 
     def identity(self) -> dict[str, object]:
         """The fields that determine the run's results (progress aside; stage 3's networks only with stage 3)."""
@@ -83,10 +84,10 @@ def networks_from_flags(no_residual: bool, no_local_residual: bool, no_control_t
 def parse_stages(text: str) -> tuple[str, ...]:
     """``"1,2"`` -> ("1", "2"); only the stages this package implements are accepted."""
     stages = tuple(s.strip() for s in text.split(",") if s.strip())
-    bad = [s for s in stages if s not in STAGES]
+    bad = [s for s in stages if s not in registry.STAGES]
     if bad or not stages:
         raise QuasisimError(
-            f"unknown stage(s) {', '.join(bad) or '(none given)'}; valid stages: {', '.join(STAGES)} "
+            f"unknown stage(s) {', '.join(bad) or '(none given)'}; valid stages: {', '.join(registry.STAGES)} "
             "(3: fit the simulator to MuJoCo: S, constants, residual networks and control transformation)"
         )
-    return tuple(s for s in STAGES if s in stages)
+    return registry.order(stages)

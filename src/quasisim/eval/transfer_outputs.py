@@ -5,7 +5,7 @@ written as one set (:func:`quasisim.files.output_set`: ``manifest.json`` last)."
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,7 @@ from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.report import loss_plot
 from quasisim.files import output_set, save_json_atomic
 from quasisim.method.problem import Problem
+from quasisim.method.stage import RunRecord
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory, join_q, simulate_jit
 from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
@@ -26,19 +27,8 @@ OUTPUTS = ("controls.npz", *evaluate.OUTPUTS, "summary.json")
 
 
 @dataclass
-class RunRecord:
-    """What the stages report as they go: seconds per stage, loss curves, one row per stage-2 simulator."""
-
-    seconds: dict[str, float] = field(default_factory=dict)
-    curves: dict[str, list[float]] = field(default_factory=dict)
-    simulators: list[dict[str, Any]] = field(default_factory=list)
-    fit: dict[str, Any] = field(default_factory=dict)
-    notes: list[str] = field(default_factory=list)
-
-
-@dataclass
 class TransferResult:
-    """What :func:`~quasisim.method.pipeline.run_transfer` produced."""
+    """What :func:`~quasisim.pipeline.run_transfer` produced."""
 
     controls: Controls
     metrics: dict[str, Any]

@@ -1,0 +1,83 @@
+"""The stages of the method and the named methods built from them (light: stage modules load when asked for).
+
+:data:`STAGES` lists every stage in the order a run takes them, each by the module that declares it (a
+:class:`~quasisim.method.stage.Stage` named ``STAGE``). Adding a stage is one module under
+:mod:`quasisim.method.stages` and one line here (``docs/stages.md`` has a worked example).
+
+:data:`METHODS` are named presets: the stages a method runs (None: the stages the user gives, ``--stages``)
+and the settings it changes (``--method mpc-soften`` is MPC with softened gradients).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.stage import Stage
+
+# stage name (as in --stages) -> the module that declares it (or, added at run time, the Stage itself), in the
+# order a run takes them
+STAGES: dict[str, Any] = {
+    "1": "quasisim.method.stages.point_dynamics",
+    "2": "quasisim.method.stages.contact_curriculum",
+    "3": "quasisim.method.stages.fit_to_target",
+    "mpc": "quasisim.method.stages.closed_loop",
+    "sample": "quasisim.method.stages.sampling",
+    "select": "quasisim.method.stages.selection",
+}
+
+
+def stage(name: str) -> Stage:
+    """The stage called ``name`` (one of :data:`STAGES`)."""
+    entry = STAGES[name]
+    st: Stage = importlib.import_module(entry).STAGE if isinstance(entry, str) else entry
+    if st.name != name:
+        raise RuntimeError(f"registry: {entry} declares stage {st.name!r}, registered as {name!r}")
+    return st
+
+
+def stages(names: tuple[str, ...] | list[str] | None = None) -> tuple[Stage, ...]:
+    """The stages ``names`` (default: all) in run order."""
+    return tuple(stage(n) for n in STAGES if names is None or n in names)
+
+
+def order(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """``names`` in run order."""
+    return tuple(n for n in STAGES if n in names)
+
+
+def _soften(cfg: TransferConfig) -> TransferConfig:
+    """MPC whose gradients average ``soften_samples`` contact stiffnesses (randomized smoothing)."""
+    return dataclasses.replace(cfg, mpc=dataclasses.replace(cfg.mpc, soften=cfg.soften_samples))
+
+
+@dataclass(frozen=True)
+class Method:
+    """A named preset of stages and settings.
+
+    Attributes:
+        stages: the stages it runs; None: the stages the user asks for (``--stages``).
+        configure: the settings it changes (a function of the transfer config), or None.
+        summary: one line for ``--help``.
+    """
+
+    stages: tuple[str, ...] | None
+    summary: str
+    configure: Callable[[Any], Any] | None = None
+
+    def config(self, cfg: TransferConfig) -> TransferConfig:
+        return cfg if self.configure is None else self.configure(cfg)
+
+
+METHODS: dict[str, Method] = {
+    "ours": Method(None, "the stages given (--stages)"),
+    "mpc-base": Method(("mpc",), "gradient MPC in MuJoCo with the stiffest simulator, from the kinematic retarget"),
+    "mpc-soften": Method(("mpc",), "mpc-base with gradients averaged over softened contact", _soften),
+    "sample-target": Method(("sample",), "sampling MPC with the target itself as the model, from the kinematic retarget"),
+    "kinematic": Method((), "the kinematic retarget only"),
+}  # fmt: skip
