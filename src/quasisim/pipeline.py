@@ -26,20 +26,23 @@ from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError
-from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, sim_qpos, write_outputs
+from quasisim.eval.evaluate import demo_hands  # moves to targets.scene (hands branch)
+from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, write_outputs
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
 from quasisim.method import registry
 from quasisim.method.checkpoints import Checkpoints
 from quasisim.method.config import Budget, TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
-from quasisim.method.problem import make_problem
+from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import retarget_hands
 from quasisim.method.spec import TransferSpec
 from quasisim.method.stage import Context, Outcome, Plan, RunRecord, Stage
 from quasisim.method.stages._common import timed
 from quasisim.optim.adam import Progress
 from quasisim.optim.sysid import SysID
-from quasisim.eval.evaluate import demo_hands  # moves to targets.scene (hands branch)
+from quasisim.optim.trajectory import Trajectory, join_q, simulate_jit
+from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
+from quasisim.sim.types import Model, Params
 
 # called around every checkpointed piece that is computed (not read back): hook(name, compute) -> arrays
 PieceHook = Callable[[str, Callable[[], dict[str, Any]]], dict[str, Any]]
@@ -116,6 +119,19 @@ def file_extras(ctx: Context, outcome: Outcome, stages: tuple[Stage, ...]) -> di
         model, params = outcome.simulator(ctx)
         extras["sim_qpos"] = sim_qpos(ctx.prob, params, outcome.plan.traj, model)
     return extras
+
+
+def sim_qpos(prob: Problem, params: Params, traj: Trajectory, model: Model | None = None) -> np.ndarray:
+    """(T, D) the hands' trajectory of ``traj``'s quasi-physical rollout (in ``model``, default the
+    problem's) in base coordinates, laid out as the targets' PD targets."""
+    model = model or prob.model
+    states = simulate_jit(model, params, traj, prob.base_quat, prob.demo.fps, prob.obj0)
+    root = np.asarray(model.to_world(states.root_pos), np.float64)  # (T - 1, H, 3)
+    R = np_quat_to_mat(np.asarray(states.root_quat, np.float64))  # (T - 1, H, 3, 3)
+    eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("hji,thjk->thik", prob.base_rots, R)), axis=0)
+    base = np.concatenate([root, eul], axis=-1).reshape(len(root), -1)
+    q = join_q(base, np.asarray(states.q, np.float64), prob.hand_joints)
+    return np.concatenate([np.asarray(traj.q_targets[:1]), q], axis=0)
 
 
 def _kinematic(hands: tuple[Any, ...], demo: Any, progress: Progress) -> dict[str, Any]:

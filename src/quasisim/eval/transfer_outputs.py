@@ -16,12 +16,8 @@ from quasisim.eval import evaluate
 from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.report import loss_plot
 from quasisim.files import output_set, save_json_atomic
-from quasisim.method.problem import Problem
-from quasisim.method.stage import RunRecord
+from quasisim.method.stage import Context, RunRecord
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory, join_q, simulate_jit
-from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
-from quasisim.sim.types import Model, Params
 
 OUTPUTS = ("controls.npz", *evaluate.OUTPUTS, "summary.json")
 
@@ -37,32 +33,19 @@ class TransferResult:
     out: Path
 
 
-def sim_qpos(prob: Problem, params: Params, traj: Trajectory, model: Model | None = None) -> np.ndarray:
-    """(T, D) the hands' trajectory of ``traj``'s quasi-physical rollout (in ``model``, default the
-    problem's) in base coordinates, laid out as the targets' PD targets."""
-    model = model or prob.model
-    states = simulate_jit(model, params, traj, prob.base_quat, prob.demo.fps, prob.obj0)
-    root = np.asarray(model.to_world(states.root_pos), np.float64)  # (T - 1, H, 3)
-    R = np_quat_to_mat(np.asarray(states.root_quat, np.float64))  # (T - 1, H, 3, 3)
-    eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("hji,thjk->thik", prob.base_rots, R)), axis=0)
-    base = np.concatenate([root, eul], axis=-1).reshape(len(root), -1)
-    q = join_q(base, np.asarray(states.q, np.float64), prob.hand_joints)
-    return np.concatenate([np.asarray(traj.q_targets[:1]), q], axis=0)
-
-
-def write_outputs(
-    prob: Problem, controls: Controls, kinematic_q: np.ndarray, record: RunRecord, sysid: SysID, settings: dict[str, Any],
-    target: str, out: Path, render: bool, progress: bool,
-) -> TransferResult:  # fmt: skip
-    """Save ``controls``, judge them and the kinematic retarget in ``target``, write the report and summary."""
+def write_outputs(ctx: Context, controls: Controls, sysid: SysID, out: Path) -> TransferResult:
+    """Save ``controls``, judge them and the kinematic retarget in the run's target, write the report and
+    the summary (the run's settings and record, ``ctx``; the identified S, ``sysid``)."""
+    prob, record, spec, target = ctx.prob, ctx.record, ctx.spec, ctx.spec.target
     demo, scene = prob.demo, prob.scene
-    kin = dataclasses.replace(controls, q_targets=np.asarray(kinematic_q), method="kinematic")
+    settings = {"curriculum": ctx.cur.name, "stages": spec.stages, "budget": spec.budget, "method": spec.method}
+    kin = dataclasses.replace(controls, q_targets=np.asarray(ctx.kinematic_q), method="kinematic")
     km = evaluate_controls(demo, kin, target, None, render=False, scene=scene).metrics
     s_desc = sysid.describe(prob.obj.mass)
     images = {"optimisation loss per simulator of the curriculum": loss_plot(record.curves)} if record.curves else {}
     ev = evaluate_controls(demo, controls, target, None, render=False, scene=scene)
     title = (
-        f"{demo.name}: {settings['label']} ({settings['curriculum']} curriculum, stages "
+        f"{demo.name}: {settings['method']} ({settings['curriculum']} curriculum, stages "
         f"{','.join(settings['stages']) or 'none'}) in {target}"
     )
     info = {
@@ -81,6 +64,6 @@ def write_outputs(
     }  # fmt: skip
     with output_set(out) as stage:
         controls.save(stage / "controls.npz")
-        evaluate.write_outputs(ev, demo, controls, target, stage, render, title, info, images, progress)
+        evaluate.write_outputs(ev, demo, controls, target, stage, spec.render, title, info, images, spec.progress)
         save_json_atomic(stage / "summary.json", summary)
     return TransferResult(controls, ev.metrics, km, record, out)
