@@ -26,7 +26,6 @@ from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError
-from quasisim.eval.evaluate import demo_hands
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
 from quasisim.method import handoff, outputs, stage1, stage2, stage3
 from quasisim.method.checkpoints import Checkpoints, Expect, trajectory_arrays, trajectory_expect, trajectory_from
@@ -45,6 +44,8 @@ from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.types import Model, Params
 from quasisim.targets import make_target
+from quasisim.targets.build import demo_hands
+from quasisim.targets.scene import place_hands
 
 
 @dataclass
@@ -78,8 +79,8 @@ def run_transfer(
     kin_expect = {"q": (T, D), "base_rot": (3, 3), **({"left_base_rot": (3, 3)} if len(hands) > 1 else {})}
     kin = _timed(ck, "kinematic", lambda: _kinematic(hands, demo, progress), kin_expect)
     record.seconds["retarget"] = float(kin["wall_s"])
-    left = (hands[1], np.asarray(kin["left_base_rot"], np.float64)) if len(hands) > 1 else None
-    prob = make_problem(demo, hand, np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates, left=left)
+    rots = [kin[k] for k in ("base_rot", "left_base_rot")[: len(hands)]]
+    prob = make_problem(demo, place_hands(hands, rots), bud.substeps, bud.n_candidates)
     plan = Plan(prob.trajectory(kin["q"]), SysID.init())
     objective = prob.objective(prob.reference())
     if "1" in spec.stages and cur.relaxed:
@@ -105,8 +106,8 @@ def run_transfer(
     label = {"ours": "transfer"}.get(spec.method, spec.method)
     controls = Controls(
         hand=spec.hand, demo=demo.name, method=f"{label}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
-        fps=demo.fps, base_rot=prob.base_rot, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
-        demo_hash=content_hash(demo), left_base_rot=None if left is None else left[1],
+        fps=demo.fps, base_rots=prob.scene.base_rots, q_targets=q_out, joint_names=hand.joint_names, extras=extras,
+        demo_hash=content_hash(demo),
     )  # fmt: skip
     settings = {
         "label": label,
