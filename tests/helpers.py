@@ -28,11 +28,10 @@ def box_object(extents: tuple[float, float, float] = (0.05, 0.05, 0.05), density
 
 
 def scene_with(hand, obj=None, base_rot=None, object_pos=(0.0, 0.0, 0.825), table_top=0.8, half=0.3, fps=20.0):
-    from quasisim.targets.scene import Scene, Table
+    from quasisim.targets.scene import Placement, Scene, Table
 
     return Scene(
-        hand=hand,
-        base_rot=np.eye(3) if base_rot is None else base_rot,
+        placements=(Placement(hand, np.eye(3) if base_rot is None else base_rot),),
         obj=obj or box_object(),
         table=Table(-half, half, -half, half, table_top),
         object_pos0=np.asarray(object_pos, dtype=float),

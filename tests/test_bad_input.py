@@ -42,7 +42,7 @@ def base(tmp_path_factory: pytest.TempPathFactory) -> Path:
         demo=demo.name,
         method="test",
         fps=demo.fps,
-        base_rot=np.eye(3),
+        base_rots=(np.eye(3),),
         q_targets=np.zeros((demo.n_frames, 6 + hand.n_joints)),
         joint_names=hand.joint_names,
         demo_hash=content_hash(demo),

@@ -13,8 +13,9 @@ from click.testing import CliRunner
 def test_bench_baseline_rows_are_the_evaluation_of_the_kinematic_retarget(data_dir: Path, tmp_path: Path) -> None:
     from quasisim.cli import main
     from quasisim.data.demo import load_demo
-    from quasisim.eval.evaluate import demo_hands, evaluate_controls
+    from quasisim.eval.evaluate import evaluate_controls
     from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import demo_hands
 
     out = tmp_path / "baseline"
     r = CliRunner().invoke(

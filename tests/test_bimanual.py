@@ -14,11 +14,12 @@ M = np.diag([-1.0, 1.0, 1.0])  # Shadow's mirror_axis is x; base frames chosen s
 @pytest.fixture(scope="module")
 def two_hand_scene(shadow):
     from quasisim.assets.hand import load_hand
+    from quasisim.targets.scene import place_hands
 
     left = load_hand("shadow", side="left")
     sc = scene_with(shadow, box_object(), object_pos=(2.0, 0.0, 0.825))
     B = _rot(0.3, -0.2, 0.5)
-    return sc.__class__(**{**sc.__dict__, "base_rot": B, "left": (left, M @ B @ M)})
+    return sc.__class__(**{**sc.__dict__, "placements": place_hands((shadow, left), (B, M @ B @ M))})
 
 
 def _rot(a: float, b: float, c: float) -> np.ndarray:
@@ -241,7 +242,7 @@ def test_kinematic_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     assert r.exit_code == 0, r.output
     m_pb = json.loads((tmp_path / "pb" / "metrics.json").read_text())
     assert np.isfinite(m_pb["MPJPE_mm"]) and len(np.load(tmp_path / "pb" / "rollout.npz")["human_keypoint_index"]) == 16
-    one = c.__class__(**{**c.__dict__, "left_base_rot": None, "q_targets": c.q_targets[:, :28]})
+    one = c.__class__(**{**c.__dict__, "base_rots": c.base_rots[:1], "q_targets": c.q_targets[:, :28]})
     one.save(tmp_path / "one.npz")
     r = _cli("evaluate", str(two_hand_clip), str(tmp_path / "one.npz"), "--out", str(tmp_path / "o1"))
     assert r.exit_code == 2 and "field 'left_base_rot'" in r.output and "controls for 2 hand(s)" in r.output

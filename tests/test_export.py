@@ -34,10 +34,10 @@ def test_scene_and_qpos_reproduce_the_rollout(exported) -> None:
     sc, r, out, (scene_path, traj_path) = exported
     assert scene_path == out / "scene.xml" and traj_path == out / "trajectory.npz"
     model, qpos, fps = load_export(out)  # loads from the XML file alone (meshes inline)
-    assert qpos.shape == (len(r.qpos), model.nq) and model.nq == 6 + sc.hand.n_joints + 7 and fps == sc.fps
+    assert qpos.shape == (len(r.qpos), model.nq) and model.nq == 6 + sc.hands[0].n_joints + 7 and fps == sc.fps
     assert np.linalg.norm(r.object_pos[-1] - r.object_pos[0]) > 0.01  # a trajectory worth checking
     data = mujoco.MjData(model)
-    site = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"hand/kp/{n}") for n in sc.hand.kp_names]
+    site = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"hand/kp/{n}") for n in sc.hands[0].kp_names]
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
     for t in range(len(qpos)):
         data.qpos[:] = qpos[t]

@@ -21,11 +21,12 @@ def soft_grasp(tmp_path_factory: pytest.TempPathFactory):
     from quasisim.method.problem import make_problem
     from quasisim.method.retarget import retarget
     from quasisim.optim.trajectory import Trajectory
+    from quasisim.targets.scene import Placement
 
     demo = load_demo(write_example("cube_lift", tmp_path_factory.mktemp("demo"), n_frames=16))
     hand = load_hand("shadow")
     rt = retarget(hand, demo)
-    prob = make_problem(demo, hand, rt.base_rot, 5, 64)
+    prob = make_problem(demo, (Placement(hand, rt.base_rot),), 5, 64)
     soft = {"alpha": 0.0, "d_c": 0.01, "k_n": 4.0e5, "k_f": 1.0e6, "k_d": 1.0e3, "mu": 10.0}
     return prob, prob.params(soft), Trajectory.from_q(rt.q, prob.model.n_points)
 
@@ -38,7 +39,7 @@ def test_touching_moves_each_contact_so_that_it_pushes_as_before(soft_grasp) -> 
     prob, params, traj = soft_grasp
     stiff = prob.params(STIFF)
     opts = HandoffOptions(mode="every", iterations=10, damping=1.0e-5)
-    new = touching(prob.model, params, stiff, traj, prob.base_quat, prob.base_rot, prob.demo.fps, prob.obj0, opts)
+    new = touching(prob.model, params, stiff, traj, prob.base_quat, prob.base_rots, prob.demo.fps, prob.obj0, opts)
     states = simulate_jit(prob.model, params, traj, jnp.asarray(prob.base_quat, jnp.float32), prob.demo.fps, prob.obj0)
     contact = np.asarray(states.in_contact) > 0
     assert contact.sum() >= 10, "the retarget's grasp should touch the cube in the soft simulator"
@@ -51,7 +52,7 @@ def test_touching_moves_each_contact_so_that_it_pushes_as_before(soft_grasp) -> 
 
     phi = np.asarray(state_depths(prob.model, states))
     want = np.asarray(force_keeping_shift(phi, params.d_c, stiff.d_c, k))[contact]
-    br = jnp.asarray(prob.base_rot, jnp.float32)
+    br = jnp.asarray(prob.base_rots, jnp.float32)
     before = np.asarray(target_depths(prob.model, br, traj.base[1:], traj.joints[1:], states))
     after = np.asarray(target_depths(prob.model, br, new.base[1:], new.joints[1:], states))
     moved = (before - after)[contact]
@@ -66,7 +67,7 @@ def test_touching_moves_each_contact_so_that_it_pushes_as_before(soft_grasp) -> 
     idle = ~contact.any(axis=1)
     np.testing.assert_allclose(np.asarray(new.joints[1:])[idle], np.asarray(traj.joints[1:])[idle], atol=1e-6)
     assert idle.any() and not idle.all()
-    hand = prob.hand
+    hand = prob.placements[0].hand
     q, lo, hi = np.asarray(new.joints), hand.joint_range[:, 0], hand.joint_range[:, 1]
     assert np.all(~hand.joint_limited | ((q >= lo - 1e-6) & (q <= hi + 1e-6)))
 

@@ -16,15 +16,16 @@ def short(tmp_path_factory: pytest.TempPathFactory):
     from quasisim.assets.hand import load_hand
     from quasisim.data.demo import load_demo
     from quasisim.data.synthetic import write_example
-    from quasisim.eval.evaluate import load_object_for, scene_for
     from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import load_object_for, scene_for
+    from quasisim.targets.scene import place_hands
 
     p: Path = write_example("cube_lift", tmp_path_factory.mktemp("mpc"), n_frames=12)
     demo = load_demo(p)
     hand = load_hand("shadow")
     c = kinematic_controls(hand, demo, "shadow")
     obj = load_object_for(demo)
-    return demo, hand, obj, c, scene_for(demo, hand, c.base_rot, obj)
+    return demo, hand, obj, c, scene_for(demo, place_hands((hand,), c.base_rots), obj)
 
 
 def test_session_replays_like_rollout_and_observes_velocities(short) -> None:
@@ -73,12 +74,12 @@ def test_observed_state_matches_the_observation(short) -> None:
     from quasisim.targets.mujoco_target import MujocoTarget
 
     demo, hand, obj, c, scene = short
-    model = make_problem(demo, hand, c.base_rot, 20, 128, obj).model
+    model = make_problem(demo, scene.placements, 20, 128, obj).model
     sess = MujocoTarget(scene).session(c.q_targets[0])
     for t in range(3):
         sess.advance(c.q_targets[t], c.q_targets[t + 1])
     obs = sess.observe()
-    s = observed_state(model, obs, jnp.asarray(np_mat_to_quat(scene.base_rot), jnp.float32))
+    s = observed_state(model, obs, jnp.asarray(np_mat_to_quat(scene.base_rots[0]), jnp.float32))
     pos, _quat = object_pose(model, s)
     np.testing.assert_allclose(np.asarray(pos), obs["obj_pos"], atol=1e-5)
     import jax
@@ -86,7 +87,7 @@ def test_observed_state_matches_the_observation(short) -> None:
     from quasisim.optim.objective import hand_keypoints
 
     kp = np.asarray(hand_keypoints(model, jax.tree_util.tree_map(lambda x: x[None], s)))[0]
-    kp_ref = np.asarray(keypoints(hand, fk_full(hand, jnp.asarray(scene.base_rot), jnp.asarray(obs["qpos"]))))
+    kp_ref = np.asarray(keypoints(hand, fk_full(hand, jnp.asarray(scene.base_rots[0]), jnp.asarray(obs["qpos"]))))
     np.testing.assert_allclose(kp, kp_ref, atol=2e-5)
     np.testing.assert_allclose(kp, obs["keypoints"], atol=2e-5)  # and MuJoCo's own sites
 
@@ -101,8 +102,8 @@ def test_mpc_loop_applies_what_it_plans_and_lowers_its_window_loss(short) -> Non
     from quasisim.method.mpc import MPCOptions, run_mpc
     from quasisim.targets.mujoco_target import MujocoTarget
 
-    demo, hand, obj, c, scene = short
-    prob = make_problem(demo, hand, c.base_rot, 5, 32, obj)
+    demo, _hand, obj, c, scene = short
+    prob = make_problem(demo, scene.placements, 5, 32, obj)
     cur = load_curriculum("default")
     opts = MPCOptions(horizon=2, steps=3, lr=1e-3, soften=0, soften_range=0.1, seed=0)
     weights = TransferConfig.from_yaml().weights

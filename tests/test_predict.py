@@ -17,11 +17,12 @@ def test_prediction_error_against_mujoco(tmp_path: Path) -> None:
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.problem import make_problem
     from quasisim.method.retarget import retarget
+    from quasisim.targets.scene import Placement
 
     demo = load_demo(write_example("cube_lift", tmp_path, n_frames=16))
     hand = load_hand("shadow")
     rt = retarget(hand, demo)
-    prob = make_problem(demo, hand, rt.base_rot, substeps=20, n_candidates=128)
+    prob = make_problem(demo, (Placement(hand, rt.base_rot),), substeps=20, n_candidates=128)
     model, bq = prob.model, prob.base_quat
     cur = load_curriculum("default")
     stiff, soft = prob.params(cur.contact(8)), prob.params(cur.contact(1))

@@ -190,14 +190,15 @@ def test_unstable_simulations_are_failures(clip: dict[str, Path], tmp_path: Path
     from quasisim.assets.hand import load_hand
     from quasisim.data.controls import load_controls
     from quasisim.data.demo import load_demo
-    from quasisim.eval.evaluate import evaluate_controls, scene_for
-    from quasisim.targets.scene import PhysicsOptions
+    from quasisim.eval.evaluate import evaluate_controls
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import PhysicsOptions, place_hands
 
     demo, c = load_demo(clip["cube"]), load_controls(clip["controls"])
     calm = evaluate_controls(demo, c, "mujoco", None, render=False)
     assert calm.metrics["unstable"] is False and calm.rollout.instability == ""
     # MuJoCo's own warning (a 50 ms step): flagged, every success flag false, said in metrics and report
-    scene = scene_for(demo, load_hand(c.hand), c.base_rot, physics=PhysicsOptions(mujoco_dt=0.05))
+    scene = scene_for(demo, place_hands((load_hand(c.hand),), c.base_rots), physics=PhysicsOptions(mujoco_dt=0.05))
     ev = evaluate_controls(demo, c, "mujoco", tmp_path / "mj", render=False, scene=scene)
     assert "BADQACC" in ev.rollout.instability
     m = json.loads((tmp_path / "mj" / "metrics.json").read_text())

@@ -33,12 +33,13 @@ ZERO = dataclasses.replace(OPTS, noise_base_pos=0.0, noise_base_rot=0.0, noise_j
 
 def _inputs(demo):
     from quasisim.assets.hand import load_hand
-    from quasisim.eval.evaluate import load_object_for, scene_for
     from quasisim.method.retarget import retarget
+    from quasisim.targets.build import load_object_for, scene_for
+    from quasisim.targets.scene import Placement
 
     hand = load_hand("shadow")
     rt = retarget(hand, demo)
-    return demo, rt.q, scene_for(demo, hand, rt.base_rot, load_object_for(demo))
+    return demo, rt.q, scene_for(demo, (Placement(hand, rt.base_rot),), load_object_for(demo))
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +196,7 @@ def test_zero_noise_is_a_replay_of_the_plan(real) -> None:
         runner.close()
     np.testing.assert_allclose(pred.qpos[0], rep.qpos[1:5], atol=1e-9)
     np.testing.assert_allclose(pred.obj_pos[0], rep.object_pos[1:5], atol=1e-9)
-    np.testing.assert_allclose(pred.keypoints[0], rep.keypoints[1:5][:, scene.hand.kp_metric], atol=1e-9)
+    np.testing.assert_allclose(pred.keypoints[0], rep.keypoints[1:5][:, scene.hands[0].kp_metric], atol=1e-9)
 
 
 def test_best_candidate_lowers_the_first_window_cost(real) -> None:
@@ -206,9 +207,9 @@ def test_best_candidate_lowers_the_first_window_cost(real) -> None:
     demo, plan, scene = real
     res = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
     rep = _replay(scene, plan)
-    H, km = OPTS.horizon, scene.hand.kp_metric
+    H, km = OPTS.horizon, scene.hands[0].kp_metric
     ref_pos, ref_quat, ref_kp = (
-        x[1 : H + 1] for x in window_references(demo, scene.hand.kp_human, np.flatnonzero(scene.hand.kp_metric), H)
+        x[1 : H + 1] for x in window_references(demo, scene.hands[0].kp_human, np.flatnonzero(km), H)
     )
     pred = Prediction(rep.qpos[None, 1 : H + 1], rep.object_pos[None, 1 : H + 1], rep.object_quat[None, 1 : H + 1],
                       rep.keypoints[None, 1 : H + 1][:, :, km], 0)  # fmt: skip
@@ -275,11 +276,11 @@ def test_pybullet_variant_runs(synth) -> None:
     demo, plan = demo.slice(0, 4), plan[:4]
     opts = dataclasses.replace(OPTS, samples=3, horizon=2)
     res = run_sample_target(demo, scene, plan, opts, W, target="pybullet", progress=False)
-    J = scene.hand.n_joints
+    J = scene.hands[0].n_joints
     r = res.rollout
     assert res.q_targets.shape == (4, 6 + J) and res.window_loss.shape == (3,)
     assert r.target == "pybullet" and r.qpos.shape == (4, 6 + J) and r.object_quat.shape == (4, 4)
-    assert r.keypoints.shape == (4, len(scene.hand.kp_names), 3)
+    assert r.keypoints.shape == (4, len(scene.hands[0].kp_names), 3)
     assert res.n_physics_steps == 3 * (3 * 2 * 100 + 100)
     assert res.prediction_error.max() < 1e-9  # restoreState gives the exact state back
     with PybulletTarget(scene) as tgt:

@@ -1,13 +1,16 @@
-"""Table sizing from the demo: covers the object's footprint, excludes hand keypoints below the top."""
+"""Table sizing from the demo: covers the object's footprint, excludes hand keypoints below the top. Hands
+placed one way: a scene's placements follow the demo's hands; controls keep one base frame per hand."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from helpers import box_object
-from quasisim.targets.scene import size_table
+from quasisim.errors import QuasisimError
+from quasisim.targets.scene import Placement, make_scene, place_hands, size_table
 
 
 def _demo(joints: np.ndarray, top: float = 0.8, left: np.ndarray | None = None) -> SimpleNamespace:
@@ -88,3 +91,42 @@ def test_stand_when_hands_pass_under_the_object_edges() -> None:
     assert table.contains_xy(np.array([[0.03, 0.03], [-0.03, -0.03]])).all()  # the 6 cm square under the COM
     one, notes_one = size_table(_demo(right), obj)  # one hand under one edge: a stand as well
     assert notes_one and not one.contains_xy(np.array([0.14, 0.0]), pad=0.039) and one.contains_xy(np.array([-0.14, 0]))
+
+
+def test_make_scene_takes_one_placement_per_hand_of_the_demo() -> None:
+    J = np.zeros((2, 21, 3))
+    J[:, :, 2] = 0.9
+    one = SimpleNamespace(**vars(_demo(J)), sides=("right",), name="one", path=None, fps=20.0)
+    two = SimpleNamespace(**vars(_demo(J, left=J)), sides=("right", "left"), name="two", path=None, fps=20.0)
+    right, left = SimpleNamespace(n_joints=2), SimpleNamespace(n_joints=3)
+    R = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
+    pair = place_hands((right, left), (np.eye(3), R))
+    assert [p.side for p in pair] == ["right", "left"] and pair[1].base_rot.dtype == np.float64
+    sc = make_scene(two, pair, box_object())
+    assert sc.hands == (right, left) and sc.sides == ("right", "left") and sc.prefixes == ("rhand/", "lhand/")
+    assert np.array_equal(sc.base_rots[1], R) and sc.dof_slices == (slice(0, 8), slice(8, 17)) and sc.n_dof == 17
+    assert make_scene(one, pair[:1], box_object()).prefixes == ("hand/",)
+    with pytest.raises(ValueError, match="has 1 hand"):
+        make_scene(one, pair, box_object())
+    with pytest.raises(QuasisimError, match="handles one-hand demos only"):
+        make_scene(two, pair[:1], box_object())
+    with pytest.raises(ValueError, match=r"placements for hands \(right, right\)"):
+        make_scene(two, (Placement(right, np.eye(3)), Placement(left, R)), box_object())
+    with pytest.raises(ValueError, match="side"):
+        Placement(right, np.eye(3), "middle")
+
+
+def test_controls_keep_one_base_frame_per_hand_in_the_file_keys_of_v1(tmp_path) -> None:
+    from quasisim.data.controls import Controls, load_controls
+
+    R = np.diag([1.0, -1.0, -1.0])
+    kw = {"hand": "shadow", "demo": "d", "method": "test", "fps": 20.0, "joint_names": ("a", "b")}
+    for rots in ((np.eye(3),), (np.eye(3), R)):
+        c = Controls(base_rots=rots, q_targets=np.zeros((3, 8 * len(rots))), **kw)
+        path = c.save(tmp_path / f"{len(rots)}.npz")
+        with np.load(path) as z:
+            assert ("left_base_rot" in z.files) == (len(rots) == 2) and np.array_equal(z["base_rot"], np.eye(3))
+        c = load_controls(path)
+        assert c.sides == ("right", "left")[: len(rots)] and all(map(np.array_equal, c.base_rots, rots))
+    with pytest.raises(ValueError, match="base frames"):
+        Controls(base_rots=(), q_targets=np.zeros((3, 8)), **kw)

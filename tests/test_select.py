@@ -18,13 +18,14 @@ from quasisim.targets import TargetRollout
 def cube(example_dir: Path):
     from quasisim.assets.hand import load_hand
     from quasisim.data.demo import load_demo
-    from quasisim.eval.evaluate import scene_for
     from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
 
     demo = load_demo(example_dir / "cube_lift.npz")
     hand = load_hand("shadow")
     c = kinematic_controls(hand, demo, "shadow")
-    return demo, scene_for(demo, hand, c.base_rot), c.q_targets
+    return demo, scene_for(demo, place_hands((hand,), c.base_rots)), c.q_targets
 
 
 def _perfect(demo) -> TargetRollout:

@@ -21,11 +21,12 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
     from quasisim.method.problem import make_problem
     from quasisim.method.retarget import retarget
     from quasisim.method.stage3 import noisy_variants
+    from quasisim.targets.scene import Placement
 
     p: Path = write_example("cube_lift", tmp_path_factory.mktemp("s3"), n_frames=24)
     demo, hand = load_demo(p), load_hand("shadow")
     rt = retarget(hand, demo)
-    prob = make_problem(demo, hand, rt.base_rot, 5, 32)
+    prob = make_problem(demo, (Placement(hand, rt.base_rot),), 5, 32)
     cfg = TransferConfig.from_yaml()
     cur = load_curriculum("default")
     variants = noisy_variants(rt.q, 1, cfg.sample_target, 0, prob.scene)
@@ -38,8 +39,9 @@ def test_noisy_variants_are_smooth_perturbations_within_limits(setup) -> None:
     v = variants[0]
     assert v.shape == q.shape and np.array_equal(v[0], q[0])  # the start is not perturbed
     assert 1e-3 < np.abs(v - q).max() < 0.5
-    lo, hi = prob.hand.joint_range.T
-    limited = prob.hand.joint_limited
+    hand = prob.placements[0].hand
+    lo, hi = hand.joint_range.T
+    limited = hand.joint_limited
     assert np.all((v[:, 6:] >= np.minimum(lo, q[:, 6:]) - 1e-12)[:, limited])
     assert np.all((v[:, 6:] <= np.maximum(hi, q[:, 6:]) + 1e-12)[:, limited])
     assert buf.n_rollouts == 2 and np.array_equal(buf.q_targets[1], v)

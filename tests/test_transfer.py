@@ -165,10 +165,11 @@ def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path)
     from quasisim.optim.adam import Progress, StepBudget
     from quasisim.optim.sysid import SysID
     from quasisim.optim.trajectory import Trajectory
+    from quasisim.targets.scene import Placement
 
     demo, hand = load_demo(short_demo), load_hand("shadow")
     rt = retarget(hand, demo)
-    prob = make_problem(demo, hand, rt.base_rot, 5, 32)
+    prob = make_problem(demo, (Placement(hand, rt.base_rot),), 5, 32)
     cur = load_curriculum("default")
     params = prob.params(cur.contact(cur.stiffest))
     vg = prob.objective(prob.reference()).value_and_grad  # the compiled program the pipeline uses

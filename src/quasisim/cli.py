@@ -138,8 +138,8 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
     import numpy as np
 
     from quasisim.data.demo import load_demo, warn_long_clip
-    from quasisim.eval.evaluate import demo_hands
     from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import demo_hands
 
     d = load_demo(demo)
     hands = demo_hands(hand, d.sides)  # two-hand demos: the hand and its mirror image

@@ -26,7 +26,6 @@ from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError
-from quasisim.eval.evaluate import demo_hands  # moves to targets.scene (hands branch)
 from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, write_outputs
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
 from quasisim.method import registry
@@ -43,6 +42,8 @@ from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory, join_q, simulate_jit
 from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
 from quasisim.sim.types import Model, Params
+from quasisim.targets.build import demo_hands
+from quasisim.targets.scene import place_hands
 
 # called around every checkpointed piece that is computed (not read back): hook(name, compute) -> arrays
 PieceHook = Callable[[str, Callable[[], dict[str, Any]]], dict[str, Any]]
@@ -75,11 +76,8 @@ def run_transfer(
     kin_expect = {"q": (T, D), "base_rot": (3, 3), **({"left_base_rot": (3, 3)} if len(hands) > 1 else {})}
     kin = timed(ck, "kinematic", lambda: _kinematic(hands, demo, progress), kin_expect)
     record.seconds["retarget"] = float(kin["wall_s"])
-    left = (hands[1], np.asarray(kin["left_base_rot"], np.float64)) if len(hands) > 1 else None
-    bud = cfg.budget(spec.budget)
-    prob = make_problem(
-        demo, hands[0], np.asarray(kin["base_rot"], np.float64), bud.substeps, bud.n_candidates, left=left
-    )
+    bud, rots = cfg.budget(spec.budget), [kin[k] for k in ("base_rot", "left_base_rot")[: len(hands)]]
+    prob = make_problem(demo, place_hands(hands, rots), bud.substeps, bud.n_candidates)
     ctx = Context(prob, cur, cfg, spec, ck, progress, record, np.asarray(kin["q"]))
     plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
     outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
@@ -88,19 +86,10 @@ def run_transfer(
 
     controls = Controls(
         hand=spec.hand, demo=demo.name, method=f"{spec.method}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
-        fps=demo.fps, base_rot=prob.base_rot, q_targets=np.asarray(outcome.q), joint_names=hands[0].joint_names,
-        extras=file_extras(ctx, outcome, stages), demo_hash=content_hash(demo), left_base_rot=None if left is None else left[1],
+        fps=demo.fps, base_rots=prob.scene.base_rots, q_targets=np.asarray(outcome.q), joint_names=hands[0].joint_names,
+        extras=file_extras(ctx, outcome, stages), demo_hash=content_hash(demo),
     )  # fmt: skip
-    settings = {
-        "label": spec.method,
-        "curriculum": cur.name,
-        "stages": spec.stages,
-        "budget": spec.budget,
-        "method": spec.method,
-    }
-    return write_outputs(
-        prob, controls, kin["q"], record, outcome.plan.sysid, settings, spec.target, out, spec.render, spec.progress
-    )
+    return write_outputs(ctx, controls, outcome.plan.sysid, out)
 
 
 def file_extras(ctx: Context, outcome: Outcome, stages: tuple[Stage, ...]) -> dict[str, Any]:

@@ -10,8 +10,10 @@ from tqdm import tqdm
 
 from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, clips, header, lifted, publish, summary_rows
 from quasisim.data.demo import load_demo
-from quasisim.eval.evaluate import demo_hands, evaluate_controls, load_object_for, scene_of_hands
+from quasisim.eval.evaluate import evaluate_controls
 from quasisim.method.retarget import kinematic_controls
+from quasisim.targets.build import demo_hands, scene_for
+from quasisim.targets.scene import place_hands
 
 
 def run_baseline(
@@ -27,8 +29,7 @@ def run_baseline(
         hands = demo_hands(hand_name, demo.sides)
         controls = kinematic_controls(hands, demo, hand_name)
         t_ret = time.perf_counter() - t0
-        obj = load_object_for(demo)
-        scene = scene_of_hands(demo, hands, controls.base_rots, obj)
+        scene = scene_for(demo, place_hands(hands, controls.base_rots))
         for tgt in targets:
             t1 = time.perf_counter()
             ev = evaluate_controls(demo, controls, tgt, out / demo.name / tgt if render else None, render, scene=scene)

@@ -16,6 +16,10 @@ key            shape        meaning
                             hand (``hand``'s mirror image); ``q_targets`` is then (T, 2 (6 + J)),
                             the right hand's columns, then the left hand's
 ============== ============ =====================================================================
+
+In memory the base frames are :attr:`Controls.base_rots`, one per hand (right, then left); the file keeps
+them under :data:`BASE_ROT_KEYS` (``base_rot``, ``left_base_rot``), and files of one hand have no
+``left_base_rot``.
 """
 
 from __future__ import annotations
@@ -25,36 +29,49 @@ from pathlib import Path
 
 import numpy as np
 
-from quasisim.data.demo import FPS_RANGE
+from quasisim.data.demo import FPS_RANGE, SIDES
 from quasisim.errors import InputError
 from quasisim.files import npz_array, npz_member, npz_number, npz_str, open_npz, save_npz_atomic
 
 FORMAT = "quasisim-controls-v1"
 BASE_NAMES = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
+BASE_ROT_KEYS = ("base_rot", "left_base_rot")  # the file key of each hand's base frame (right, left)
 
 
 @dataclass(frozen=True, eq=False)
 class Controls:
+    """PD targets for the hand(s) of one demo (see the module docstring for the file).
+
+    Attributes:
+        hand: built-in hand name or path of the hand YAML (the right hand; two hands add its mirror image).
+        demo, demo_hash: name and content hash of the demonstration.
+        method: how the controls were made.
+        fps: control frame rate (Hz).
+        base_rots: (3, 3) fixed frame of the base hinges of each hand, right then left (one or two).
+        q_targets: (T, H (6 + J)) PD position targets, each hand's columns in the order of ``base_rots``.
+        joint_names: (J,) the joints of one hand, in column order after its 6 base columns.
+        extras: further arrays saved as ``extra_<key>``.
+    """
+
     hand: str
     demo: str
     method: str
     fps: float
-    base_rot: np.ndarray
+    base_rots: tuple[np.ndarray, ...]
     q_targets: np.ndarray
     joint_names: tuple[str, ...]
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     demo_hash: str = ""
-    left_base_rot: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "base_rots", tuple(self.base_rots))
+        if not 1 <= len(self.base_rots) <= len(SIDES):
+            raise ValueError(f"Controls: {len(self.base_rots)} base frames, expected one per hand (1 or 2)")
 
     @property
     def sides(self) -> tuple[str, ...]:
         """The hands these controls drive: ``("right",)`` or ``("right", "left")``."""
-        return ("right",) if self.left_base_rot is None else ("right", "left")
-
-    @property
-    def base_rots(self) -> tuple[np.ndarray, ...]:
-        """(3, 3) base frame of each hand, in column order."""
-        return (self.base_rot,) if self.left_base_rot is None else (self.base_rot, self.left_base_rot)
+        return SIDES[: len(self.base_rots)]
 
     @property
     def n_frames(self) -> int:
@@ -63,9 +80,9 @@ class Controls:
     def save(self, path: str | Path) -> Path:
         extras = {f"extra_{k}": np.asarray(v) for k, v in self.extras.items()}
         columns = [*BASE_NAMES, *self.joint_names]
-        if self.left_base_rot is not None:
+        if len(self.base_rots) > 1:
             columns = [f"{side}/{c}" for side in self.sides for c in columns]
-            extras["left_base_rot"] = np.asarray(self.left_base_rot, dtype=np.float64)
+            extras[BASE_ROT_KEYS[1]] = np.asarray(self.base_rots[1], dtype=np.float64)
         return save_npz_atomic(
             path,
             format=np.array(FORMAT),
@@ -74,7 +91,7 @@ class Controls:
             demo_hash=np.array(self.demo_hash),
             method=np.array(self.method),
             fps=np.array(self.fps),
-            base_rot=np.asarray(self.base_rot, dtype=np.float64),
+            base_rot=np.asarray(self.base_rots[0], dtype=np.float64),
             q_targets=np.asarray(self.q_targets, dtype=np.float64),
             joint_names=np.array(self.joint_names),
             column_names=np.array(columns),
@@ -93,25 +110,23 @@ def load_controls(path: str | Path) -> Controls:
         if fmt != FORMAT:
             raise InputError(path, "format", f"'{FORMAT}'", f"'{fmt}'")
         names = _joint_names(npz_member(z, "joint_names", path), path)
-        left = npz_array(z, "left_base_rot", path, (3, 3)) if "left_base_rot" in z.files else None
-        n_hands = 1 if left is None else 2
+        rots = tuple(npz_array(z, k, path, (3, 3)) for k in BASE_ROT_KEYS if k in z.files)  # base_rot is present
         c = Controls(
             hand=npz_str(z, "hand", path),
             demo=npz_str(z, "demo", path) if "demo" in z.files else "",
             method=npz_str(z, "method", path) if "method" in z.files else "",
             fps=npz_number(z, "fps", path, *FPS_RANGE),
-            base_rot=npz_array(z, "base_rot", path, (3, 3)),
-            q_targets=npz_array(z, "q_targets", path, ("T", n_hands * (6 + len(names)))),
+            base_rots=rots,
+            q_targets=npz_array(z, "q_targets", path, ("T", len(rots) * (6 + len(names)))),
             joint_names=names,
             extras={k[6:]: npz_member(z, k, path) for k in z.files if k.startswith("extra_")},
             demo_hash=npz_str(z, "demo_hash", path) if "demo_hash" in z.files else "",
-            left_base_rot=left,
         )
         for k in z.files:  # every member must be readable
             npz_member(z, k, path)
     if c.q_targets.shape[0] < 2:
         raise InputError(path, "q_targets", f"shape (T >= 2, {c.q_targets.shape[1]})", str(c.q_targets.shape))
-    for key, R in zip(("base_rot", "left_base_rot"), c.base_rots, strict=False):
+    for key, R in zip(BASE_ROT_KEYS, c.base_rots, strict=False):
         if not (np.allclose(R @ R.T, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0):
             raise InputError(path, key, "a 3x3 rotation matrix", str(R.round(4).tolist()))
     return c

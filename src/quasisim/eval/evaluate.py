@@ -11,8 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.assets.hand import HandModel, builtin_hands, load_hand
-from quasisim.assets.object import DEFAULT_DENSITY, ObjectAsset, load_object
+from quasisim.assets.hand import HandModel, builtin_hands
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo
 from quasisim.errors import InputError, QuasisimError
@@ -23,7 +22,8 @@ from quasisim.eval.report import write_report
 from quasisim.files import output_set, save_json_atomic
 from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
 from quasisim.targets import TargetRollout, make_target
-from quasisim.targets.scene import PhysicsOptions, Scene, make_scene
+from quasisim.targets.build import demo_hands, scene_for
+from quasisim.targets.scene import Scene, place_hands
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
 OUTPUTS = ("metrics.json", "rollout.npz", "report.html", "video.mp4", "scene.xml", "trajectory.npz")
@@ -36,36 +36,6 @@ class Evaluation:
     per_frame: PerFrame
     rollout: TargetRollout
     scene: Scene
-
-
-def load_object_for(demo: Demo, density: float | None = None, mass: float | None = None) -> ObjectAsset:
-    """The demo's object mesh as an asset (density by default; or a given mass in kg)."""
-    return load_object(demo.object_mesh_path, name=demo.object_name, density=density or DEFAULT_DENSITY, mass=mass)
-
-
-def scene_for(
-    demo: Demo, hand: HandModel, base_rot: np.ndarray, obj: Any = None, physics: PhysicsOptions | None = None,
-    left: tuple[HandModel, np.ndarray] | None = None,
-) -> Scene:  # fmt: skip
-    """The scene of ``demo`` (:func:`~quasisim.targets.scene.make_scene`), loading the object if not given."""
-    return make_scene(demo, hand, base_rot, obj if obj is not None else load_object_for(demo), physics, left)
-
-
-def scene_of_hands(
-    demo: Demo, hands: tuple[HandModel, ...], base_rots: tuple[np.ndarray, ...], obj: Any = None,
-    physics: PhysicsOptions | None = None,
-) -> Scene:  # fmt: skip
-    """:func:`scene_for` with one robot hand and base frame (3, 3) per hand of the demo (right, left)."""
-    left = (hands[1], base_rots[1]) if len(hands) > 1 else None
-    return scene_for(demo, hands[0], base_rots[0], obj, physics, left)
-
-
-def demo_hands(hand: str | Path, sides: tuple[str, ...]) -> tuple[HandModel, ...]:
-    """The robot hands for a demo with hands ``sides``: one hand, ``hand`` as it is; two hands, ``hand`` as a
-    right hand and its left version (:meth:`~quasisim.assets.hand.HandConfig.for_side`, a mirror image)."""
-    if tuple(sides) == ("right",):
-        return (load_hand(hand),)
-    return tuple(load_hand(hand, side=s) for s in sides)
 
 
 # surface samples per hand object; entries live and die with their hand
@@ -143,7 +113,7 @@ def evaluate_controls(
     there, as one set (with ``manifest.json``)."""
     hands = scene.hands if scene is not None else demo_hands(controls.hand, controls.sides)
     check_controls(demo, controls, hands)
-    scene = scene or scene_of_hands(demo, hands, controls.base_rots)
+    scene = scene or scene_for(demo, place_hands(hands, controls.base_rots))
     tgt = make_target(target, scene)
     rollout = tgt.rollout(controls.q_targets)
     surf = scene_surface(scene, rollout.qpos)

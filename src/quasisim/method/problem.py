@@ -14,7 +14,6 @@ import numpy as np
 from quasisim.assets.hand import HandModel, join_hands
 from quasisim.assets.object import ObjectAsset
 from quasisim.data.demo import Demo
-from quasisim.eval.evaluate import demo_hands, load_object_for
 from quasisim.method.retarget import RetargetResult, retarget_hands
 from quasisim.optim.objective import Reference, TrackingObjective, make_objective
 from quasisim.optim.trajectory import Trajectory, simulate, split_q
@@ -22,30 +21,27 @@ from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.build import SimOptions, build_model, default_params, hand_set_points
 from quasisim.sim.kinematics import fk_full, points_world
 from quasisim.sim.types import Model, Params, State
-from quasisim.targets.scene import Scene, make_scene
+from quasisim.targets.build import demo_hands, scene_for
+from quasisim.targets.scene import Placement, Scene, place_hands
 
 
 @dataclass(frozen=True, eq=False)
 class Problem:
-    """``demo`` to be transferred to ``scene.hand``; ``model`` is the quasi-physical simulator of ``scene``."""
+    """``demo`` to be transferred to the robot hands placed in ``scene`` (``scene.placements``: right, then
+    left); ``model`` is the quasi-physical simulator of ``scene`` (its hands as one hand set, ``model.hand``)."""
 
     demo: Demo
     scene: Scene
     model: Model
 
     @property
-    def hand(self) -> HandModel:
-        """The demo's (right) robot hand; the simulator's hands are ``model.hand`` (a hand set for two)."""
-        return self.scene.hand
+    def placements(self) -> tuple[Placement, ...]:
+        """The robot hands on their base frames, right then left (:attr:`Scene.placements`)."""
+        return self.scene.placements
 
     @property
     def obj(self) -> ObjectAsset:
         return self.scene.obj
-
-    @property
-    def base_rot(self) -> np.ndarray:
-        """(3, 3) the fixed frame of the (first) hand's floating base angles."""
-        return self.scene.base_rot
 
     @property
     def base_rots(self) -> np.ndarray:
@@ -103,19 +99,17 @@ class Problem:
 
 
 def make_problem(
-    demo: Demo, hand: HandModel, base_rot: np.ndarray, substeps: int, n_candidates: int, obj: ObjectAsset | None = None,
-    left: tuple[HandModel, np.ndarray] | None = None,
-) -> Problem:  # fmt: skip
-    """The scene (table sized from the demo) and the simulator (``substeps`` per frame, origin at the
-    object's first position) for ``demo`` and ``hand`` with base frame ``base_rot``; ``left``: the left hand
-    and its base frame of a two-hand demo. The quasi-physical simulator of two hands holds both as one
+    demo: Demo, placements: tuple[Placement, ...], substeps: int, n_candidates: int, obj: ObjectAsset | None = None
+) -> Problem:
+    """The scene (table sized from the demo; the demo's object unless ``obj``) and the simulator (``substeps``
+    per frame, origin at the object's first position) for ``demo`` and its robot hands ``placements`` (one per
+    hand of the demo, right then left). The quasi-physical simulator of two hands holds both as one
     hand set (:func:`~quasisim.assets.hand.join_hands`: one kinematic root per hand), whose points are the
     points of each hand sampled on its own (so a hand has the same points alone and in a pair)."""
-    obj = obj if obj is not None else load_object_for(demo)
-    scene = make_scene(demo, hand, base_rot, obj, left=left)
+    scene = scene_for(demo, placements, obj)
     opts = SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates)
     points = hand_set_points(scene.hands, opts)
-    model = build_model(join_hands(scene.hands), obj, scene.table, opts, demo.object_pos[0], points)
+    model = build_model(join_hands(scene.hands), scene.obj, scene.table, opts, demo.object_pos[0], points)
     return Problem(demo, scene, model)
 
 
@@ -125,8 +119,8 @@ def fitted_problem(
 ) -> tuple[Problem, np.ndarray]:  # fmt: skip
     """:func:`make_problem` for ``demo`` with ``hands`` (one per side of the demo) on the base frames of their
     keypoint fits ``fits``, and the fits' PD targets (T, D) in the targets' layout (right hand, then left)."""
-    left = (hands[1], fits[1].base_rot) if len(hands) > 1 else None
-    prob = make_problem(demo, hands[0], fits[0].base_rot, substeps, n_candidates, obj, left=left)
+    placements = place_hands(hands, [f.base_rot for f in fits])
+    prob = make_problem(demo, placements, substeps, n_candidates, obj)
     return prob, np.concatenate([f.q for f in fits], axis=1)
 
 

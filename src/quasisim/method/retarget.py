@@ -163,10 +163,9 @@ def kinematic_controls(
         demo=demo.name,
         method="kinematic",
         fps=demo.fps,
-        base_rot=res[0].base_rot,
+        base_rots=tuple(r.base_rot for r in res),
         q_targets=np.concatenate([r.q for r in res], axis=1),
         joint_names=hands[0].joint_names,
         extras={"retarget_keypoint_error": np.concatenate([r.keypoint_error for r in res], axis=1)},
         demo_hash=content_hash(demo),
-        left_base_rot=res[1].base_rot if len(res) > 1 else None,
     )

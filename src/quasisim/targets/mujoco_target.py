@@ -4,7 +4,7 @@ Set-up (stated once, used for every figure):
 
 * ``timestep`` 2 ms (``PhysicsOptions.mujoco_dt``), ``implicitfast`` integrator, elliptic friction cones,
   ``impratio`` 10, sliding friction 1 on every contact, gravity -9.81 m/s^2 along z.
-* Hand base: 3 slide joints along world x, y, z and 3 hinges about the axes of ``scene.base_rot``
+* Hand base: 3 slide joints along world x, y, z and 3 hinges about the axes of ``Placement.base_rot``
   (intrinsic x-y-z), all on the hand's root body. Finger joints as in the hand model, with the hand
   config's damping and armature. No hand self-collision; the hand collides with the object and the table.
 * Two hands (a demo with ``left_joints``): each hand as above under its own name prefix (``rhand/``,

@@ -6,7 +6,7 @@ PyBullet cannot load the Shadow MJCF, so the hand is assembled link by link from
 * ``timeStep`` 0.5 ms (``PhysicsOptions.pybullet_dt``; ``round(1 / (fps dt))`` substeps per control frame,
   100 at 20 fps), 100 solver iterations, gravity -9.81 m/s^2 along z, one ``DIRECT`` client per target.
 * Hand: a fixed world base, 3 prismatic links along world x, y, z and 3 revolute links about the axes of
-  ``scene.base_rot`` (intrinsic x-y-z); all are 1e-4 kg dummies except the last, the hand's root body. One
+  ``Placement.base_rot`` (intrinsic x-y-z); all are 1e-4 kg dummies except the last, the hand's root body. One
   link per hand body: a body without joints is a fixed link, a body with several joints a chain of dummy
   links. PyBullet rotates a link about its frame origin, MuJoCo a body about the joint anchor, so a body's
   link frame sits at its (last) joint anchor and its shapes, inertial frame, children and keypoints are
@@ -21,7 +21,7 @@ PyBullet cannot load the Shadow MJCF, so the hand is assembled link by link from
   torque yields exactly that ``v`` up to gravity, Coriolis and contact forces. An explicit ``-kv qd``
   diverged on the base hinges (``kv dt / I > 2`` once the middle base angle tilts the outer hinge axes
   together; seen at 50 deg). At exactly +-90 deg (gimbal lock) their difference carries only the dummy
-  inertia; ``scene.base_rot`` is chosen per clip to stay far from it (tracking is tested up to 85 deg).
+  inertia; ``Placement.base_rot`` is chosen per clip to stay far from it (tracking is tested up to 85 deg).
   PyBullet's default velocity motors are off; link linear/angular damping is 0.
 * Joint armature (``pd.joint_armature``, kg m^2) has no PyBullet counterpart; it is approximated by a thin
   rotor disc on the link that a hinge with axis ``a`` moves: inertia ``armature (a a^T + I) / 2``, exactly
@@ -173,15 +173,15 @@ class _HandBody:
 def hand_links(scene: Scene, hand: HandModel | None = None, base_rot: np.ndarray | None = None) -> tuple[
     list[_Link], list[int], np.ndarray, np.ndarray
 ]:  # fmt: skip
-    """The hand as PyBullet links: ``hand`` on base frame ``base_rot`` (default: ``scene.hand``, ``scene.base_rot``).
+    """The hand as PyBullet links: ``hand`` on base frame ``base_rot`` (default: the scene's first placement).
 
     Returns:
         links; ``dof_link`` (6 + J): the link (= PyBullet joint index) of every hand dof in our order;
         ``body_link`` (B,): the link of every body; ``body_off`` (B, 3): the link frame in the body frame
         (link frame = body frame translated by ``body_off``, in body axes; m).
     """
-    hand = scene.hand if hand is None else hand
-    base_rot = scene.base_rot if base_rot is None else base_rot
+    hand = scene.hands[0] if hand is None else hand
+    base_rot = scene.base_rots[0] if base_rot is None else base_rot
     arm = hand.config.pd.joint_armature
     eye = np.eye(3)
     links = [_Link(parent=k, pos=np.zeros(3), rot=eye, joint="prismatic", axis=eye[k]) for k in range(3)]

@@ -1,9 +1,11 @@
 """The evaluation scene shared by every target simulator: hand(s) on floating bases, object, finite table.
 
-A scene holds one hand (the demo's right hand) or two (right, then the mirrored left hand of a demo with
-``left_joints``). Everything indexed over hands follows that order: the control vector is the
+A robot hand enters a scene one way: as a :class:`Placement`, the hand and the fixed frame of its floating
+base. A scene holds one placement (the demo's right hand) or two (right, then the mirrored left hand of a
+demo with ``left_joints``). Everything indexed over hands follows that order: the control vector is the
 concatenation ``[right (6 + J), left (6 + J)]`` (:attr:`Scene.dof_slices`) and robot keypoints index the
 human keypoints ``[right_joints, left_joints]`` (:attr:`Scene.kp_human`: left-hand indices 21..41).
+Building the scene of a demo (its object, its robot hands) is :mod:`quasisim.targets.build`.
 
 The table is a box from the floor (z = 0) up to ``support_height``. Its footprint is sized from the demo:
 it covers the object's initial footprint with a margin and contains no human keypoint (of any frame, of
@@ -14,13 +16,14 @@ top beside it, so an infinite support plane would collide with them.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from quasisim.assets.hand import HandModel
-from quasisim.data.demo import N_KEYPOINTS, Demo
+from quasisim.data.demo import N_KEYPOINTS, SIDES, Demo
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_quat_to_mat
 
@@ -63,13 +66,38 @@ class PhysicsOptions:
 
 
 @dataclass(frozen=True, eq=False)
+class Placement:
+    """One robot hand on its floating base.
+
+    Attributes:
+        hand: parsed hand model.
+        base_rot: (3, 3) fixed frame of the base hinges (see :mod:`quasisim.sim.kinematics`); stored as float64.
+        side: the demo's hand it follows, ``"right"`` or ``"left"`` (:data:`quasisim.data.demo.SIDES`).
+    """
+
+    hand: HandModel
+    base_rot: np.ndarray
+    side: str = "right"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "base_rot", np.asarray(self.base_rot, dtype=np.float64))
+        if self.side not in SIDES:
+            raise ValueError(f"Placement: side {self.side!r}, expected one of {', '.join(SIDES)}")
+
+
+def place_hands(hands: Sequence[HandModel], base_rots: Sequence[np.ndarray]) -> tuple[Placement, ...]:
+    """Each of ``hands`` on its base frame (3, 3) of ``base_rots``, in the demo's hand order (right, left)."""
+    if not 1 <= len(hands) <= len(SIDES) or len(hands) != len(base_rots):
+        raise ValueError(f"place_hands: {len(hands)} hand(s), {len(base_rots)} base frame(s); expected 1 or 2 of each")
+    return tuple(Placement(h, R, s) for h, R, s in zip(hands, base_rots, SIDES, strict=False))
+
+
+@dataclass(frozen=True, eq=False)
 class Scene:
     """Everything a target needs to build the same world.
 
     Attributes:
-        hand: parsed hand model (the right hand of a two-hand scene).
-        base_rot: (3, 3) fixed frame of the base hinges (see :mod:`quasisim.sim.kinematics`).
-        left: the second hand of a two-hand scene and its base frame (3, 3), or None (one hand).
+        placements: the robot hands on their bases, right then left (one or two).
         obj: object asset (mesh, mass, inertia, convex parts).
         table: the support box.
         object_pos0, object_quat0: initial object pose (m; w x y z).
@@ -78,8 +106,7 @@ class Scene:
         notes: remarks made while building the scene (shown in reports).
     """
 
-    hand: HandModel
-    base_rot: np.ndarray
+    placements: tuple[Placement, ...]
     obj: ObjectAsset
     table: Table
     object_pos0: np.ndarray
@@ -87,22 +114,26 @@ class Scene:
     fps: float
     physics: PhysicsOptions = PhysicsOptions()
     notes: tuple[str, ...] = field(default=())
-    left: tuple[HandModel, np.ndarray] | None = None
 
     @property
     def hands(self) -> tuple[HandModel, ...]:
-        """The hands in control order: ``(hand,)`` or ``(hand, left hand)``."""
-        return (self.hand,) if self.left is None else (self.hand, self.left[0])
+        """The hands in control order: ``(right,)`` or ``(right, left)``."""
+        return tuple(p.hand for p in self.placements)
 
     @property
     def base_rots(self) -> tuple[np.ndarray, ...]:
         """(3, 3) base frame of each hand of :attr:`hands`."""
-        return (self.base_rot,) if self.left is None else (self.base_rot, np.asarray(self.left[1], np.float64))
+        return tuple(p.base_rot for p in self.placements)
+
+    @property
+    def sides(self) -> tuple[str, ...]:
+        """The demo's hand each of :attr:`hands` follows: ``("right",)`` or ``("right", "left")``."""
+        return tuple(p.side for p in self.placements)
 
     @property
     def prefixes(self) -> tuple[str, ...]:
         """Name prefix of each hand in the simulators' models: ``hand/`` alone, ``rhand/`` and ``lhand/``."""
-        return ("hand/",) if self.left is None else ("rhand/", "lhand/")
+        return ("hand/",) if len(self.placements) == 1 else ("rhand/", "lhand/")
 
     @property
     def dof_slices(self) -> tuple[slice, ...]:
@@ -233,26 +264,25 @@ def _carve(
 
 
 def make_scene(
-    demo: Demo,
-    hand: HandModel,
-    base_rot: np.ndarray,
-    obj: ObjectAsset,
-    physics: PhysicsOptions | None = None,
-    left: tuple[HandModel, np.ndarray] | None = None,
+    demo: Demo, placements: Sequence[Placement], obj: ObjectAsset, physics: PhysicsOptions | None = None
 ) -> Scene:
-    """The scene of ``demo`` with ``hand`` on base frame ``base_rot`` (3, 3) and, for a demo with
-    ``left_joints``, the left hand and its base frame ``left`` (required then, refused otherwise)."""
-    if left is not None and demo.left_joints is None:
-        raise ValueError(f"make_scene: demo {demo.name} has one hand, the scene was given a left hand")
-    if left is None and demo.left_joints is not None:  # a one-hand code path reached with a two-hand demo
+    """The scene of ``demo`` with its robot hands ``placements``, one per hand of the demo (``demo.sides``:
+    right, then left for a demo with ``left_joints``) in that order, and object ``obj``."""
+    placements = tuple(placements)
+    n, sides = len(placements), demo.sides
+    if n == 0 or n > len(sides):
+        raise ValueError(f"make_scene: demo {demo.name} has {len(sides)} hand(s), the scene was given {n}")
+    if n < len(sides):  # a one-hand code path reached with a two-hand demo
         raise QuasisimError(
             f"{demo.path or demo.name}: a demo with two hands (left_joints); this command handles one-hand demos "
             "only (two hands: quasisim retarget, evaluate, transfer, bench baseline, bench transfer)"
         )
+    if tuple(p.side for p in placements) != sides:
+        got = ", ".join(p.side for p in placements)
+        raise ValueError(f"make_scene: placements for hands ({got}), demo {demo.name} has ({', '.join(sides)})")
     table, notes = size_table(demo, obj)
     return Scene(
-        hand=hand,
-        base_rot=np.asarray(base_rot, dtype=np.float64),
+        placements=placements,
         obj=obj,
         table=table,
         object_pos0=np.asarray(demo.object_pos[0], dtype=np.float64),
@@ -260,5 +290,4 @@ def make_scene(
         fps=float(demo.fps),
         physics=physics or PhysicsOptions(),
         notes=notes,
-        left=None if left is None else (left[0], np.asarray(left[1], dtype=np.float64)),
     )
