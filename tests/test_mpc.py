@@ -1,4 +1,5 @@
-"""Closed-loop MPC: the MuJoCo session's observations, the observed quasi-physical state, the loop itself."""
+"""Closed-loop MPC: the observed quasi-physical state of a target's observation, the loop itself (the targets'
+observations themselves: test_targets.py)."""
 
 from __future__ import annotations
 
@@ -28,57 +29,20 @@ def short(tmp_path_factory: pytest.TempPathFactory):
     return demo, hand, obj, c, scene_for(demo, place_hands((hand,), c.base_rots), obj)
 
 
-def test_session_replays_like_rollout_and_observes_velocities(short) -> None:
-    """Stepping a session frame by frame is the rollout; the observed object velocity is its centre of
-    mass's (finite difference over one physics step)."""
-    import mujoco
-
-    from quasisim.rotations import np_quat_to_mat
-    from quasisim.targets.mujoco_target import MujocoTarget
-
-    demo, _hand, obj, c, scene = short
-    tgt = MujocoTarget(scene)
-    r = tgt.rollout(c.q_targets)
-    sess = tgt.session(c.q_targets[0], (c.q_targets[1] - c.q_targets[0]) * demo.fps)
-    for t in range(demo.n_frames):
-        sess.record()
-        if t < demo.n_frames - 1:
-            sess.advance(c.q_targets[t], c.q_targets[t + 1])
-    r2 = sess.result(0.0)
-    np.testing.assert_array_equal(r.object_pos, r2.object_pos)
-    np.testing.assert_array_equal(r.qpos, r2.qpos)
-
-    # give the object a spin and a throw, compare the observed com velocity with a finite difference
-    s = tgt.session(c.q_targets[0])
-    d, mm = s.data, tgt.mm
-    d.qpos[mm.obj_qpos + 2] += 0.3  # lift it off the table
-    d.qvel[mm.obj_dof : mm.obj_dof + 6] = [0.2, -0.1, 0.5, 3.0, -2.0, 1.0]
-    mujoco.mj_forward(mm.model, d)
-    obs = s.observe()
-
-    def com(o: dict) -> np.ndarray:
-        return o["obj_pos"] + np_quat_to_mat(o["obj_quat"]) @ np.asarray(obj.com)
-
-    c0 = com(obs)
-    h = mm.model.opt.timestep
-    mujoco.mj_step(mm.model, d)
-    v_fd = (com(s.observe()) - c0) / h
-    np.testing.assert_allclose(obs["obj_vel"], v_fd, atol=0.05)  # one step of gravity: 0.02 m/s
-
-
 def test_observed_state_matches_the_observation(short) -> None:
     from quasisim.optim.trajectory import observed_state
     from quasisim.rotations import np_mat_to_quat
     from quasisim.sim.kinematics import fk_full, keypoints
     from quasisim.sim.step import object_pose
-    from quasisim.targets.mujoco_target import MujocoTarget
+    from quasisim.targets import make_target
 
     demo, hand, obj, c, scene = short
     model = make_problem(demo, scene.placements, 20, 128, obj).model
-    sess = MujocoTarget(scene).session(c.q_targets[0])
+    tgt = make_target("mujoco", scene)
+    tgt.reset(c.q_targets[0])
     for t in range(3):
-        sess.advance(c.q_targets[t], c.q_targets[t + 1])
-    obs = sess.observe()
+        tgt.advance(c.q_targets[t], c.q_targets[t + 1])
+    obs = tgt.observe()
     s = observed_state(model, obs, jnp.asarray(np_mat_to_quat(scene.base_rots[0]), jnp.float32))
     pos, _quat = object_pose(model, s)
     np.testing.assert_allclose(np.asarray(pos), obs["obj_pos"], atol=1e-5)
@@ -100,7 +64,7 @@ def test_mpc_loop_applies_what_it_plans_and_lowers_its_window_loss(short) -> Non
     from quasisim.method.config import TransferConfig
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.mpc import MPCOptions, run_mpc
-    from quasisim.targets.mujoco_target import MujocoTarget
+    from quasisim.targets import make_target
 
     demo, _hand, obj, c, scene = short
     prob = make_problem(demo, scene.placements, 5, 32, obj)
@@ -111,7 +75,7 @@ def test_mpc_loop_applies_what_it_plans_and_lowers_its_window_loss(short) -> Non
     assert res.q_targets.shape == c.q_targets.shape and len(res.window_loss) == demo.n_frames - 1
     np.testing.assert_array_equal(res.q_targets[0], c.q_targets[0])
     assert np.abs(res.q_targets - c.q_targets).max() > 1e-4
-    again = MujocoTarget(scene).rollout(res.q_targets)
+    again = make_target("mujoco", scene).rollout(res.q_targets)
     np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-12)
     np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-12)
     lowered = res.window_loss < res.window_loss_start

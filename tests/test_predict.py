@@ -13,9 +13,9 @@ def test_prediction_error_against_mujoco(tmp_path: Path) -> None:
     from quasisim.assets.hand import load_hand
     from quasisim.data.demo import load_demo
     from quasisim.data.synthetic import write_example
-    from quasisim.eval.predict import collect, prediction_errors, split_starts, windows
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.problem import make_problem
+    from quasisim.method.replay import collect, prediction_errors, split_starts, windows
     from quasisim.method.retarget import retarget
     from quasisim.targets.scene import Placement
 

@@ -1,4 +1,6 @@
-"""PyBullet target: link frames vs our FK, shape conventions, PD tracking, object physics, contacts."""
+"""PyBullet target, what only PyBullet has: link frames vs our FK, shape conventions, tracking near gimbal lock,
+the object's inertial frame, no self-collision, state ids (the behaviour both targets share is tested once
+for both in test_targets.py)."""
 
 from __future__ import annotations
 
@@ -154,22 +156,6 @@ def test_collision_shapes(hand_fixture: str, request: pytest.FixtureRequest) -> 
     assert kinds >= (every if hand_fixture == "twisted" else {"box"})
 
 
-def test_pd_tracking_free_space(shadow) -> None:
-    tgt = make_target("pybullet", scene_with(shadow, object_pos=(2.0, 0.0, 0.825)))
-    q = _targets(shadow, 40, np.array([0.0, 0.0, 1.2]), np.array([0.1, 0.0, 0.05]), 0.5)
-    q[:, 3:6] = np.linspace(0, 1, 40)[:, None] * [0.3, -0.4, 0.5]
-    r = tgt.rollout(q)
-    assert r.target == "pybullet" and r.substeps == 100 and r.dt == 0.0005
-    assert r.qpos.shape == q.shape and r.keypoints.shape == (40, len(shadow.kp_names), 3)
-    assert np.isfinite(r.qpos).all() and np.isfinite(r.keypoints).all()
-    assert np.abs(r.qpos[-1, :3] - q[-1, :3]).max() < 0.005
-    assert np.abs(r.qpos[-1, 3:6] - q[-1, 3:6]).max() < 0.02
-    assert np.abs(r.qpos[-1, 6:] - q[-1, 6:]).max() < 0.05
-    assert np.abs(r.qpos - q).max() < 0.05  # the whole way, not only at the end
-    with pytest.raises(ValueError, match=r"q_targets must have shape \(T, 28\)"):
-        tgt.rollout(q[:, :10])
-
-
 def test_pd_tracking_near_gimbal_lock_allegro(allegro) -> None:
     # middle base angle 85 deg: the outer base hinge axes nearly align (implicit damping keeps it stable)
     with PybulletTarget(scene_with(allegro, object_pos=(2.0, 0.0, 0.825))) as tgt:
@@ -177,15 +163,6 @@ def test_pd_tracking_near_gimbal_lock_allegro(allegro) -> None:
         q[:, 3:6] = np.linspace(0, 1, 30)[:, None] * [0.5, np.radians(85), -0.3]
         r = tgt.rollout(q)
         assert np.abs(r.qpos - q).max() < 0.05
-
-
-def test_object_rests_and_falls_onto_table(shadow) -> None:
-    q = _targets(shadow, 40, np.array([0.0, 0.0, 1.5]), np.zeros(3), 0.0)
-    r = make_target("pybullet", scene_with(shadow, object_pos=(0.0, 0.0, 0.825))).rollout(q)
-    assert np.abs(r.object_pos - r.object_pos[0]).max() < 0.002  # 2 s untouched: stays put
-    r = make_target("pybullet", scene_with(shadow, object_pos=(0.0, 0.0, 0.875))).rollout(q[:30])
-    assert abs(r.object_pos[-1, 2] - 0.825) < 0.003  # lands: bottom face on the top at 0.8
-    assert np.abs(r.object_quat[-1] - [1, 0, 0, 0]).max() < 1e-3
 
 
 def test_object_frame_vs_inertial_frame(shadow) -> None:
@@ -224,16 +201,9 @@ def test_object_frame_vs_inertial_frame(shadow) -> None:
         assert np.abs(p - [0.3, 0.2, 1.1]).max() < 1e-9 and abs(abs(q[1]) - 1) < 1e-9
 
 
-def test_hand_pushes_object_and_no_self_collision(shadow) -> None:
-    # the palm sweeps through the box's position at table height (as in the MuJoCo test, gimbal-locked base)
-    sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825))
-    q = _targets(shadow, 30, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
-    q[:, 3:6] = [0.0, np.pi / 2, 0.0]
-    r = make_target("pybullet", sc).rollout(q)
-    assert np.isfinite(r.qpos).all()
-    assert np.linalg.norm(r.object_pos[-1, :2] - r.object_pos[0, :2]) > 0.01
-
+def test_no_self_collision(shadow) -> None:
     # adjacent fingers abducted into each other: the capsules overlap, nothing pushes them apart
+    sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825))
     j = {n: i for i, n in enumerate(shadow.joint_names)}
     lo, hi = shadow.joint_range[:, 0], shadow.joint_range[:, 1]
     goal = shadow.rest_q()
@@ -251,12 +221,27 @@ def test_hand_pushes_object_and_no_self_collision(shadow) -> None:
         assert tgt.pb.getContactPoints(tgt.hand_id, tgt.hand_id, **kw) == ()  # ...and no contact
 
 
-def test_rollout_reproducible_and_close(shadow) -> None:
+def test_hand_pushes_object_at_gimbal_lock(shadow) -> None:
+    # the palm sweeps through the box's position at table height, the base's middle angle at 90 deg
+    sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825))
+    q = _targets(shadow, 30, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
+    q[:, 3:6] = [0.0, np.pi / 2, 0.0]
+    r = make_target("pybullet", sc).rollout(q)
+    assert np.isfinite(r.qpos).all()
+    assert np.linalg.norm(r.object_pos[-1, :2] - r.object_pos[0, :2]) > 0.01
+
+
+def test_window_rollouts_restore_the_saved_state_and_free_it(shadow) -> None:
+    """The base class's window loop on PyBullet: ``saveState`` once, ``restoreState`` per candidate and after,
+    ``removeState`` at the end (the state id is gone)."""
     sc = scene_with(shadow, object_pos=(0.0, 0.0, 0.86))
-    q = _targets(shadow, 8, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
-    tgt = PybulletTarget(sc)
-    r1, r2 = tgt.rollout(q), tgt.rollout(q)
-    assert np.array_equal(r1.qpos, r2.qpos) and np.array_equal(r1.object_pos, r2.object_pos)
-    assert r1.object_pos[-1, 2] < 0.86  # falling
-    tgt.close()
-    tgt.close()
+    q = _targets(shadow, 4, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
+    with PybulletTarget(sc) as tgt:
+        tgt.reset(q[0])
+        sid = tgt.save_state()
+        tgt.release_state(sid)
+        pred = tgt.rollout_windows(q[None, :3].repeat(2, axis=0))
+        assert pred.n_steps == 2 * 2 * tgt.substeps
+        np.testing.assert_array_equal(pred.qpos[0], pred.qpos[1])  # the same window twice, from the same state
+        nxt = tgt.save_state()
+        assert nxt == sid  # the windows' state was removed again (PyBullet hands out the lowest free id)

@@ -15,7 +15,6 @@ from quasisim.method.sample_target import (
     MODES,
     Prediction,
     SamplingOptions,
-    frame_controls,
     knot_basis,
     run_sample_target,
     sample_windows,
@@ -60,9 +59,9 @@ def synth(tmp_path_factory: pytest.TempPathFactory):
 
 
 def _replay(scene, q):
-    from quasisim.targets.mujoco_target import MujocoTarget
+    from quasisim.targets import make_target
 
-    return MujocoTarget(scene).rollout(q)
+    return make_target("mujoco", scene).rollout(q)
 
 
 # ---- options -----------------------------------------------------------------------------------------
@@ -137,19 +136,6 @@ def test_knots_noise_and_limits() -> None:
     assert 0.8 < np.std(d / sc) / opts.noise_base_pos < 1.2
 
 
-def test_frame_controls_match_the_session_law() -> None:
-    rng = np.random.default_rng(1)
-    wins = rng.normal(size=(3, 4, 5))
-    pd, ff = frame_controls(wins, 7, 20.0)
-    for i in range(3):
-        for f in range(3):
-            qa, qb = wins[i, f], wins[i, f + 1]
-            for k in range(7):
-                s = (k + 1) / 7
-                assert np.array_equal(pd[i, f * 7 + k], (1 - s) * qa + s * qb)
-                assert np.array_equal(ff[i, f * 7 + k], (qb - qa) * 20.0)
-
-
 def test_window_costs_terms_and_mask() -> None:
     N, H, K = 2, 3, 4
     wins = np.zeros((N, H + 1, 8))
@@ -174,7 +160,7 @@ def test_window_costs_terms_and_mask() -> None:
 def test_zero_noise_is_a_replay_of_the_plan(real) -> None:
     """Zero noise: every candidate is the nominal, so the run is a plain replay of the plan; the candidate
     rollouts (state copy, per-step controls, sensor timing) predict the replay's frames exactly."""
-    from quasisim.method.sample_target import MujocoRunner
+    from quasisim.targets import make_target
 
     demo, plan, scene = real
     res = run_sample_target(demo, scene, plan, ZERO, W, progress=False)
@@ -187,13 +173,10 @@ def test_zero_noise_is_a_replay_of_the_plan(real) -> None:
     assert res.q_targets.shape == plan.shape and res.window_loss.shape == (demo.n_frames - 1,)
     assert res.n_physics_steps == (demo.n_frames - 1) * (8 * (4 * 25 + 1) + 25)
 
-    runner = MujocoRunner(scene, threads=2)  # a whole window, from the start state
-    try:
-        runner.begin(plan[0], None)
+    with make_target("mujoco", scene, threads=2) as tgt:  # a whole window, from the start state
+        tgt.reset(plan[0], None)
         win = plan[None, :5]
-        pred = runner.predict(win, (win[:, 1] - win[:, 0]) * demo.fps)
-    finally:
-        runner.close()
+        pred = tgt.rollout_windows(win, (win[:, 1] - win[:, 0]) * demo.fps)
     np.testing.assert_allclose(pred.qpos[0], rep.qpos[1:5], atol=1e-9)
     np.testing.assert_allclose(pred.obj_pos[0], rep.object_pos[1:5], atol=1e-9)
     np.testing.assert_allclose(pred.keypoints[0], rep.keypoints[1:5][:, scene.hands[0].kp_metric], atol=1e-9)

@@ -15,10 +15,10 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
     from quasisim.assets.hand import load_hand
     from quasisim.data.demo import load_demo
     from quasisim.data.synthetic import write_example
-    from quasisim.eval.predict import collect
     from quasisim.method.config import TransferConfig
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.problem import make_problem
+    from quasisim.method.replay import collect
     from quasisim.method.retarget import retarget
     from quasisim.method.stage3 import noisy_variants
     from quasisim.targets.scene import Placement
@@ -49,7 +49,7 @@ def test_noisy_variants_are_smooth_perturbations_within_limits(setup) -> None:
 
 @pytest.mark.slow
 def test_fit_lowers_the_prediction_loss_and_residuals_start_at_zero(setup) -> None:
-    from quasisim.eval.predict import predict, split_starts, windows
+    from quasisim.method.replay import predict, split_starts, windows
     from quasisim.method.stage3 import SimFit, fit, window_loss
     from quasisim.sim.build import attach_residual
     from quasisim.sim.residual import ResidualConfig, ResidualNets

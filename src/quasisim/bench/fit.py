@@ -16,9 +16,8 @@ from tqdm import tqdm
 
 from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
-from quasisim.eval import predict
 from quasisim.files import save_json_atomic
-from quasisim.method import stage3
+from quasisim.method import replay, stage3
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
 from quasisim.method.problem import kinematic_problem
@@ -58,7 +57,7 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
             variants[name] = (m, p, ls, time.perf_counter() - t1)
     rows = []
     for name, (m, p, ls, secs) in variants.items():
-        e = predict.prediction_errors(m, p, test, *args)
+        e = replay.prediction_errors(m, p, test, *args)
         rows.append(
             {"clip": demo.name, "simulator": name, "obj_pos_cm": float(e.obj_pos_cm[-1]),
              "obj_rot_deg": float(e.obj_rot_deg[-1]), "keypoints_mm": float(e.keypoints_mm[-1]),

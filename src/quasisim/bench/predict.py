@@ -12,10 +12,10 @@ from tqdm import tqdm
 from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
-from quasisim.eval.predict import collect, prediction_errors, windows
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import kinematic_problem
+from quasisim.method.replay import collect, prediction_errors, windows
 from quasisim.runtime import free_compiled_programs
 
 
@@ -40,7 +40,7 @@ def run_predict_bench(
     """Open-loop ``horizon``-frame prediction error of the quasi-physical simulator against MuJoCo (no
     residual physics, nominal S) under the kinematic retarget's PD targets, for each rigid simulator of
     ``curriculum`` (or those numbered in ``sims``, 1-based), beside the zero-motion predictor; with ``mus``,
-    each simulator once per friction coefficient instead of the curriculum's. See :mod:`quasisim.eval.predict`."""
+    each simulator once per friction coefficient instead of the curriculum's. See :mod:`quasisim.method.replay`."""
     cur = load_curriculum(curriculum)
     pairs = _simulators(cur, sims, mus)
     paths = clips(data_dir, pattern, clip_names)

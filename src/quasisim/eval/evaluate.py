@@ -114,8 +114,8 @@ def evaluate_controls(
     hands = scene.hands if scene is not None else demo_hands(controls.hand, controls.sides)
     check_controls(demo, controls, hands)
     scene = scene or scene_for(demo, place_hands(hands, controls.base_rots))
-    tgt = make_target(target, scene)
-    rollout = tgt.rollout(controls.q_targets)
+    with make_target(target, scene) as tgt:
+        rollout = tgt.rollout(controls.q_targets)
     surf = scene_surface(scene, rollout.qpos)
     metrics, pf = evaluate_rollout(demo, rollout, surf)
     ev = Evaluation(mark_stability(metrics, rollout.instability, f"{demo.name} in {target}"), pf, rollout, scene)

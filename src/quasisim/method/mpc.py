@@ -10,7 +10,8 @@ At every frame ``t`` (paper appendix "Tracking via closed-loop MPC"):
 Methods built on it (``--method``): ``mpc-base`` (the stiffest analytical simulator, the object's nominal S,
 planning from the kinematic retarget), ``mpc-soften`` (the same with each gradient averaged over contact
 stiffnesses drawn within +-10 %, randomized smoothing as in Bundled Gradients) and ``ours`` (planning from
-the stage-2 trajectory with the identified S). Only MuJoCo offers a step-by-step session here.
+the stage-2 trajectory with the identified S). The loop drives any :class:`~quasisim.targets.base.Target`
+(``reset``, ``observe``, ``advance``); the command line runs it in MuJoCo only (``quasisim.method.spec``).
 """
 
 from __future__ import annotations
@@ -32,8 +33,7 @@ from quasisim.optim.objective import Weights, WindowObjective, make_window_objec
 from quasisim.optim.trajectory import Trajectory, observed_state
 from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.types import Model, Params, State
-from quasisim.targets import TargetRollout
-from quasisim.targets.mujoco_target import MujocoTarget
+from quasisim.targets import Observation, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
 
 Array = jax.Array
@@ -99,11 +99,23 @@ def _mask_first_frame(g: Trajectory) -> Trajectory:
 
 def run_mpc(
     demo: Demo, scene: Scene, model: Model, params: Params, plan: np.ndarray, opts: MPCOptions, weights: Weights,
-    progress: bool = True,
+    progress: bool = True, target: str | Target = "mujoco",
 ) -> MPCResult:  # fmt: skip
-    """Closed-loop MPC in MuJoCo from the PD-target plan ``plan`` (T, D); ``params`` is the model
-    (with S already applied). See the module docstring."""
+    """Closed-loop MPC in ``target`` (a name of :data:`~quasisim.targets.TARGETS`, built for ``scene``, or a
+    :class:`~quasisim.targets.base.Target`, left open) from the PD-target plan ``plan`` (T, D); ``params`` is
+    the model (with S already applied). See the module docstring."""
+    if isinstance(target, str):
+        with make_target(target, scene) as tgt:
+            return _closed_loop(demo, model, params, plan, opts, weights, progress, tgt)
+    return _closed_loop(demo, model, params, plan, opts, weights, progress, target)
+
+
+def _closed_loop(
+    demo: Demo, model: Model, params: Params, plan: np.ndarray, opts: MPCOptions, weights: Weights, progress: bool,
+    target: Target,
+) -> MPCResult:  # fmt: skip
     T, H = len(plan), opts.horizon
+    scene = target.scene
     kp_index = np.flatnonzero(model.hand.kp_metric)
     bq = jnp.asarray(np_mat_to_quat(np.stack(scene.base_rots)), F32)
     vg = _gradient_fn(make_window_objective(model, bq, demo.fps, kp_index), weights.arrays(), opts)
@@ -111,15 +123,15 @@ def run_mpc(
     refs = window_references(demo, model.hand.kp_human, kp_index, H)
     plan = padded(np.asarray(plan, np.float64), H)
     applied = plan.copy()
-    target = MujocoTarget(scene)
-    sess = target.session(plan[0], (plan[1] - plan[0]) * demo.fps)
+    target.reset(plan[0], (plan[1] - plan[0]) * demo.fps)
+    frames: list[Observation] = []
     losses = []
     t0 = time.perf_counter()
     for t in tqdm(range(T), desc="mpc", unit="frame", disable=not progress, leave=False):
-        sess.record()
+        frames.append(target.observe())
         if t == T - 1:
             break
-        s0 = observed_state(model, sess.observe(), bq)
+        s0 = observed_state(model, frames[-1], bq)
         fw = (np.arange(t + 1, t + H + 1) < T).astype(np.float32)
         ref = (*(jnp.asarray(x[t + 1 : t + H + 1], F32) for x in refs), jnp.asarray(fw))
         if opts.soften > 0:
@@ -133,9 +145,9 @@ def run_mpc(
         plan[t : t + H + 1] = win.q_targets
         applied[t + 1] = plan[t + 1]
         if t == 0:  # start over with the hand velocity of the applied targets, as a replay of them does
-            sess = target.session(applied[0], (applied[1] - applied[0]) * demo.fps)
-            sess.record()
-        sess.advance(applied[t], applied[t + 1])
+            target.reset(applied[0], (applied[1] - applied[0]) * demo.fps)
+            frames = [target.observe()]
+        target.advance(applied[t], applied[t + 1])
     wall = time.perf_counter() - t0
     best, start = np.asarray(losses).reshape(-1, 2).T
-    return MPCResult(applied[:T], sess.result(wall), best, start, wall)
+    return MPCResult(applied[:T], target.recorded(frames, wall), best, start, wall)

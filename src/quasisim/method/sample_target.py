@@ -11,10 +11,10 @@ At every control frame ``t`` of a clip with ``T`` frames:
    per-candidate multiplier cycling through ``noise_scales``. Perturbed joint targets are clipped to the
    hand's joint limits (widened to the nominal's own value where the nominal is outside them, so that a
    zero perturbation is the nominal);
-3. roll every candidate out in the target from that state, with the per-physics-step controls of
-   :meth:`~quasisim.targets.mujoco_target.MujocoSession.advance` (MuJoCo: ``mujoco.rollout`` on a copy of
-   the scene with ``framepos`` sensors on the metric keypoint sites; PyBullet: one candidate after the
-   other from ``restoreState``);
+3. roll every candidate out in the target from that state with the target's one PD schedule
+   (:meth:`~quasisim.targets.base.Target.rollout_windows`, :func:`~quasisim.targets.base.pd_schedule`;
+   MuJoCo: ``mujoco.rollout`` on a copy of the scene with ``framepos`` sensors on the metric keypoint sites;
+   PyBullet: one candidate after the other from ``restoreState``);
 4. score each window with the MPC window objective (:func:`quasisim.optim.objective.window_costs`),
    evaluated on the target's states: mean over the window's frames of ``obj_pos |p - p_ref|`` (m),
    ``obj_rot (1 - |q . q_ref|)`` and ``hand`` x mean metric-keypoint distance (m), plus ``smooth`` x the
@@ -29,7 +29,7 @@ At every control frame ``t`` of a clip with ``T`` frames:
 
 The run starts from ``plan[0]``; the hand's initial velocity is that of the applied targets
 (``(q[1] - q[0]) fps``, per candidate at ``t = 0``), so the recorded run equals a plain replay of the applied
-targets (:meth:`~quasisim.targets.mujoco_target.MujocoTarget.rollout`).
+targets (:meth:`~quasisim.targets.base.Target.rollout`).
 
 Suggested settings (all required; load with ``quasisim.config.build(SamplingOptions, data, path)``)::
 
@@ -55,7 +55,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
 
 import numpy as np
 from tqdm import tqdm
@@ -64,7 +63,7 @@ from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
-from quasisim.targets import TARGETS, TargetRollout
+from quasisim.targets import Observation, Prediction, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
 
 MODES = ("predictive", "mppi")
@@ -154,22 +153,6 @@ class SampleResult:
     wall_s: float
     n_physics_steps: int
     prediction_error: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class Prediction:
-    """Candidate rollouts sampled at the window's frames ``t+1 .. t+H`` (N candidates).
-
-    Attributes:
-        qpos: (N, H, 6 + J) hand.  obj_pos: (N, H, 3) m.  obj_quat: (N, H, 4) w x y z.
-        keypoints: (N, H, K_metric, 3) metric keypoints (m).  n_steps: physics steps simulated.
-    """
-
-    qpos: np.ndarray
-    obj_pos: np.ndarray
-    obj_quat: np.ndarray
-    keypoints: np.ndarray
-    n_steps: int
 
 
 # ---- sampling and scoring -------------------------------------------------------------
@@ -264,193 +247,6 @@ def choose(wins: np.ndarray, costs: np.ndarray, opts: SamplingOptions) -> tuple[
     return np.einsum("n,nhd->hd", w / w.sum(), wins), None
 
 
-def frame_controls(wins: np.ndarray, substeps: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per-physics-step controls of the windows (N, H + 1, D), as ``MujocoSession.advance`` applies them.
-
-    Returns:
-        pd: (N, H * substeps, D) PD targets, ``(1 - s) qa + s qb`` with ``s = (k + 1) / substeps``;
-        ff: (N, H * substeps, D) target velocities ``(qb - qa) fps`` (m/s, rad/s).
-    """
-    qa, qb = wins[:, :-1, None, :], wins[:, 1:, None, :]
-    s = ((np.arange(substeps) + 1) / substeps)[:, None]
-    pd = (1 - s) * qa + s * qb
-    ff = np.broadcast_to((qb - qa) * fps, pd.shape)
-    N, H, _, D = pd.shape
-    return pd.reshape(N, H * substeps, D), ff.reshape(N, H * substeps, D)
-
-
-# ---- targets ---------------------------------------------------------------------------------------
-
-
-class Runner(Protocol):
-    """One target run, advanced frame by frame, that can also roll candidate windows out from its state."""
-
-    substeps: int
-
-    def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None: ...
-
-    def predict(self, wins: np.ndarray, qd0: np.ndarray | None) -> Prediction: ...
-
-    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None: ...
-
-    def record(self) -> None: ...
-
-    def measured(self) -> tuple[np.ndarray, np.ndarray]: ...
-
-    def result(self, wall_s: float) -> TargetRollout: ...
-
-    def close(self) -> None: ...
-
-
-def _state_offset(mujoco: Any, model: Any, spec: int, component: int) -> int:
-    """Offset of state ``component`` (one ``mjtState`` bit) inside a state vector of ``spec``."""
-    off, bit = 0, 1
-    while bit < component:
-        if spec & bit:
-            off += mujoco.mj_stateSize(model, bit)
-        bit <<= 1
-    return off
-
-
-class MujocoRunner:
-    """A :class:`~quasisim.targets.mujoco_target.MujocoSession` plus ``mujoco.rollout`` of candidates."""
-
-    def __init__(self, scene: Scene, threads: int) -> None:
-        import mujoco
-        from mujoco import rollout
-
-        from quasisim.targets.mujoco_target import MujocoTarget, build_spec
-
-        self.target = MujocoTarget(scene)
-        self.substeps = self.target.substeps
-        spec = build_spec(scene, visual=False)
-        for hand, prefix in zip(scene.hands, scene.prefixes, strict=True):  # scene.kp_metric's order
-            for k in np.flatnonzero(hand.kp_metric):
-                spec.add_sensor(
-                    name=f"kp_metric/{prefix}{hand.kp_names[k]}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
-                    objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{prefix}kp/{hand.kp_names[k]}",
-                )  # fmt: skip
-        self.model = spec.compile()
-        m0 = self.target.mm.model
-        if (self.model.nq, self.model.nv, self.model.nu) != (m0.nq, m0.nv, m0.nu):
-            raise QuasisimError("sample-target: the sensor model's layout differs from the target's")
-        self.spec = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        self.nstate = mujoco.mj_stateSize(self.model, self.spec)
-        self.qpos_off = _state_offset(mujoco, self.model, self.spec, int(mujoco.mjtState.mjSTATE_QPOS))
-        self.qvel_off = _state_offset(mujoco, self.model, self.spec, int(mujoco.mjtState.mjSTATE_QVEL))
-        self.datas = [mujoco.MjData(self.model) for _ in range(threads)]
-        self.pool = rollout.Rollout(nthread=threads if threads > 1 else 0)
-        self._mujoco = mujoco
-        self.sess: Any = None
-
-    def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None:
-        """Start the run at hand ``q0`` with velocity ``qd0`` (6 + J each), the object at rest."""
-        self.sess = self.target.session(q0, qd0)
-
-    def predict(self, wins: np.ndarray, qd0: np.ndarray | None) -> Prediction:
-        """Roll the windows (N, H + 1, 6 + J) out from the run's current state; ``qd0`` (N, 6 + J)
-        replaces each candidate's initial hand velocity."""
-        mj, mm, d = self._mujoco, self.target.mm, self.sess.data
-        N, H, n = len(wins), wins.shape[1] - 1, self.substeps
-        state = np.zeros(self.nstate)
-        mj.mj_getState(self.target.mm.model, d, state, self.spec)
-        state = np.repeat(state[None], N, axis=0)
-        if qd0 is not None:
-            state[:, self.qvel_off + mm.hand_dof] = qd0
-        pd, ff = frame_controls(wins, n, self.target.scene.fps)
-        ctrl = np.zeros((N, H * n + 1, self.model.nu))  # one more step: sensors lag one step behind qpos
-        ctrl[:, :-1, mm.pd_act], ctrl[:, :-1, mm.ff_act] = pd, ff
-        ctrl[:, -1] = ctrl[:, -2]
-        warm = np.repeat(d.qacc_warmstart[None], N, axis=0)
-        states, sens = self.pool.rollout(self.model, self.datas, state, ctrl, initial_warmstart=warm)
-        ends = np.arange(1, H + 1) * n  # the state after frame f is step f n - 1; its sensors are step f n
-        qpos = states[:, ends - 1, self.qpos_off : self.qpos_off + self.model.nq]
-        o = mm.obj_qpos
-        return Prediction(
-            qpos=qpos[..., mm.hand_qpos], obj_pos=qpos[..., o : o + 3], obj_quat=qpos[..., o + 3 : o + 7],
-            keypoints=sens[:, ends].reshape(N, H, -1, 3), n_steps=N * (H * n + 1),
-        )  # fmt: skip
-
-    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
-        self.sess.advance(qa, qb)
-
-    def record(self) -> None:
-        self.sess.record()
-
-    def measured(self) -> tuple[np.ndarray, np.ndarray]:
-        """Hand qpos (6 + J) and object position (3,) of the run now."""
-        mm, q = self.target.mm, self.sess.data.qpos
-        return q[mm.hand_qpos].copy(), q[mm.obj_qpos : mm.obj_qpos + 3].copy()
-
-    def result(self, wall_s: float) -> TargetRollout:
-        return self.sess.result(wall_s)
-
-    def close(self) -> None:
-        self.pool.close()
-
-
-class PybulletRunner:
-    """A :class:`~quasisim.targets.pybullet_target.PybulletTarget` run; candidates one after the other
-    from ``saveState`` / ``restoreState``."""
-
-    def __init__(self, scene: Scene) -> None:
-        from quasisim.targets.pybullet_target import PybulletTarget
-
-        self.target = PybulletTarget(scene)
-        self.substeps = self.target.substeps
-        self.metric = np.flatnonzero(scene.kp_metric)
-        self._rec: list[tuple[np.ndarray, ...]] = []
-
-    def begin(self, q0: np.ndarray, qd0: np.ndarray | None) -> None:
-        """Start the run (the world rebuilt, as :meth:`PybulletTarget.rollout` does)."""
-        self.target.reset(q0, qd0)
-        self._rec = []
-
-    def predict(self, wins: np.ndarray, qd0: np.ndarray | None) -> Prediction:
-        """As :meth:`MujocoRunner.predict`."""
-        tg = self.target
-        pb, kw = tg.pb, {"physicsClientId": tg.client}
-        N, H = len(wins), wins.shape[1] - 1
-        out = [np.zeros((N, H, *s)) for s in ((wins.shape[2],), (3,), (4,), (len(self.metric), 3))]
-        sid = pb.saveState(**kw)
-        for i in range(N):
-            pb.restoreState(stateId=sid, **kw)
-            if qd0 is not None:
-                tg.set_state(wins[i, 0], qd0[i])
-            for f in range(H):
-                tg.advance(wins[i, f], wins[i, f + 1])
-                qpos, opos, oquat, kps = tg.frame_state()
-                out[0][i, f], out[1][i, f], out[2][i, f], out[3][i, f] = qpos, opos, oquat, kps[self.metric]
-        pb.restoreState(stateId=sid, **kw)
-        pb.removeState(sid, **kw)
-        return Prediction(*out, n_steps=N * H * self.substeps)
-
-    def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
-        self.target.advance(qa, qb)
-
-    def record(self) -> None:
-        self._rec.append(self.target.frame_state())
-
-    def measured(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.target.joint_states()[0], self.target.object_pose()[0]
-
-    def result(self, wall_s: float) -> TargetRollout:
-        qpos, opos, oquat, kps = (np.array(x) for x in zip(*self._rec, strict=True))
-        return self.target.make_rollout(qpos, opos, oquat, kps, wall_s)
-
-    def close(self) -> None:
-        self.target.close()
-
-
-def make_runner(target: str, scene: Scene, opts: SamplingOptions) -> Runner:
-    """The runner of target simulator ``target`` (one of :data:`quasisim.targets.TARGETS`)."""
-    if target == "mujoco":
-        return MujocoRunner(scene, opts.threads)
-    if target == "pybullet":
-        return PybulletRunner(scene)
-    raise choice_error("target", target, TARGETS)
-
-
 # ---- the control loop ------------------------------------------------------------------------------
 
 
@@ -482,15 +278,12 @@ def run_sample_target(
     ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring."""
     plan = _check_plan(demo, scene, plan)
     alts = tuple(padded(_check_plan(demo, scene, a), opts.horizon) for a in alternatives)
-    runner = make_runner(target, scene, opts)
-    try:
-        return _control_loop(demo, scene, plan, opts, weights, runner, progress, alts)
-    finally:
-        runner.close()
+    with make_target(target, scene, threads=opts.threads) as tgt:
+        return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts)
 
 
 def _control_loop(
-    demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, runner: Runner, progress: bool,
+    demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, target: Target, progress: bool,
     alts: tuple[np.ndarray, ...],
 ) -> SampleResult:  # fmt: skip
     T, H, fps = len(plan), opts.horizon, float(demo.fps)
@@ -502,14 +295,15 @@ def _control_loop(
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
     losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0
-    runner.begin(plan[0], None)
+    target.reset(plan[0], None)
+    frames: list[Observation] = []
     t0 = time.perf_counter()
     for t in tqdm(range(T - 1), desc="sample-target", unit="frame", disable=not progress, leave=False):
         wins = sample(rng, work[t : t + H + 1])
         for alt in alts:  # windows around another plan, from the targets this step starts from
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
             wins = np.concatenate([wins, sample(rng, nominal)])
-        pred = runner.predict(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
+        pred = target.rollout_windows(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
@@ -517,14 +311,14 @@ def _control_loop(
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
         if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
-            runner.begin(applied[0], (applied[1] - applied[0]) * fps)
-            runner.record()
-        runner.advance(applied[t], applied[t + 1])
-        runner.record()
+            target.reset(applied[0], (applied[1] - applied[0]) * fps)
+            frames.append(target.observe())
+        target.advance(applied[t], applied[t + 1])
+        frames.append(target.observe())
         losses[t] = costs.min()
-        steps += pred.n_steps + runner.substeps
-        if best is not None:
-            q_now, p_now = runner.measured()
+        steps += pred.n_steps + target.substeps
+        if best is not None:  # what the chosen candidate predicted against what the target did
+            q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
     wall = time.perf_counter() - t0
-    return SampleResult(applied, runner.result(wall), losses, wall, steps, pred_err)
+    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err)

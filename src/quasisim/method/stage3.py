@@ -1,10 +1,11 @@
 """Stage 3: fit the quasi-physical simulator to the target (paper appendix "Optimizing towards a realistic
 physical environment").
 
-1. **Replay buffer** (:class:`~quasisim.eval.predict.ReplayBuffer`, :func:`~quasisim.eval.predict.collect`): PD-target trajectories (the current controls
-   and noisy variants of them) rolled out in the target; per frame the hand's joints and velocities, the
-   object's pose and twist, the robot keypoints and the PD targets.
-2. **Windows** (:func:`~quasisim.eval.predict.windows`): from a recorded frame ``t`` the target's state is put into the
+1. **Replay buffer** (:class:`~quasisim.method.replay.ReplayBuffer`, :func:`~quasisim.method.replay.collect`):
+   PD-target trajectories (the current controls and noisy variants of them) rolled out in the target
+   (:func:`~quasisim.targets.make_target`, its ``reset``/``observe``/``advance``); per frame the hand's joints
+   and velocities, the object's pose and twist, the robot keypoints and the PD targets.
+2. **Windows** (:func:`~quasisim.method.replay.windows`): from a recorded frame ``t`` the target's state is put into the
    quasi-physical simulator (contacts start fresh) and the recorded PD targets of frames ``t+1 .. t+H`` are
    applied; the prediction is compared with what the target did (object position, rotation, keypoints).
 3. **Fit** (:func:`fit`): Adam on the mean H-frame prediction error of training windows over
@@ -12,10 +13,11 @@ physical environment").
    (contact stiffness scale, friction coefficient, joint damping, PD gain scale), all in log coordinates;
    then, optionally, the residual networks and the control transformation (:mod:`quasisim.sim.residual`,
    zero at start) on the same loss (:func:`fit_networks`).
-4. **Measure** (:func:`quasisim.eval.predict.prediction_errors`): the error after ``h = 1..H`` frames on windows the fit never
+4. **Measure** (:func:`quasisim.method.replay.prediction_errors`): the error after ``h = 1..H`` frames on windows the fit never
    saw (the clip's later frames), beside the zero-motion predictor (the object stays where it is).
 5. **World-model rounds** (:func:`world_model_rounds`): optimise the controls in the fitted simulator, roll
-   them out in the target (kept when the target judges them best), add the rollouts to the buffer, refit.
+   them out in the target (kept when the target judges them best: its
+   :meth:`~quasisim.targets.base.Target.judge`), add the rollouts to the buffer, refit.
 
 The loss is the tracking objective's terms (:func:`quasisim.optim.objective.tracking_errors`) between the
 predicted and the recorded trajectory: object translation (m), ``1 - |q . q_ref|`` and keypoint distance (m).
@@ -36,8 +38,8 @@ import numpy as np
 import optax
 
 from quasisim.errors import QuasisimError
-from quasisim.eval.predict import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method import spec
+from quasisim.method.replay import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
 from quasisim.method.sample_target import SamplingOptions, scene_sampler
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import tracking_errors, weighted_sum
@@ -50,7 +52,6 @@ from quasisim.targets.scene import Scene
 
 Array = jax.Array
 F32 = jnp.float32
-OBS_KEYS = ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel", "keypoints")
 
 
 def noisy_variants(plan: np.ndarray, n: int, noise: SamplingOptions, seed: int, scene: Scene) -> list[np.ndarray]:
@@ -370,8 +371,8 @@ def world_model_rounds(
 
     1. ``improve`` the controls in the fitted simulator (``model``, ``params`` with its networks, the fit ``f``);
     2. roll them and ``opts.variants`` noisy variants out in the target and judge them there (``cost``, the
-       clip objective of :mod:`quasisim.method.select`); the best controls seen are kept, so a round never
-       makes the result worse;
+       clip objective: :meth:`~quasisim.targets.base.Target.judge`); the best controls seen are kept, so a
+       round never makes the result worse;
     3. measure the fitted simulator's ``H``-frame prediction error on the new controls' rollout (windows from
        every frame: rollouts the fit has not seen);
     4. add the new rollouts to the buffer (the newest ``capacity`` kept) and refit from ``f`` on the windows

@@ -10,7 +10,8 @@
 
 :func:`make_objective` scores a whole clip from its first frame (stages 1-2, S identification);
 :func:`make_window_objective` a few frames from an observed state (MPC); :func:`window_costs` candidate
-windows measured in a target (sampling MPC). All three call :func:`tracking_errors`.
+windows measured in a target (sampling MPC); :func:`clip_cost` a whole rollout in a target (selection). All
+of them call :func:`tracking_errors`.
 
 The objectives are pytrees (the clip's model, reference and start as array leaves, not closed-over
 constants), differentiated and compiled by module-level functions (:func:`objective_value_and_grad`,
@@ -24,7 +25,7 @@ import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -37,6 +38,9 @@ from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import forward_kinematics, keypoints, points_world
 from quasisim.sim.step import object_pose, rollout
 from quasisim.sim.types import Model, Params, State, pytree, static
+
+if TYPE_CHECKING:
+    from quasisim.targets import TargetRollout
 
 Array = jax.Array
 F32 = jnp.float32
@@ -171,6 +175,21 @@ def smoothness(base: Array, joints: Array) -> Array:
 def weighted_sum(terms: dict[str, Array], weights: dict[str, Array]) -> Array:
     """``sum_k weights[k] * terms[k]``."""
     return sum(weights[k] * v for k, v in terms.items())  # type: ignore[return-value]
+
+
+def clip_cost(demo: Demo, rollout: TargetRollout, weights: Weights) -> float:
+    """J of a target's rollout over the whole clip (frames 1..T-1 against ``demo``): ``obj_pos``, ``obj_rot``
+    and ``hand`` of :func:`tracking_errors` with ``weights``; infinity when the rollout is unstable. The
+    judge of :meth:`quasisim.targets.base.Target.judge` (selection, stage 3's rounds)."""
+    if rollout.instability:
+        return float("inf")
+    ref_kp = demo.human_joints[1:, rollout.kp_human[rollout.kp_metric]]
+    terms = tracking_errors(
+        rollout.object_pos[1:], rollout.object_quat[1:], rollout.robot_keypoints[1:],
+        demo.object_pos[1:], demo.object_quat[1:], ref_kp,
+    )  # fmt: skip
+    w = {k: np.float32(v) for k, v in weights.arrays().items()}
+    return float(weighted_sum({k: terms[k] for k in ("obj_pos", "obj_rot", "hand")}, w))
 
 
 @pytree

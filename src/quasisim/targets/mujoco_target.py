@@ -11,22 +11,27 @@ Set-up (stated once, used for every figure):
   ``lhand/``; one hand: ``hand/``) with its own ``base_rot``; both collide with the object and the table,
   not with each other. The control vector and ``qpos`` of the hands are ``[right (6 + J), left (6 + J)]``.
 * PD control per degree of freedom, ``tau = kp (q* - q) + kv (qd* - qd)``: one position actuator
-  (gain ``kp``, bias ``-kp q - kv qd``) plus one feed-forward actuator (``kv qd*``). Within a control
-  frame the targets are interpolated linearly and ``qd*`` is the frame-to-frame velocity of the targets.
+  (gain ``kp``, bias ``-kp q - kv qd``) plus one feed-forward actuator (``kv qd*``); gains, force limits and
+  joint damping of :func:`~quasisim.targets.base.pd_gains`. Within a control frame the targets follow
+  :func:`~quasisim.targets.base.pd_schedule` (interpolated linearly, ``qd*`` the frame-to-frame velocity).
 * Object: free body with the asset's mass, centre of mass and inertia; collision from its convex parts.
+
+:class:`MujocoTarget` implements :class:`~quasisim.targets.base.Target`: a run is one ``MjData``; its state is
+``mj_getState(..., mjSTATE_FULLPHYSICS)`` plus ``qacc_warmstart``; candidate windows run in ``mujoco.rollout``
+on a copy of the scene with ``framepos`` sensors on the metric keypoint sites.
 """
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import mujoco
 import numpy as np
 
 from quasisim.assets.hand import HandModel
-from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
-from quasisim.targets import TargetRollout
+from quasisim.errors import QuasisimError
+from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
+from quasisim.targets.base import Observation, Prediction, Target, pd_gains, pd_schedule
 from quasisim.targets.scene import Scene
 
 HAND_PREFIX = "hand/"  # the one hand of a one-hand scene (Scene.prefixes: two hands are rhand/ and lhand/)
@@ -34,6 +39,7 @@ HAND_PREFIX = "hand/"  # the one hand of a one-hand scene (Scene.prefixes: two h
 HAND_CONTYPE, HAND_CONAFFINITY = 2, 1
 # MuJoCo's warnings that mean the simulation went wrong (counted per run in ``data.warning``)
 UNSTABLE_WARNINGS = ("BADQPOS", "BADQVEL", "BADQACC", "BADCTRL", "CONTACTFULL", "CNSTRFULL")
+STATE_SPEC = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)  # what save_state copies (with qacc_warmstart)
 WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
 
 
@@ -111,7 +117,7 @@ def _add_world(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
 def _add_hand_bodies(spec: Any, hand: HandModel, base_rot: np.ndarray, prefix: str) -> list[Any]:
     """The hand's bodies and joints below a root on 3 slide + 3 hinge base joints about the axes of
     ``base_rot`` (3, 3), named with ``prefix``; returns the bodies."""
-    pd, wb = hand.config.pd, spec.worldbody
+    damping, arm, wb = pd_gains(hand).damping, hand.config.pd.joint_armature, spec.worldbody
     bodies: list[Any] = []
     for b in range(hand.n_bodies):
         if b == 0:
@@ -138,7 +144,7 @@ def _add_hand_bodies(spec: Any, hand: HandModel, base_rot: np.ndarray, prefix: s
                     type=mujoco.mjtJoint.mjJNT_HINGE if hand.joint_type[j] == 0 else mujoco.mjtJoint.mjJNT_SLIDE,
                     axis=hand.joint_axis[j].tolist(), pos=hand.joint_pos[j].tolist(),
                     limited=bool(hand.joint_limited[j]), range=hand.joint_range[j].tolist(),
-                    damping=pd.joint_damping, armature=pd.joint_armature,
+                    damping=float(damping[6 + j]), armature=arm,
                 )  # fmt: skip
         if hand.body_mass[b] > 0 or b == 0 or len(hand.body_joints(b)):
             # moving bodies need positive mass and inertia; massless fixed links (URDF frames) stay massless
@@ -211,11 +217,11 @@ def _add_object(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
 
 
 def _add_actuators(spec: Any, hand: HandModel, prefix: str) -> None:
-    """PD position + velocity feed-forward actuators on every dof of the hand with name prefix ``prefix``."""
-    pd = hand.config.pd
+    """PD position + velocity feed-forward actuators on every dof of the hand with name prefix ``prefix``
+    (gains and force limits of :func:`~quasisim.targets.base.pd_gains`)."""
+    g = pd_gains(hand)
     for i, jn in enumerate(hand_dof_names(hand, prefix)):
-        gains = pd.base_pos if i < 3 else pd.base_rot if i < 6 else pd.joint
-        limit = None if i < 6 else pd.joint_force_limit
+        kp, kv, limit = float(g.kp[i]), float(g.kv[i]), float(g.force_limit[i])
         for kind in ("pd", "ff"):
             act = spec.add_actuator(name=f"{kind}/{jn}", target=jn, trntype=mujoco.mjtTrn.mjTRN_JOINT)
             act.gaintype = mujoco.mjtGain.mjGAIN_FIXED
@@ -223,13 +229,13 @@ def _add_actuators(spec: Any, hand: HandModel, prefix: str) -> None:
             gp = np.zeros(10)
             bp = np.zeros(10)
             if kind == "pd":
-                gp[0], bp[1], bp[2] = gains.kp, -gains.kp, -gains.kv
+                gp[0], bp[1], bp[2] = kp, -kp, -kv
             else:
-                gp[0] = gains.kv
+                gp[0] = kv
             act.gainprm = gp.tolist()
             act.biasprm = bp.tolist()
             act.ctrllimited = False
-            if limit is not None and kind == "pd":
+            if np.isfinite(limit) and kind == "pd":  # the joints' PD part (the base is unlimited)
                 act.forcelimited = True
                 act.forcerange = [-limit, limit]
 
@@ -263,67 +269,80 @@ class MujocoModel:
         mujoco.mj_forward(self.model, data)
 
 
-class MujocoTarget:
-    """Roll PD targets out in MuJoCo. See the module docstring for the set-up."""
+def _state_offset(model: Any, spec: int, component: int) -> int:
+    """Offset of state ``component`` (one ``mjtState`` bit) inside a state vector of ``spec``."""
+    off, bit = 0, 1
+    while bit < component:
+        if spec & bit:
+            off += mujoco.mj_stateSize(model, bit)
+        bit <<= 1
+    return off
+
+
+class _WindowModel:
+    """The scene with ``framepos`` sensors on the metric keypoint sites, and a ``mujoco.rollout`` pool: the
+    batched candidate rollouts of :meth:`MujocoTarget.rollout_windows` (same layout as the target's model)."""
+
+    def __init__(self, scene: Scene, target_model: Any, threads: int) -> None:
+        from mujoco import rollout
+
+        spec = build_spec(scene, visual=False)
+        for hand, prefix in zip(scene.hands, scene.prefixes, strict=True):  # scene.kp_metric's order
+            for k in np.flatnonzero(hand.kp_metric):
+                spec.add_sensor(
+                    name=f"kp_metric/{prefix}{hand.kp_names[k]}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
+                    objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{prefix}kp/{hand.kp_names[k]}",
+                )  # fmt: skip
+        self.model = spec.compile()
+        m0 = target_model
+        if (self.model.nq, self.model.nv, self.model.nu) != (m0.nq, m0.nv, m0.nu):
+            raise QuasisimError("mujoco target: the sensor model's layout differs from the target's")
+        self.qpos_off = _state_offset(self.model, STATE_SPEC, int(mujoco.mjtState.mjSTATE_QPOS))
+        self.qvel_off = _state_offset(self.model, STATE_SPEC, int(mujoco.mjtState.mjSTATE_QVEL))
+        self.datas = [mujoco.MjData(self.model) for _ in range(threads)]
+        self.pool = rollout.Rollout(nthread=threads if threads > 1 else 0)
+
+
+class MujocoTarget(Target):
+    """Roll PD targets out in MuJoCo. See the module docstring for the set-up.
+
+    A run lives in ``self.data`` (a fresh ``MjData`` at every :meth:`reset`). :meth:`rollout_windows` uses
+    ``mujoco.rollout`` with ``threads`` threads on a copy of the scene with keypoint sensors (built on first use).
+    """
 
     name = "mujoco"
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, threads: int = 1) -> None:
         self.scene = scene
+        self.threads = threads
         self.mm = MujocoModel(scene, visual=False)
+        self.data: Any = None
+        self._windows: _WindowModel | None = None
 
     @property
-    def substeps(self) -> int:
-        return max(1, round(1.0 / (self.scene.fps * self.scene.physics.mujoco_dt)))
+    def dt(self) -> float:
+        return float(self.mm.model.opt.timestep)
 
-    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> TargetRollout:
-        """Run the PD targets ``q_targets`` (T, D) from the demo's initial object pose (D = 6 + J per hand,
-        the hands concatenated).
+    def _run(self) -> Any:
+        if self.data is None:
+            raise RuntimeError("mujoco target: no run yet (call reset first)")
+        return self.data
 
-        The hands start at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``).
-        """
-        q_targets = np.asarray(q_targets, dtype=np.float64)
-        D = self.scene.n_dof
-        if q_targets.ndim != 2 or q_targets.shape[1] != D:
-            raise ValueError(f"q_targets must have shape (T, {D}), got {q_targets.shape}")
-        T = len(q_targets)
-        qd0 = (q_targets[1] - q_targets[0]) * self.scene.fps if init_qvel and T > 1 else None
-        sess = self.session(q_targets[0], qd0)
-        t0 = time.perf_counter()
-        for t in range(T):
-            sess.record()
-            if t < T - 1:
-                sess.advance(q_targets[t], q_targets[t + 1])
-        return sess.result(time.perf_counter() - t0)
-
-    def session(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> MujocoSession:
-        """A step-by-step run (closed-loop control): the hands at ``q0`` (D,) with velocity ``qd0``,
-        the object at the demo's initial pose, at rest."""
-        return MujocoSession(self, np.asarray(q0, np.float64), qd0)
-
-
-class MujocoSession:
-    """One MuJoCo run advanced frame by frame: :meth:`observe` the state, :meth:`advance` one control frame."""
-
-    def __init__(self, target: MujocoTarget, q0: np.ndarray, qd0: np.ndarray | None) -> None:
-        self.target = target
-        mm = target.mm
+    def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> None:
+        mm = self.mm
         self.data = mujoco.MjData(mm.model)
-        mm.set_state(self.data, q0, target.scene.object_pos0, target.scene.object_quat0)
+        mm.set_state(self.data, np.asarray(q0, np.float64), self.scene.object_pos0, self.scene.object_quat0)
         if qd0 is not None:
             self.data.qvel[mm.hand_dof] = qd0
-        self._rec: dict[str, list[np.ndarray]] = {"qpos": [], "opos": [], "oquat": [], "kps": []}
 
-    def observe(self) -> dict[str, np.ndarray]:
-        """Hands' ``qpos``/``qvel`` (D,), object origin ``obj_pos``, ``obj_quat`` (w x y z), world linear
-        velocity of the centre of mass ``obj_vel`` and world angular velocity ``obj_angvel``, ``keypoints``."""
-        mm, d = self.target.mm, self.data
-        self._sync()
+    def observe(self) -> Observation:
+        mm, d = self.mm, self._run()
+        mujoco.mj_kinematics(mm.model, d)  # site positions of the current qpos (mj_step leaves them one step behind)
         o = mm.obj_qpos
         quat = d.qpos[o + 3 : o + 7].copy()
         R = np_quat_to_mat(quat)
         w = R @ d.qvel[mm.obj_dof + 3 : mm.obj_dof + 6]  # free joint: angular velocity in the body frame
-        com = R @ np.asarray(self.target.scene.obj.com)
+        com = R @ np.asarray(self.scene.obj.com)
         v = d.qvel[mm.obj_dof : mm.obj_dof + 3] + np.cross(w, com)  # free joint: velocity of the frame origin
         return {
             "qpos": d.qpos[mm.hand_qpos].copy(), "qvel": d.qvel[mm.hand_dof].copy(),
@@ -331,47 +350,70 @@ class MujocoSession:
             "keypoints": d.site_xpos[mm.kp_site].copy(),
         }  # fmt: skip
 
+    def save_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """``mj_getState(..., mjSTATE_FULLPHYSICS)`` and ``qacc_warmstart`` (the solver's warm start)."""
+        d = self._run()
+        state = np.zeros(mujoco.mj_stateSize(self.mm.model, STATE_SPEC))
+        mujoco.mj_getState(self.mm.model, d, state, STATE_SPEC)
+        return state, d.qacc_warmstart.copy()
+
+    def restore_state(self, state: object) -> None:
+        full, warm = state  # type: ignore[misc]
+        d = self._run()
+        mujoco.mj_setState(self.mm.model, d, full, STATE_SPEC)
+        d.qacc_warmstart[:] = warm
+
     def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
-        """One control frame: PD targets interpolated from ``qa`` to ``qb`` with their velocity fed forward."""
-        mm, d, m = self.target.mm, self.data, self.target.mm.model
-        fps, n = self.target.scene.fps, self.target.substeps
-        d.ctrl[mm.ff_act] = (qb - qa) * fps
-        for k in range(n):
-            s = (k + 1) / n
-            d.ctrl[mm.pd_act] = (1 - s) * qa + s * qb
+        mm, d, m = self.mm, self._run(), self.mm.model
+        targets, velocity = pd_schedule(qa, qb, self.substeps, self.scene.fps)
+        d.ctrl[mm.ff_act] = velocity
+        for pd in targets:
+            d.ctrl[mm.pd_act] = pd
             mujoco.mj_step(m, d)
 
-    def _sync(self) -> None:
-        """Positions of bodies and sites for the current ``qpos`` (``mj_step`` leaves them one step behind)."""
-        mujoco.mj_kinematics(self.target.mm.model, self.data)
+    def set_hands(self, q: np.ndarray, qd: np.ndarray) -> None:
+        mm, d = self.mm, self._run()
+        d.qpos[mm.hand_qpos] = q
+        d.qvel[mm.hand_dof] = qd
 
-    def record(self) -> None:
-        """Append the current frame (hand qpos, object pose, keypoint sites) to the run's record."""
-        mm, d = self.target.mm, self.data
-        self._sync()
-        self._rec["qpos"].append(d.qpos[mm.hand_qpos].copy())
-        self._rec["opos"].append(d.qpos[mm.obj_qpos : mm.obj_qpos + 3].copy())
-        self._rec["oquat"].append(d.qpos[mm.obj_qpos + 3 : mm.obj_qpos + 7].copy())
-        self._rec["kps"].append(d.site_xpos[mm.kp_site].copy())
+    def rollout_windows(self, wins: np.ndarray, qd0: np.ndarray | None = None) -> Prediction:
+        """The candidate windows (N, H + 1, D) rolled out from the run's current state with ``mujoco.rollout``
+        on the sensor model (``mj_getState(..., mjSTATE_FULLPHYSICS)`` and ``qacc_warmstart`` copied, the
+        controls of :func:`pd_schedule`); with ``qd0`` (N, D) each candidate's hands start at its window's
+        frame 0 with velocity ``qd0``, as in :meth:`Target.rollout_windows`."""
+        if self._windows is None:
+            self._windows = _WindowModel(self.scene, self.mm.model, self.threads)
+        wm, mm, d = self._windows, self.mm, self._run()
+        N, H, n = len(wins), wins.shape[1] - 1, self.substeps
+        state = np.repeat(self.save_state()[0][None], N, axis=0)
+        if qd0 is not None:
+            state[:, wm.qpos_off + mm.hand_qpos] = wins[:, 0]
+            state[:, wm.qvel_off + mm.hand_dof] = qd0
+        pd, ff = pd_schedule(wins[:, :-1], wins[:, 1:], n, self.scene.fps)
+        ctrl = np.zeros((N, H * n + 1, wm.model.nu))  # one more step: sensors lag one step behind qpos
+        ctrl[:, :-1, mm.pd_act] = pd.reshape(N, H * n, -1)
+        ctrl[:, :-1, mm.ff_act] = np.repeat(ff, n, axis=1)
+        ctrl[:, -1] = ctrl[:, -2]
+        warm = np.repeat(d.qacc_warmstart[None], N, axis=0)
+        states, sens = wm.pool.rollout(wm.model, wm.datas, state, ctrl, initial_warmstart=warm)
+        ends = np.arange(1, H + 1) * n  # the state after frame f is step f n - 1; its sensors are step f n
+        qpos = states[:, ends - 1, wm.qpos_off : wm.qpos_off + wm.model.nq]
+        o = mm.obj_qpos
+        return Prediction(
+            qpos=qpos[..., mm.hand_qpos], obj_pos=qpos[..., o : o + 3], obj_quat=qpos[..., o + 3 : o + 7],
+            keypoints=sens[:, ends].reshape(N, H, -1, 3), n_steps=N * (H * n + 1),
+        )  # fmt: skip
 
-    def result(self, wall_s: float) -> TargetRollout:
-        """The recorded frames as a :class:`TargetRollout`."""
-        scene = self.target.scene
-        return TargetRollout(
-            target=self.target.name,
-            qpos=np.array(self._rec["qpos"]),
-            object_pos=np.array(self._rec["opos"]),
-            object_quat=sign_continuous(np.array(self._rec["oquat"])),
-            keypoints=np.array(self._rec["kps"]),
-            kp_human=scene.kp_human,
-            kp_metric=scene.kp_metric,
-            dt=float(self.target.mm.model.opt.timestep),
-            substeps=self.target.substeps,
-            wall_s=wall_s,
-            extras={"sim_warnings": self.warnings()},
-        )
+    def extras(self) -> dict[str, Any]:
+        return {"sim_warnings": self.warnings()}
 
     def warnings(self) -> dict[str, int]:
         """How often MuJoCo raised each warning of :data:`UNSTABLE_WARNINGS` in this run."""
-        w = self.data.warning
+        w = self._run().warning
         return {k: int(w[int(getattr(mujoco.mjtWarning, f"mjWARN_{k}"))].number) for k in UNSTABLE_WARNINGS}
+
+    def close(self) -> None:
+        """Close the rollout pool (idempotent)."""
+        if self._windows is not None:
+            self._windows.pool.close()
+            self._windows = None

@@ -14,8 +14,9 @@ PyBullet cannot load the Shadow MJCF, so the hand is assembled link by link from
 * PD control per dof as in the MuJoCo target, applied as ``TORQUE_CONTROL`` at every physics step:
   ``tau = clip(kp (q* - q) - kv v) + kv qd* - damping v`` for finger joints (clip at
   +-``pd.joint_force_limit`` N m on the PD part, like MuJoCo's force range; ``pd.joint_damping``) and
-  ``kp (q* - q) + kv (qd* - v)`` (N, N m) for the base; targets interpolated linearly within a frame, ``qd*``
-  the frame-to-frame target velocity. Velocity terms are linearly implicit, as in MuJoCo's
+  ``kp (q* - q) + kv (qd* - v)`` (N, N m) for the base (:func:`~quasisim.targets.base.pd_gains`); targets
+  interpolated linearly within a frame, ``qd*`` the frame-to-frame target velocity
+  (:func:`~quasisim.targets.base.pd_schedule`). Velocity terms are linearly implicit, as in MuJoCo's
   ``implicitfast``: ``v`` is the end-of-step velocity from ``(M + dt diag(kv + damping)) v = M qd + dt (kp
   (q* - q) + kv qd*)`` with the joint-space mass matrix ``M`` (``calculateMassMatrix``, every step), so the
   torque yields exactly that ``v`` up to gravity, Coriolis and contact forces. An explicit ``-kv qd``
@@ -47,7 +48,6 @@ import contextlib
 import itertools
 import os
 import tempfile
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,8 +57,8 @@ from scipy.spatial import ConvexHull
 
 from quasisim.assets.hand import HINGE, Geom, HandModel
 from quasisim.errors import QuasisimError
-from quasisim.rotations import np_mat_to_quat, np_quat_to_mat, sign_continuous
-from quasisim.targets import TargetRollout
+from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
+from quasisim.targets.base import Observation, PDGains, Target, feed_forward, pd_gains, pd_schedule
 from quasisim.targets.scene import Scene
 
 DUMMY_MASS = 1e-4  # kg
@@ -248,10 +248,12 @@ def _geom_shape(g: Geom, off: np.ndarray) -> _Shape:
     return _Shape(kind, g.size.copy(), g.pos - off, np_quat_to_mat(g.quat), verts, faces)
 
 
-class PybulletTarget:
+class PybulletTarget(Target):
     """Roll PD targets out in PyBullet. See the module docstring for the set-up.
 
     Owns one ``DIRECT`` physics client (``self.client``); release it with :meth:`close` (or ``with``).
+    :meth:`rollout_windows` is :class:`~quasisim.targets.base.Target`'s: one candidate after the other from
+    ``saveState``.
     """
 
     name = "pybullet"
@@ -456,100 +458,67 @@ class PybulletTarget:
             out.append(pos[h.kp_body] + np.einsum("kij,kj->ki", rot[h.kp_body], h.kp_pos))
         return out[0] if len(out) == 1 else np.concatenate(out)
 
-    # ---- rollout ---------------------------------------------------------------------------------
+    # ---- the Target interface ----------------------------------------------------------------------
 
     @property
-    def substeps(self) -> int:
-        return max(1, round(1.0 / (self.scene.fps * self.scene.physics.pybullet_dt)))
-
-    def rollout(self, q_targets: np.ndarray, init_qvel: bool = True) -> TargetRollout:
-        """Run the PD targets ``q_targets`` (T, D) from the demo's initial object pose (D = 6 + J per hand).
-
-        The hands start at ``q_targets[0]`` (with the targets' initial velocity when ``init_qvel``); the
-        world is rebuilt first when a previous rollout used it, so rollouts are reproducible.
-        """
-        q_targets = np.asarray(q_targets, dtype=np.float64)
-        D = self.scene.n_dof
-        if q_targets.ndim != 2 or q_targets.shape[1] != D:
-            raise ValueError(f"q_targets must have shape (T, {D}), got {q_targets.shape}")
-        T, fps = len(q_targets), self.scene.fps
-        self.reset(q_targets[0], (q_targets[1] - q_targets[0]) * fps if init_qvel and T > 1 else None)
-        qpos = np.zeros((T, D))
-        opos, oquat = np.zeros((T, 3)), np.zeros((T, 4))
-        kps = np.zeros((T, len(self.scene.kp_human), 3))
-        t0 = time.perf_counter()
-        for t in range(T):
-            qpos[t], opos[t], oquat[t], kps[t] = self.frame_state()
-            if t == T - 1:
-                break
-            self.advance(q_targets[t], q_targets[t + 1])
-        return self.make_rollout(qpos, opos, oquat, kps, time.perf_counter() - t0)
+    def dt(self) -> float:
+        return float(self.scene.physics.pybullet_dt)
 
     def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> None:
-        """Start a run: rebuild the world when a previous run used it, put the hands at ``q0`` (D,) with
-        velocity ``qd0`` (default 0) and the object at the demo's initial pose, at rest."""
+        """Start a run: rebuild the world when a previous run used it (so runs are reproducible), put the hands
+        at ``q0`` (D,) with velocity ``qd0`` (default 0) and the object at the demo's initial pose, at rest."""
         if not self._fresh:
             self._build()
         self._fresh = False
         self.set_state(np.asarray(q0, dtype=np.float64), qd0)
         self.set_object_pose(self.scene.object_pos0, self.scene.object_quat0)
 
-    def frame_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """What a rollout records per frame: hands' ``qpos`` (D,), object position (3,) m and quaternion
-        (4,) w x y z, all keypoints (K, 3) m."""
-        qpos = self.joint_states()[0]
+    def observe(self) -> Observation:
+        """As :meth:`Target.observe`; the object's velocities from ``getBaseVelocity`` (PyBullet's base frame
+        is the object's inertial frame: the centre of mass's linear velocity, world axes)."""
+        qpos, qvel = self.joint_states()
         opos, oquat = self.object_pose()
-        return qpos, opos, oquat, self.keypoints()
+        v, w = self.pb.getBaseVelocity(self.obj_id, **self._kw())
+        return {
+            "qpos": qpos, "qvel": qvel, "obj_pos": opos, "obj_quat": oquat, "obj_vel": np.asarray(v, np.float64),
+            "obj_angvel": np.asarray(w, np.float64), "keypoints": self.keypoints(),
+        }  # fmt: skip
 
-    def _pd_law(self, hand: HandModel) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per-dof ``kp``, ``kv``, PD torque limit and joint damping (6 + J each) of ``hand``'s PD law."""
-        pd = hand.config.pd
-        kp = np.array([pd.base_pos.kp] * 3 + [pd.base_rot.kp] * 3 + [pd.joint.kp] * hand.n_joints)
-        kv = np.array([pd.base_pos.kv] * 3 + [pd.base_rot.kv] * 3 + [pd.joint.kv] * hand.n_joints)
-        lim = np.r_[np.full(6, np.inf), np.full(hand.n_joints, pd.joint_force_limit)]
-        damp = np.r_[np.zeros(6), np.full(hand.n_joints, pd.joint_damping)]
-        return kp, kv, lim, damp
+    def save_state(self) -> int:
+        """``saveState``: the id of an in-memory copy of the world (free it with :meth:`release_state`)."""
+        return int(self.pb.saveState(**self._kw()))
+
+    def restore_state(self, state: object) -> None:
+        self.pb.restoreState(stateId=state, **self._kw())
+
+    def release_state(self, state: object) -> None:
+        self.pb.removeState(state, **self._kw())
+
+    def set_hands(self, q: np.ndarray, qd: np.ndarray) -> None:
+        self.set_state(q, qd)
 
     def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
-        """One control frame (``substeps`` physics steps): PD targets interpolated linearly from ``qa`` to
+        """One control frame (``substeps`` physics steps): the PD targets of :func:`pd_schedule` from ``qa`` to
         ``qb`` (D each) with their velocity fed forward; the PD law of the module docstring, per hand."""
         pb, kw = self.pb, self._kw()
-        n = self.substeps
-        laws = [self._pd_law(part.hand) for part in self.parts]
-        for k in range(n):
-            s = (k + 1) / n
-            for i, ((part, sl), law) in enumerate(zip(self._slices(), laws, strict=True)):
-                tau = self._pd_torque(i, law, qa[sl], qb[sl], s)
+        targets, _ = pd_schedule(qa, qb, self.substeps, self.scene.fps)
+        hands = [(i, part, sl, pd_gains(part.hand)) for i, (part, sl) in enumerate(self._slices())]
+        ff = [feed_forward(g.kv, qa[sl], qb[sl], self.scene.fps) for _, _, sl, g in hands]  # kv qd*
+        for target in targets:
+            for (i, part, sl, g), f in zip(hands, ff, strict=True):
+                tau = self._pd_torque(i, g, target[sl], f)
                 pb.setJointMotorControlArray(part.id, part.dof_joint.tolist(), pb.TORQUE_CONTROL, forces=tau, **kw)
             pb.stepSimulation(**kw)
 
-    def _pd_torque(self, i: int, law: tuple[np.ndarray, ...], qa: np.ndarray, qb: np.ndarray, s: float) -> list[float]:
-        """Hand ``i``'s PD torques (6 + J) at fraction ``s`` of the frame from ``qa`` to ``qb`` (its targets)."""
-        kp, kv, lim, damp = law
-        dt, fps = self.scene.physics.pybullet_dt, self.scene.fps
-        ff = kv * (qb - qa) * fps  # kv qd*
+    def _pd_torque(self, i: int, g: PDGains, target: np.ndarray, ff: np.ndarray) -> list[float]:
+        """Hand ``i``'s PD torques (6 + J) towards its PD ``target`` with feed-forward ``ff`` (``kv qd*``)."""
+        kp, kv, lim, damp = g
+        dt = self.scene.physics.pybullet_dt
         q, qd = self._joint_states(self.parts[i])
         M = self.mass_matrix(q, i)
-        e = kp * ((1 - s) * qa + s * qb - q)
+        e = kp * (target - q)
         v = np.linalg.solve(M + dt * np.diag(kv + damp), M @ qd + dt * (e + ff))  # end-of-step velocity
         return (np.clip(e - kv * v, -lim, lim) + ff - damp * v).tolist()
-
-    def make_rollout(
-        self, qpos: np.ndarray, opos: np.ndarray, oquat: np.ndarray, kps: np.ndarray, wall_s: float
-    ) -> TargetRollout:
-        """A :class:`TargetRollout` of recorded frames (the arrays of :meth:`frame_state`, stacked over T)."""
-        return TargetRollout(
-            target=self.name,
-            qpos=np.asarray(qpos),
-            object_pos=np.asarray(opos),
-            object_quat=sign_continuous(np.asarray(oquat)),
-            keypoints=np.asarray(kps),
-            kp_human=self.scene.kp_human,
-            kp_metric=self.scene.kp_metric,
-            dt=float(self.scene.physics.pybullet_dt),
-            substeps=self.substeps,
-            wall_s=wall_s,
-        )
 
     # ---- lifetime --------------------------------------------------------------------------------
 
@@ -559,12 +528,6 @@ class PybulletTarget:
             with contextlib.suppress(Exception):
                 self.pb.disconnect(physicsClientId=self.client)
             self.client = None
-
-    def __enter__(self) -> PybulletTarget:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __del__(self) -> None:
         self.close()

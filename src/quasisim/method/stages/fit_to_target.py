@@ -10,7 +10,6 @@ from typing import Any
 import numpy as np
 
 from quasisim.method import stage2, stage3
-from quasisim.method.select import clip_cost
 from quasisim.method.stage import Context, Outcome, Plan, Stage
 from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.types import Params
@@ -24,7 +23,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     prob, cfg, spec, progress = ctx.prob, ctx.cfg, ctx.spec, ctx.progress
     o, sb, w2 = cfg.stage3, cfg.budget(spec.budget).sim, cfg.weights.arrays(points=0.0)
     nets = spec.networks if o.residual_steps > 0 else ()
-    judge, mass, inertia = make_target(spec.target, prob.scene), prob.obj.mass, prob.obj.inertia
+    mass, inertia = prob.obj.mass, prob.obj.inertia
     params, plan = ctx.stiffest(), out.plan
 
     def fit() -> dict[str, Any]:
@@ -45,7 +44,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
                 vg, traj, f.sysid, f.apply_constants(p), w2, budget, progress, "stage 3 (fitted simulator)"
             )[0]
 
-        cost = lambda q: clip_cost(prob.demo, judge.rollout(q), cfg.weights)  # noqa: E731
+        cost = lambda q: target.judge(prob.demo, q, cfg.weights)  # noqa: E731
         rounds, p = stage3.world_model_rounds(
             prob, model, p, plan.traj, f, buf, o, cfg.sample_target, w, improve, cost, progress
         )
@@ -54,7 +53,8 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     expect = {"fit": (8,), "losses": (None,), "held_out_before": (3,), "held_out_after": (3,), "round_fit": (8,),
               "round_costs": (o.rounds + 1,), "round_errors": (o.rounds, 3), "best_round": (), "buffer_rollouts": (),
               "q_targets": (prob.demo.n_frames, prob.scene.n_dof), "net_weights": (None,)}  # fmt: skip
-    d = ctx.ck.get("stage3", fit, expect)
+    with make_target(spec.target, prob.scene) as target:  # judges the world-model rounds
+        d = ctx.ck.get("stage3", fit, expect)
     model, p = stage3.network_template(prob.model, params, nets, o.seed) if nets else (prob.model, params)
     p = stage3.from_network_vector(p, d["net_weights"]) if nets else p
     f = stage3.SimFit.from_array(d["round_fit"])

@@ -1,7 +1,8 @@
-"""How well the quasi-physical simulator predicts the target: the measure of stage 3's fitting.
+"""Stage 3's replay buffer and prediction windows: how well the quasi-physical simulator predicts the target.
 
-* :class:`ReplayBuffer` (:func:`collect`): PD-target trajectories rolled out in MuJoCo, every frame's state
-  (hand joints and velocities, object pose and twist, robot keypoints) and the PD targets.
+* :class:`ReplayBuffer` (:func:`collect`): PD-target trajectories rolled out in a target (MuJoCo by default),
+  every frame's observation (:data:`~quasisim.targets.base.Observation`: hand joints and velocities, object
+  pose and twist, robot keypoints) and the PD targets.
 * :class:`Windows` (:func:`windows`): from a recorded frame ``t`` the target's state is put into the
   quasi-physical simulator (contacts start fresh) and the recorded PD targets of frames ``t+1 .. t+H`` are
   applied (open loop; paper appendix, transition prediction analysis).
@@ -24,26 +25,24 @@ from quasisim.optim.trajectory import Trajectory, observed_state, sim_controls
 from quasisim.rotations import quat_angle_deg
 from quasisim.sim.step import object_pose, rollout
 from quasisim.sim.types import Model, Params, State, pytree
-from quasisim.targets import TargetRollout
-from quasisim.targets.mujoco_target import MujocoTarget
+from quasisim.targets import OBS_KEYS, Observation, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
 
 Array = jax.Array
 F32 = jnp.float32
-OBS_KEYS = ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel", "keypoints")
 
 
-def record_target(scene: Scene, q_targets: np.ndarray, fps: float) -> tuple[list[dict[str, np.ndarray]], TargetRollout]:
-    """Replay ``q_targets`` (T, 6 + J) in MuJoCo: every frame's observation and the recorded rollout."""
+def record_target(target: Target, q_targets: np.ndarray, fps: float) -> tuple[list[Observation], TargetRollout]:
+    """Replay ``q_targets`` (T, D) in ``target`` from the scene's start, the hands with the targets' initial
+    velocity ``(q[1] - q[0]) fps``: every frame's observation and the recorded rollout (wall time 0)."""
     q = np.asarray(q_targets, np.float64)
-    sess = MujocoTarget(scene).session(q[0], (q[1] - q[0]) * fps)
+    target.reset(q[0], (q[1] - q[0]) * fps)
     obs = []
     for t in range(len(q)):
-        sess.record()
-        obs.append(sess.observe())
+        obs.append(target.observe())
         if t < len(q) - 1:
-            sess.advance(q[t], q[t + 1])
-    return obs, sess.result(0.0)
+            target.advance(q[t], q[t + 1])
+    return obs, target.recorded(obs, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,19 +76,21 @@ class ReplayBuffer:
         """This buffer and ``other``, keeping the newest ``capacity`` rollouts."""
         return ReplayBuffer(**{k: np.concatenate([v, getattr(other, k)])[-capacity:] for k, v in self.arrays().items()})
 
-    def observation(self, r: int, t: int) -> dict[str, np.ndarray]:
-        """Frame ``t`` of rollout ``r`` as a target observation (:meth:`MujocoSession.observe`)."""
+    def observation(self, r: int, t: int) -> Observation:
+        """Frame ``t`` of rollout ``r`` as a target observation (:meth:`~quasisim.targets.base.Target.observe`)."""
         return {k: getattr(self, k)[r, t] for k in OBS_KEYS}
 
 
-def collect(scene: Scene, controls: list[np.ndarray], fps: float) -> ReplayBuffer:
-    """Roll each PD-target trajectory (T, 6 + J) of ``controls`` out in MuJoCo and record every frame."""
+def collect(scene: Scene, controls: list[np.ndarray], fps: float, target: str = "mujoco") -> ReplayBuffer:
+    """Roll each PD-target trajectory (T, D) of ``controls`` out in ``target`` (one of
+    :data:`~quasisim.targets.TARGETS`, built once for ``scene``) and record every frame."""
     frames: dict[str, list[np.ndarray]] = {k: [] for k in ("q_targets", *OBS_KEYS)}
-    for q in controls:
-        obs, _ = record_target(scene, q, fps)
-        frames["q_targets"].append(np.asarray(q, np.float64))
-        for k in OBS_KEYS:
-            frames[k].append(np.stack([o[k] for o in obs]))
+    with make_target(target, scene) as tgt:
+        for q in controls:
+            obs, _ = record_target(tgt, q, fps)
+            frames["q_targets"].append(np.asarray(q, np.float64))
+            for k in OBS_KEYS:
+                frames[k].append(np.stack([o[k] for o in obs]))
     return ReplayBuffer(**{k: np.stack(v) for k, v in frames.items()})
 
 
