@@ -486,8 +486,8 @@ OPTION_CASES = [
     Case("transfer-set-stage3-horizon", _nothing, TR + "--stages 3 --set stage3.horizon=0", ("stage3.horizon", ">= 1")),
     Case("transfer-set-held-out", _nothing, TR + "--stages 3 --set stage3.held_out=2", ("stage3.held_out", "(0, 1)")),
     Case("transfer-set-mpc-lr", _nothing, TR + "--stages mpc --set mpc.lr=-1", ("mpc.lr", ">= 0")),
-    Case("transfer-set-samples", _nothing, TR + "--set sample_target.samples=0", ("samples", "positive")),
-    Case("transfer-set-mode", _nothing, TR + "--set sample_target.mode=best", ("best", "predictive")),
+    Case("transfer-set-samples", _nothing, TR + "--set sampling.samples=0", ("samples", "positive")),
+    Case("transfer-set-mode", _nothing, TR + "--set sampling.mode=best", ("best", "predictive")),
     Case(
         "transfer-curriculum-nan",
         _write(

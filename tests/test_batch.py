@@ -19,7 +19,7 @@ from quasisim.method.spec import TransferSpec
 pytest.importorskip("ray", reason="Ray is installed with the 'cluster' extra (make setup installs it)")
 
 SPEC = TransferSpec(method="sample-target", render=False, progress=False)
-FAST = {"sample_target.samples": 4, "sample_target.horizon": 3}
+FAST = {"sampling.samples": 4, "sampling.horizon": 3}
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +91,7 @@ def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path
     job = _jobs(clips_dir)[0]
     _persist(tmp_path, job, Settings(overrides=FAST), {"files": {"controls.npz": b"x"}, "rows": [{"clip": job.clip}]})
     with pytest.raises(QuasisimError, match="other settings"):
-        run_batch([job], tmp_path, Settings(overrides={"sample_target.samples": 8}))
+        run_batch([job], tmp_path, Settings(overrides={"sampling.samples": 8}))
 
 
 def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:

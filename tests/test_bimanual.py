@@ -126,7 +126,7 @@ def test_sampling_over_both_hands() -> None:
     import dataclasses
 
     from quasisim.method.config import TransferConfig
-    from quasisim.method.sample_target import Prediction, SamplingOptions, noise_std, sample_windows, window_costs
+    from quasisim.method.sampling import Prediction, SamplingOptions, noise_std, sample_windows, window_costs
 
     opts = SamplingOptions(
         samples=300, horizon=3, knots=2, noise_base_pos=0.004, noise_base_rot=0.04, noise_joints=0.5,
@@ -187,7 +187,7 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     from test_transfer import CURRICULUM, TINY
 
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
-    more = {"sample_target.samples": 4, "sample_target.horizon": 3, "mpc.steps": 1, "mpc.horizon": 2,
+    more = {"sampling.samples": 4, "sampling.horizon": 3, "mpc.steps": 1, "mpc.horizon": 2,
             "stage3.steps": 2, "stage3.variants": 1, "stage3.horizon": 3, "stage3.batch": 4, "stage3.rounds": 1,
             "stage3.residual_steps": 2}  # fmt: skip
     cfg = TransferConfig.from_yaml(overrides={**TINY, **more})
@@ -267,7 +267,7 @@ def test_arctic_transfer_end_to_end(arctic_clip, tmp_path, method) -> None:
     import json
 
     out = tmp_path / method
-    more = ("--set", "sample_target.samples=4") if method == "sample-target" else ()
+    more = ("--set", "sampling.samples=4") if method == "sample-target" else ()
     r = _cli("transfer", str(arctic_clip), "--method", method, "--out", str(out), "--no-render", *more)
     assert r.exit_code == 0, r.output
     for f in ("controls.npz", "metrics.json", "rollout.npz", "report.html", "summary.json", "manifest.json"):

@@ -96,7 +96,7 @@ def test_transfer_runs_with_other_hands(name: str, tmp_path, request: pytest.Fix
     hand = load_hand(name)
     demo = write_example("cube_lift", tmp_path / "demo", n_frames=16)
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
-    cfg = TransferConfig.from_yaml(overrides={**TINY, "sample_target.samples": 6, "sample_target.horizon": 3})
+    cfg = TransferConfig.from_yaml(overrides={**TINY, "sampling.samples": 6, "sampling.horizon": 3})
     for method in ("ours", "sample-target"):  # ours: the default stages 1, 2, sample, select
         spec = TransferSpec(
             hand=name, method=method, curriculum=str(tmp_path / "tiny.yaml"), render=False, progress=False

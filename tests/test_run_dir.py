@@ -276,7 +276,7 @@ def test_long_clips_warn_with_an_estimate(capsys) -> None:
 
 # ---- transfer: another demo's checkpoints, and kills at random points -----------------------------------
 
-FAST = ["--method", "sample-target", "--set", "sample_target.samples=6", "--set", "sample_target.horizon=3"]
+FAST = ["--method", "sample-target", "--set", "sampling.samples=6", "--set", "sampling.horizon=3"]
 
 
 def test_resume_without_run_json_never_reuses_another_demos_checkpoints(clip: dict[str, Path], tmp_path: Path) -> None:

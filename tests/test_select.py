@@ -94,7 +94,7 @@ def test_transfer_with_select_outputs_the_best_seen(example_dir: Path, tmp_path:
     from quasisim.method.spec import TransferSpec
     from quasisim.pipeline import run_transfer
 
-    cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 4, "sample_target.horizon": 3})
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 4, "sampling.horizon": 3})
     spec = TransferSpec(stages=("sample", "select"), render=False, progress=False)
     res = run_transfer(example_dir / "cube_lift.npz", tmp_path / "run", spec, cfg)
     c = load_controls(tmp_path / "run" / "controls.npz")

@@ -29,7 +29,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
     prob = make_problem(demo, (Placement(hand, rt.base_rot),), 5, 32)
     cfg = TransferConfig.from_yaml()
     cur = load_curriculum("default")
-    variants = noisy_variants(rt.q, 1, cfg.sample_target, 0, prob.scene)
+    variants = noisy_variants(rt.q, 1, cfg.sampling, 0, prob.scene)
     buf = collect(prob.scene, [rt.q, *variants], demo.fps)
     return prob, cfg, prob.params(cur.contact(cur.stiffest)), buf, rt.q, variants
 
@@ -94,7 +94,7 @@ def test_world_model_rounds_keep_the_best_controls_judged_in_the_target(setup) -
 
     def run(cost):
         w = cfg.weights.arrays()
-        return world_model_rounds(prob, prob.model, p0, start, f0, buf, opts, cfg.sample_target, w, improve, cost)[0]
+        return world_model_rounds(prob, prob.model, p0, start, f0, buf, opts, cfg.sampling, w, improve, cost)[0]
 
     higher = run(lambda x: -float(x[:, 2].mean()))  # the target "prefers" the raised hand: the last round wins
     assert int(higher["best_round"]) == 2 and np.allclose(higher["q_targets"], q + 2 * shift)

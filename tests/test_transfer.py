@@ -192,7 +192,7 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
     from quasisim.method.spec import TransferSpec
     from quasisim.pipeline import run_transfer
 
-    cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 6, "sample_target.horizon": 3})
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 6, "sampling.horizon": 3})
     spec = TransferSpec(method="sample-target", render=False, progress=False)
     res = run_transfer(short_demo, tmp_path / "st", spec, cfg)
     assert (tmp_path / "st" / "checkpoints" / "sample.npz").is_file()
@@ -202,8 +202,8 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
     assert "sim_qpos" not in c.extras and np.abs(c.q_targets - c.extras["kinematic_q"]).max() > 1e-4
     again = evaluate_controls(load_demo(short_demo), c, "mujoco", None, render=False)
     assert again.metrics == res.metrics
-    with pytest.raises(InputError, match="sample_target"):
-        other = TransferConfig.from_yaml(overrides={"sample_target.samples": 7, "sample_target.horizon": 3})
+    with pytest.raises(InputError, match="sampling"):
+        other = TransferConfig.from_yaml(overrides={"sampling.samples": 7, "sampling.horizon": 3})
         run_transfer(short_demo, tmp_path / "st", spec, other, resume=True)
 
 
@@ -214,7 +214,7 @@ def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(short_demo
     from quasisim.method.config import TransferConfig
     from quasisim.method.spec import TransferSpec
 
-    cfg = TransferConfig.from_yaml(overrides={"sample_target.samples": 6, "sample_target.horizon": 3})
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 6, "sampling.horizon": 3})
     spec = TransferSpec(method="sample-target", render=False, progress=False).checked()
     run_profile(short_demo, spec, cfg, tmp_path / "prof", cold=True, cprofile=False)
     rows = {r["piece"]: r for r in json.loads((tmp_path / "prof" / "profile.json").read_text())}

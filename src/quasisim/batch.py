@@ -97,7 +97,7 @@ def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[st
 
     cfg = METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
     content = cfg.identity(budget, stages)
-    content.get("sample_target", {}).pop("threads", None)
+    content.get("sampling", {}).pop("threads", None)
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -182,7 +182,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
     configure()
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
     _inject_fault(job.clip, scratch)
-    cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sample_target.threads": s.threads, **s.overrides})
+    cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sampling.threads": s.threads, **s.overrides})
     _write_tree(scratch / "input", files)
     demo = scratch / "input" / job.demo_path.name
     out_files: dict[str, bytes] = {}

@@ -40,7 +40,7 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
     cur = load_curriculum("default")
     p0 = prob.params(cur.contact(cur.stiffest))
     t0 = time.perf_counter()
-    train, test, _ = stage3.fit_windows(prob, q_kin, o, cfg.sample_target)
+    train, test, _ = stage3.fit_windows(prob, q_kin, o, cfg.sampling)
     w = cfg.weights.arrays()
     args = (demo.fps, prob.base_quat)
     t_collect = time.perf_counter() - t0

@@ -16,7 +16,7 @@ from quasisim.errors import InputError, choice_error
 from quasisim.method.handoff import MODES as HANDOFF_MODES
 from quasisim.method.handoff import HandoffOptions
 from quasisim.method.mpc import MPCOptions
-from quasisim.method.sample_target import SamplingOptions
+from quasisim.method.sampling import SamplingOptions
 from quasisim.method.stage3 import FitOptions
 from quasisim.optim.adam import StepBudget
 from quasisim.optim.objective import Weights
@@ -50,7 +50,7 @@ class TransferConfig:
     stage2: HandoffOptions
     mpc: MPCOptions
     soften_samples: int
-    sample_target: SamplingOptions
+    sampling: SamplingOptions
     stage3: FitOptions
     path: str = ""
 

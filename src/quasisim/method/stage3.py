@@ -40,7 +40,7 @@ import optax
 from quasisim.errors import QuasisimError
 from quasisim.method import spec
 from quasisim.method.replay import ReplayBuffer, Windows, collect, predict, prediction_errors, split_starts, windows
-from quasisim.method.sample_target import SamplingOptions, scene_sampler
+from quasisim.method.sampling import SamplingOptions, scene_sampler
 from quasisim.optim.adam import Progress
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID

@@ -8,6 +8,7 @@ Importing this package loads no simulator (and no JAX): each backend loads when 
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 from quasisim.errors import choice_error
@@ -25,24 +26,25 @@ from quasisim.targets.base import (
     pd_schedule,
 )
 
-TARGETS = ("mujoco", "pybullet")
+# target name -> "module:class" of its Target; adding a target is one module and one line here (docs/stages.md)
+BACKENDS: dict[str, str] = {
+    "mujoco": "quasisim.targets.mujoco_target:MujocoTarget",
+    "pybullet": "quasisim.targets.pybullet_target:PybulletTarget",
+}
+TARGETS = tuple(BACKENDS)
 
 __all__ = [
-    "MAX_HAND_SPEED", "MAX_OBJECT_SPEED", "OBS_KEYS", "TARGETS", "Observation", "PDGains", "Prediction", "Target",
+    "BACKENDS", "MAX_HAND_SPEED", "MAX_OBJECT_SPEED", "OBS_KEYS", "TARGETS", "Observation", "PDGains", "Prediction", "Target",
     "TargetRollout", "feed_forward", "make_target", "pd_gains", "pd_schedule",
 ]  # fmt: skip
 
 
 def make_target(name: str, scene: Any, threads: int = 1) -> Target:
     """Build target simulator ``name`` (one of :data:`TARGETS`) for ``scene`` (each target's module, with
-    its simulator, loads only when it is asked for); ``threads``: MuJoCo's threads for
-    :meth:`~quasisim.targets.base.Target.rollout_windows` (PyBullet runs one client, one thread)."""
-    if name == "mujoco":
-        from quasisim.targets.mujoco_target import MujocoTarget
-
-        return MujocoTarget(scene, threads=threads)
-    if name == "pybullet":
-        from quasisim.targets.pybullet_target import PybulletTarget
-
-        return PybulletTarget(scene)
-    raise choice_error("target", name, TARGETS)
+    its simulator, loads only when it is asked for); ``threads``: threads for
+    :meth:`~quasisim.targets.base.Target.rollout_windows` where the backend has them (MuJoCo; PyBullet runs
+    one client, one thread). Every backend's class takes ``(scene, threads=...)``."""
+    if name not in BACKENDS:
+        raise choice_error("target", name, TARGETS)
+    module, cls = BACKENDS[name].split(":")
+    return getattr(importlib.import_module(module), cls)(scene, threads=threads)

@@ -258,7 +258,9 @@ class PybulletTarget(Target):
 
     name = "pybullet"
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, threads: int = 1) -> None:
+        """``threads`` is accepted for the common constructor (:func:`~quasisim.targets.make_target`); PyBullet
+        steps one client on one thread."""
         self.scene = scene
         self.pb = _pybullet()
         self.client = self.pb.connect(self.pb.DIRECT)

@@ -30,7 +30,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
         t0 = time.perf_counter()
         w = cfg.weights.arrays()
         d, model, p, f, buf = stage3.fit_to_target(
-            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sample_target, w, nets, progress
+            prob, params, plan.traj.q_targets, plan.sysid, o, cfg.sampling, w, nets, progress
         )
         b, a = d["held_out_before"], d["held_out_after"]
         progress.write(
@@ -46,7 +46,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
 
         cost = lambda q: target.judge(prob.demo, q, cfg.weights)  # noqa: E731
         rounds, p = stage3.world_model_rounds(
-            prob, model, p, plan.traj, f, buf, o, cfg.sample_target, w, improve, cost, progress
+            prob, model, p, plan.traj, f, buf, o, cfg.sampling, w, improve, cost, progress
         )
         return {**d, **rounds, "net_weights": stage3.network_vector(p), "wall_s": np.array(time.perf_counter() - t0)}
 

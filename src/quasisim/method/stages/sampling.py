@@ -1,5 +1,5 @@
 """Stage ``sample``: sampling MPC in the target itself around the PD targets of the stages before it
-(:mod:`quasisim.method.sample_target`; alone, from the kinematic retarget, it is the ``sample-target`` method)."""
+(:mod:`quasisim.method.sampling`; alone, from the kinematic retarget, it is the ``sample-target`` method)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.method.sample_target import run_sample_target
+from quasisim.method.sampling import run_sampling
 from quasisim.method.stage import Context, Outcome, Stage
 from quasisim.method.stages._common import q_expect
 
@@ -17,11 +17,11 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     nominal``) and, after a stage that planned (``kinematic_alternative``), around the kinematic retarget too."""
     prob, cfg, spec = ctx.prob, ctx.cfg, ctx.spec
     nominal = out.q
-    alternatives = (ctx.kinematic_q,) if cfg.sample_target.kinematic_alternative and out.planned else ()
+    alternatives = (ctx.kinematic_q,) if cfg.sampling.kinematic_alternative and out.planned else ()
 
     def sample() -> dict[str, Any]:
-        r = run_sample_target(
-            prob.demo, prob.scene, nominal, cfg.sample_target, cfg.weights, spec.target, spec.progress, alternatives
+        r = run_sampling(
+            prob.demo, prob.scene, nominal, cfg.sampling, cfg.weights, spec.target, spec.progress, alternatives
         )
         return {
             "q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s),
@@ -36,4 +36,4 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     return out.replace(q=np.asarray(d["q_targets"], np.float64), planned=True, seen=seen)
 
 
-STAGE = Stage(name="sample", word="sample", config=("sample_target",), s_per_frame=0.25, run=run, plans=True)
+STAGE = Stage(name="sample", word="sample", config=("sampling",), s_per_frame=0.25, run=run, plans=True)

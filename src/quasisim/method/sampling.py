@@ -1,4 +1,6 @@
-"""Baseline ``sample-target``: predictive-sampling MPC with the target simulator itself as the model.
+"""Sampling MPC in the target: predictive sampling with the target simulator itself as the model (stage
+``sample``, settings ``sampling:`` in ``configs/transfer.yaml``; from the kinematic retarget alone it is the
+``sample-target`` baseline).
 
 At every control frame ``t`` of a clip with ``T`` frames:
 
@@ -33,7 +35,7 @@ targets (:meth:`~quasisim.targets.base.Target.rollout`).
 
 Suggested settings (all required; load with ``quasisim.config.build(SamplingOptions, data, path)``)::
 
-    sample_target:
+    sampling:
       samples: 24              # candidate windows per frame (the nominal + 23 perturbations)
       horizon: 6               # frames per window
       knots: 3                 # noise knots per window, linear in between
@@ -134,7 +136,7 @@ def _is_number(v: object) -> bool:
 
 @dataclass(frozen=True, eq=False)
 class SampleResult:
-    """Outcome of :func:`run_sample_target`.
+    """Outcome of :func:`run_sampling`.
 
     Attributes:
         q_targets: (T, 6 + J) the PD targets applied in the target.
@@ -238,7 +240,7 @@ def window_costs(
     return np.asarray(costs, np.float64)
 
 
-def choose(wins: np.ndarray, costs: np.ndarray, opts: SamplingOptions) -> tuple[np.ndarray, int | None]:
+def next_plan_window(wins: np.ndarray, costs: np.ndarray, opts: SamplingOptions) -> tuple[np.ndarray, int | None]:
     """The new plan window (H + 1, 6 + J) and the index of the applied candidate (None for ``mppi``)."""
     if opts.mode == "predictive":
         best = int(np.argmin(costs))
@@ -254,15 +256,13 @@ def _check_plan(demo: Demo, scene: Scene, plan: np.ndarray) -> np.ndarray:
     plan = np.asarray(plan, dtype=np.float64)
     D = scene.n_dof
     if plan.ndim != 2 or plan.shape != (demo.n_frames, D) or demo.n_frames < 2:
-        raise QuasisimError(
-            f"sample-target: plan must have shape ({demo.n_frames}, {D}) with >= 2 frames, got {plan.shape}"
-        )
+        raise QuasisimError(f"sampling: plan must have shape ({demo.n_frames}, {D}) with >= 2 frames, got {plan.shape}")
     if not np.isfinite(plan).all():
-        raise QuasisimError("sample-target: plan has NaN or inf values")
+        raise QuasisimError("sampling: plan has NaN or inf values")
     return plan
 
 
-def run_sample_target(
+def run_sampling(
     demo: Demo,
     scene: Scene,
     plan: np.ndarray,
@@ -298,7 +298,7 @@ def _control_loop(
     target.reset(plan[0], None)
     frames: list[Observation] = []
     t0 = time.perf_counter()
-    for t in tqdm(range(T - 1), desc="sample-target", unit="frame", disable=not progress, leave=False):
+    for t in tqdm(range(T - 1), desc="sampling", unit="frame", disable=not progress, leave=False):
         wins = sample(rng, work[t : t + H + 1])
         for alt in alts:  # windows around another plan, from the targets this step starts from
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
@@ -307,7 +307,7 @@ def _control_loop(
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
-        win, best = choose(wins, costs, opts)
+        win, best = next_plan_window(wins, costs, opts)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
         if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them

@@ -11,12 +11,12 @@ import yaml
 
 from quasisim.errors import QuasisimError
 from quasisim.method.config import TransferConfig
-from quasisim.method.sample_target import (
+from quasisim.method.sampling import (
     MODES,
     Prediction,
     SamplingOptions,
     knot_basis,
-    run_sample_target,
+    run_sampling,
     sample_windows,
     window_costs,
 )
@@ -91,23 +91,23 @@ def test_bad_options_raise(field: str, value: object, match: str) -> None:
 
 def test_docstring_yaml_builds_the_options() -> None:
     """The suggested YAML block in the module docstring is complete and valid (every field is required)."""
-    import quasisim.method.sample_target as st
+    import quasisim.method.sampling as st
     from quasisim.config import build
 
     block = st.__doc__.split("::", 1)[1]
-    opts = build(SamplingOptions, yaml.safe_load(block)["sample_target"], None)
+    opts = build(SamplingOptions, yaml.safe_load(block)["sampling"], None)
     assert opts.samples == 24 and opts.horizon == 6 and opts.knots == 3 and opts.mode in MODES
     assert opts.noise_scales == (0.5, 1.0, 2.0)
     with pytest.raises(QuasisimError, match="seed"):
-        build(SamplingOptions, {k: v for k, v in yaml.safe_load(block)["sample_target"].items() if k != "seed"}, None)
+        build(SamplingOptions, {k: v for k, v in yaml.safe_load(block)["sampling"].items() if k != "seed"}, None)
 
 
 def test_bad_target_and_plan_raise(synth) -> None:
     demo, plan, scene = synth
     with pytest.raises(QuasisimError, match="valid options: mujoco, pybullet"):
-        run_sample_target(demo, scene, plan, OPTS, W, target="isaac", progress=False)
+        run_sampling(demo, scene, plan, OPTS, W, target="isaac", progress=False)
     with pytest.raises(QuasisimError, match="plan must have shape"):
-        run_sample_target(demo, scene, plan[:-1], OPTS, W, progress=False)
+        run_sampling(demo, scene, plan[:-1], OPTS, W, progress=False)
 
 
 # ---- sampling and scoring ------------------------------------------------------------------------------
@@ -163,7 +163,7 @@ def test_zero_noise_is_a_replay_of_the_plan(real) -> None:
     from quasisim.targets import make_target
 
     demo, plan, scene = real
-    res = run_sample_target(demo, scene, plan, ZERO, W, progress=False)
+    res = run_sampling(demo, scene, plan, ZERO, W, progress=False)
     rep = _replay(scene, plan)
     np.testing.assert_array_equal(res.q_targets, plan)
     np.testing.assert_allclose(res.rollout.qpos, rep.qpos, atol=1e-9)
@@ -188,7 +188,7 @@ def test_best_candidate_lowers_the_first_window_cost(real) -> None:
     from quasisim.optim.objective import window_references
 
     demo, plan, scene = real
-    res = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
+    res = run_sampling(demo, scene, plan, OPTS, W, progress=False)
     rep = _replay(scene, plan)
     H, km = OPTS.horizon, scene.hands[0].kp_metric
     ref_pos, ref_quat, ref_kp = (
@@ -197,7 +197,7 @@ def test_best_candidate_lowers_the_first_window_cost(real) -> None:
     pred = Prediction(rep.qpos[None, 1 : H + 1], rep.object_pos[None, 1 : H + 1], rep.object_quat[None, 1 : H + 1],
                       rep.keypoints[None, 1 : H + 1][:, :, km], 0)  # fmt: skip
     nominal = window_costs(plan[None, : H + 1], pred, ref_pos, ref_quat, ref_kp, np.ones(H), W)[0]
-    zero = run_sample_target(demo, scene, plan, dataclasses.replace(ZERO, samples=1), W, progress=False)
+    zero = run_sampling(demo, scene, plan, dataclasses.replace(ZERO, samples=1), W, progress=False)
     np.testing.assert_allclose(zero.window_loss[0], nominal, rtol=1e-9)
     assert res.window_loss[0] < nominal - 0.005  # seeds 0-3: 0.015-0.058 lower (nominal 0.099)
     assert res.prediction_error.max() <= 1e-9
@@ -210,9 +210,9 @@ def test_best_candidate_lowers_the_first_window_cost(real) -> None:
 
 def test_deterministic_for_a_seed(real) -> None:
     demo, plan, scene = real
-    a = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
-    b = run_sample_target(demo, scene, plan, dataclasses.replace(OPTS, threads=1), W, progress=False)
-    c = run_sample_target(demo, scene, plan, dataclasses.replace(OPTS, seed=1), W, progress=False)
+    a = run_sampling(demo, scene, plan, OPTS, W, progress=False)
+    b = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, threads=1), W, progress=False)
+    c = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, seed=1), W, progress=False)
     np.testing.assert_array_equal(a.q_targets, b.q_targets)
     np.testing.assert_array_equal(a.window_loss, b.window_loss)
     np.testing.assert_array_equal(a.rollout.object_pos, b.rollout.object_pos)
@@ -225,26 +225,24 @@ def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:
     demo, plan, scene = synth
     high = plan.copy()
     high[1:, 2] += 0.12
-    alone = run_sample_target(demo, scene, high, ZERO, W, progress=False)
-    both = run_sample_target(demo, scene, high, ZERO, W, progress=False, alternatives=(plan,))
+    alone = run_sampling(demo, scene, high, ZERO, W, progress=False)
+    both = run_sampling(demo, scene, high, ZERO, W, progress=False, alternatives=(plan,))
     np.testing.assert_array_equal(alone.q_targets, high)  # zero noise, no alternative: a replay of the plan
     np.testing.assert_array_equal(both.q_targets, plan)
     assert both.window_loss.sum() < alone.window_loss.sum()
-    same = run_sample_target(demo, scene, plan, OPTS, W, progress=False, alternatives=())
-    np.testing.assert_array_equal(
-        same.q_targets, run_sample_target(demo, scene, plan, OPTS, W, progress=False).q_targets
-    )
+    same = run_sampling(demo, scene, plan, OPTS, W, progress=False, alternatives=())
+    np.testing.assert_array_equal(same.q_targets, run_sampling(demo, scene, plan, OPTS, W, progress=False).q_targets)
 
 
 def test_mppi_applies_the_weighted_mean(synth) -> None:
     demo, plan, scene = synth
     opts = dataclasses.replace(OPTS, mode="mppi")
-    res = run_sample_target(demo, scene, plan, opts, W, progress=False)
+    res = run_sampling(demo, scene, plan, opts, W, progress=False)
     assert res.q_targets.shape == plan.shape and np.isnan(res.prediction_error).all()
     assert np.isfinite(res.window_loss).all() and np.abs(res.q_targets - plan).max() > 1e-5
     np.testing.assert_allclose(_replay(scene, res.q_targets).qpos, res.rollout.qpos, atol=1e-9)
-    cold = run_sample_target(demo, scene, plan, dataclasses.replace(opts, temperature=1e-9), W, progress=False)
-    best = run_sample_target(demo, scene, plan, OPTS, W, progress=False)
+    cold = run_sampling(demo, scene, plan, dataclasses.replace(opts, temperature=1e-9), W, progress=False)
+    best = run_sampling(demo, scene, plan, OPTS, W, progress=False)
     np.testing.assert_allclose(cold.q_targets, best.q_targets, atol=1e-12)  # T -> 0: the best candidate
 
 
@@ -258,7 +256,7 @@ def test_pybullet_variant_runs(synth) -> None:
     demo, plan, scene = synth
     demo, plan = demo.slice(0, 4), plan[:4]
     opts = dataclasses.replace(OPTS, samples=3, horizon=2)
-    res = run_sample_target(demo, scene, plan, opts, W, target="pybullet", progress=False)
+    res = run_sampling(demo, scene, plan, opts, W, target="pybullet", progress=False)
     J = scene.hands[0].n_joints
     r = res.rollout
     assert res.q_targets.shape == (4, 6 + J) and res.window_loss.shape == (3,)
