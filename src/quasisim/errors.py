@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 class QuasisimError(Exception):
@@ -34,3 +37,18 @@ class InputError(QuasisimError, ValueError):
 def choice_error(kind: str, value: object, options: list[str] | tuple[str, ...]) -> QuasisimError:
     """An error for an unknown option that lists the valid ones."""
     return QuasisimError(f"unknown {kind} {value!r}; valid options: {', '.join(sorted(options))}")
+
+
+def shaped_array(
+    value: Any, path: str | Path | None, field: str, shape: tuple[int | None, ...], axis: str = "T"
+) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` (None: any length, called ``axis`` in the message), else an
+    :class:`InputError` naming ``path`` and ``field``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(path, field, "numbers", type(value).__name__) from None
+    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape, strict=True)):
+        want = "(" + ", ".join(axis if s is None else str(s) for s in shape) + ")"
+        raise InputError(path, field, f"an array of shape {want}", str(a.shape))
+    return a

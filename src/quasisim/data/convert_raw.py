@@ -38,7 +38,7 @@ import numpy as np
 
 from quasisim.data import mano
 from quasisim.data.demo import Demo, save_demo
-from quasisim.errors import InputError
+from quasisim.errors import InputError, shaped_array
 from quasisim.files import atomic_path
 
 ARCTIC_FPS = 30.0  # ARCTIC's ground truth is per video frame (30 fps); the files do not state it
@@ -121,13 +121,7 @@ def _array(d: dict[str, Any], path: Path, field: str, shape: tuple[int | None, .
     if not isinstance(d, dict) or key not in d:
         keys = ", ".join(sorted(d)) if isinstance(d, dict) else type(d).__name__
         raise InputError(path, field, "an entry of this name", f"missing (keys: {keys})")
-    try:
-        a = np.asarray(d[key], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(path, field, "numbers", type(d[key]).__name__) from None
-    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape, strict=True)):
-        want = "(" + ", ".join("T" if s is None else str(s) for s in shape) + ")"
-        raise InputError(path, field, f"an array of shape {want}", str(a.shape))
+    a = shaped_array(d[key], path, field, shape, "T")
     if not np.isfinite(a).all():
         raise InputError(path, field, "finite numbers", "NaN or inf")
     return a

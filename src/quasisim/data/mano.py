@@ -35,7 +35,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from quasisim.errors import InputError
+from quasisim.errors import InputError, shaped_array
 
 N_VERTS = 778
 N_JOINTS = 16
@@ -246,14 +246,7 @@ def find_model(mano_dir: str | Path, side: str) -> Path:
 def _field(raw: dict[str, Any], path: Path, key: str, shape: tuple[int | None, ...]) -> np.ndarray:
     if key not in raw or raw[key] is None:
         raise InputError(path, key, "a MANO model array of this name", f"missing (keys: {', '.join(sorted(raw))})")
-    try:
-        a = np.asarray(raw[key], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(path, key, "a numeric array", type(raw[key]).__name__) from None
-    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape, strict=True)):
-        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
-        raise InputError(path, key, f"shape {want}", str(a.shape))
-    return a
+    return shaped_array(raw[key], path, key, shape, "N")
 
 
 def load_mano(path: str | Path) -> ManoModel:
