@@ -175,7 +175,7 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     """Every stage (1 and 2 with both hands in the quasi-physical simulator, 3 fitting it to MuJoCo with its
     networks, MPC, sampling and the selection in MuJoCo) on the synthetic two-hand clip, with tiny budgets:
     the controls drive both hands, stage 1's human points pair with robot points of their own hand, and the
-    result is judged in MuJoCo."""
+    result, judged in MuJoCo, beats the kinematic replay of the clip there."""
     import json
 
     from quasisim.data.controls import load_controls
@@ -215,6 +215,13 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     m = res.metrics
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"]]).all()
     assert evaluate_controls(load_demo(two_hand_clip), c, "mujoco", None, render=False).metrics == m
+    # the result beats the kinematic replay of the clip, both judged in MuJoCo (summary.json); measured:
+    # R_err 0.96 vs 21.4 deg, T_err 0.51 vs 0.85 cm, whole-clip objective 0.011 vs 0.080
+    assert summary["metrics"] == m
+    km = summary["kinematic_metrics"]
+    assert m["R_err_deg"] < 0.5 * km["R_err_deg"] and m["T_err_cm"] < km["T_err_cm"], (m, km)
+    costs = json.loads(str(c.extras["selection_costs"]))
+    assert str(c.extras["selected"]) != "kinematic" and costs[str(c.extras["selected"])] < 0.5 * costs["kinematic"]
 
 
 def test_kinematic_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
@@ -264,6 +271,8 @@ def arctic_clip():
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["kinematic", "sample-target"])
 def test_arctic_transfer_end_to_end(arctic_clip, tmp_path, method) -> None:
+    """`transfer` on a real two-hand clip: both hands' keypoints judged; the kinematic method's result is the
+    kinematic replay, and sample-target's does better than it in MuJoCo."""
     import json
 
     out = tmp_path / method
@@ -278,7 +287,13 @@ def test_arctic_transfer_end_to_end(arctic_clip, tmp_path, method) -> None:
     assert set(idx.tolist()) == set((idx[idx < 21]).tolist()) | set((idx[idx < 21] + 21).tolist())
     m = json.loads((out / "metrics.json").read_text())
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"], m["CD_mm"]]).all() and not m["unstable"]
-    assert json.loads((out / "summary.json").read_text())["hand"] == "shadow + shadow-left"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["hand"] == "shadow + shadow-left" and summary["metrics"] == m
+    km = summary["kinematic_metrics"]  # the kinematic replay of the clip, judged in the same MuJoCo scene
+    if method == "kinematic":  # the run is that replay
+        assert m == km
+    else:  # sampling in MuJoCo beats the replay; measured: T_err 0.43 vs 0.89 cm, R_err 1.70 vs 2.52 deg
+        assert m["T_err_cm"] < 0.75 * km["T_err_cm"] and m["R_err_deg"] < 0.85 * km["R_err_deg"], (m, km)
 
 
 @pytest.mark.slow

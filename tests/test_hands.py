@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -81,7 +83,8 @@ def test_pybullet_link_frames_match_fk(name: str) -> None:
 @pytest.mark.parametrize("name", ["allegro", "shadow-short-thumb"])
 def test_transfer_runs_with_other_hands(name: str, tmp_path, request: pytest.FixtureRequest) -> None:
     """The whole method with another hand: stages 1 and 2 (tiny budget and curriculum) and sample-target
-    on a short synthetic clip; outputs in that hand's joints, judged in MuJoCo, reproducible by replay."""
+    on a short synthetic clip; outputs in that hand's joints, judged in MuJoCo, reproducible by replay; ours
+    does better in MuJoCo than the kinematic replay of the clip."""
     from quasisim.data.controls import load_controls
     from quasisim.data.demo import load_demo
     from quasisim.data.synthetic import write_example
@@ -106,3 +109,27 @@ def test_transfer_runs_with_other_hands(name: str, tmp_path, request: pytest.Fix
         assert c.hand == name and c.joint_names == hand.joint_names and c.q_targets.shape == (16, 6 + hand.n_joints)
         assert np.isfinite([res.metrics["R_err_deg"], res.metrics["T_err_cm"], res.metrics["MPJPE_mm"]]).all()
         assert evaluate_controls(load_demo(demo), c, "mujoco", None, render=False).metrics == res.metrics
+        summary = json.loads((tmp_path / method / "summary.json").read_text())
+        m, km = summary["metrics"], summary["kinematic_metrics"]  # the run and the kinematic replay, in MuJoCo
+        assert m == res.metrics and km == res.kinematic_metrics
+        if method == "ours":
+            _beats_the_kinematic_replay(name, c, m, km)
+        # sample-target (6 samples, horizon 3) does not beat the kinematic replay on this clip: measured with
+        # Allegro T_err 3.280 vs 3.278 cm, R_err 1.10 vs 0.84 deg; with the short thumb it is the replay itself
+
+
+def _beats_the_kinematic_replay(name: str, c, m: dict, km: dict) -> None:
+    """Ours against the kinematic replay of the clip, both judged in MuJoCo. Measured (16-frame cube lift):
+    Allegro lifts the cube 9.0 cm of the demo's 12 (the replay 0.4): T_err 1.62 vs 3.28 cm, whole-clip
+    objective 0.0369 vs 0.0495, but R_err 6.4 vs 0.8 deg; the short thumb moves the cube in neither (T_err
+    3.27 cm and R_err 0 in both) and tracks the hand closer: MPJPE 9.19 vs 9.68 mm, objective 0.04405 vs
+    0.04458."""
+    costs = json.loads(str(c.extras["selection_costs"]))
+    selected = str(c.extras["selected"])
+    assert selected != "kinematic" and costs[selected] < 0.995 * costs["kinematic"], costs
+    assert m["T_err_cm"] <= km["T_err_cm"] + 1e-3, (m, km)  # never further from the demo's object path
+    if name == "allegro":
+        assert m["T_err_cm"] < 0.75 * km["T_err_cm"] and costs[selected] < 0.85 * costs["kinematic"], (m, km, costs)
+        assert m["object_motion"]["lift_cm"] > km["object_motion"]["lift_cm"] + 5.0
+    else:  # a tie in T_err and R_err: the hand's own tracking decides
+        assert m["R_err_deg"] <= km["R_err_deg"] + 1e-3 and m["MPJPE_mm"] < km["MPJPE_mm"] - 0.2, (m, km)

@@ -221,7 +221,11 @@ def test_deterministic_for_a_seed(real) -> None:
 
 def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:
     """A plan 12 cm above the cube never grasps it; with the kinematic retarget as an alternative, zero-noise
-    sampling switches to it at the first frame and then follows it exactly (its windows cost less)."""
+    sampling switches to it at the first frame and then follows it exactly (its windows cost less). With
+    noise, sampling around the alternative too lifts the cube as the demo does, which sampling around the
+    high plan alone never does: the alternative changes the result and lowers the whole-clip objective."""
+    from quasisim.optim.objective import clip_cost
+
     demo, plan, scene = synth
     high = plan.copy()
     high[1:, 2] += 0.12
@@ -230,8 +234,19 @@ def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:
     np.testing.assert_array_equal(alone.q_targets, high)  # zero noise, no alternative: a replay of the plan
     np.testing.assert_array_equal(both.q_targets, plan)
     assert both.window_loss.sum() < alone.window_loss.sum()
-    same = run_sampling(demo, scene, plan, OPTS, W, progress=False, alternatives=())
-    np.testing.assert_array_equal(same.q_targets, run_sampling(demo, scene, plan, OPTS, W, progress=False).q_targets)
+    # judged over the whole clip in MuJoCo: measured 0.157 alone, 0.040 with the alternative
+    assert clip_cost(demo, both.rollout, W) < 0.5 * clip_cost(demo, alone.rollout, W)
+
+    noisy_alone = run_sampling(demo, scene, high, OPTS, W, progress=False)
+    noisy_both = run_sampling(demo, scene, high, OPTS, W, progress=False, alternatives=(plan,))
+    assert np.abs(noisy_both.q_targets - noisy_alone.q_targets).max() > 0.05  # measured: the base 12 cm lower
+    # whole-clip objective measured 0.139 alone, 0.026 with the alternative
+    assert clip_cost(demo, noisy_both.rollout, W) < 0.5 * clip_cost(demo, noisy_alone.rollout, W)
+    # the object as in the demo (lifted 12 cm over the clip): largest position error measured 1.1 cm with
+    # the alternative; 12.0 cm alone (the cube never leaves the table)
+    err = lambda r: np.abs(r.object_pos - demo.object_pos).max()  # noqa: E731
+    assert demo.object_pos[-1, 2] - demo.object_pos[0, 2] > 0.1
+    assert err(noisy_both.rollout) < 0.03 < 0.1 < err(noisy_alone.rollout)
 
 
 def test_mppi_applies_the_weighted_mean(synth) -> None:

@@ -243,6 +243,21 @@ def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> N
     # one world-model round, judged in MuJoCo; the kept controls are never worse there than the stage's start
     costs, best = s["stage3"]["round_costs"], s["stage3"]["best_round"]
     assert len(costs) == 2 and len(s["stage3"]["round_errors"]) == 1 and costs[best] == min(costs)
+    # ... judged again by our own MuJoCo replay: the recorded costs are those of the start (the kinematic
+    # retarget as the simulator's float32 trajectory) and of the kept controls (the plan the MPC started from)
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.optim.objective import clip_cost
+    from quasisim.targets import make_target
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    c, demo = load_controls(tmp_path / "s3" / "controls.npz"), load_demo(short_demo)
+    tgt = make_target("mujoco", scene_for(demo, place_hands((load_hand("shadow"),), c.base_rots)))
+    start = c.extras["kinematic_q"].astype(np.float32).astype(np.float64)
+    assert clip_cost(demo, tgt.rollout(start), cfg.weights) == pytest.approx(costs[0], abs=1e-9)
+    assert clip_cost(demo, tgt.rollout(c.extras["plan_q"]), cfg.weights) == pytest.approx(costs[best], abs=1e-9)
     assert s["stage3"]["networks"] == ["local", "global", "control"]
     # resumed from the checkpoints: the fitted networks are read back and the MPC plans with them again
     first = np.load(tmp_path / "s3" / "controls.npz")["q_targets"]
