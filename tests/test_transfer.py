@@ -207,6 +207,42 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
         run_transfer(short_demo, tmp_path / "st", spec, other, resume=True)
 
 
+@pytest.mark.parametrize("target", ["mujoco", pytest.param("pybullet", marks=pytest.mark.slow)])
+def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path: Path, target: str) -> None:
+    """``--record-transitions``: the same result as without it; per sampling step the state the windows started
+    from, every candidate window and its states; the applied candidate's states are the recorded run's next
+    frame (the target is deterministic and its state is copied exactly), velocities included."""
+    from quasisim.data.controls import load_controls
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
+
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3})
+    spec = TransferSpec(method="sample-target", target=target, render=False, progress=False)
+    run_transfer(short_demo, tmp_path / "plain", spec, cfg)
+    run_transfer(short_demo, tmp_path / "rec", spec, cfg, record_transitions=tmp_path / "tr")
+    q = load_controls(tmp_path / "rec" / "controls.npz").q_targets
+    np.testing.assert_array_equal(q, load_controls(tmp_path / "plain" / "controls.npz").q_targets)
+
+    with np.load(tmp_path / "tr" / f"{short_demo.stem}.sample-target.npz") as z:
+        d = {k: z[k] for k in z.files}
+    T, D, N, H = len(q), q.shape[1], 5, 3
+    assert str(d["format"]) == "quasisim-transitions-v1" and str(d["target"]) == target
+    assert d["windows"].shape == (T - 1, N, H + 1, D) and d["qpos"].shape == d["qvel"].shape == (T - 1, N, H, D)
+    assert d["obj_vel"].shape == d["obj_angvel"].shape == (T - 1, N, H, 3) and d["costs"].shape == (T - 1, N)
+    np.testing.assert_array_equal(d["applied"], q)
+    tol = 1e-9 if target == "mujoco" else 1e-6  # PyBullet: restoreState keeps its contact caches
+    for t in range(T - 1):
+        c = int(d["chosen"][t])
+        assert c == int(np.argmin(d["costs"][t]))
+        np.testing.assert_array_equal(d["windows"][t, c, 1], q[t + 1])
+        for k in ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel"):
+            np.testing.assert_allclose(d[k][t, c, 0], d[f"run_{k}"][t + 1], rtol=0, atol=tol, err_msg=f"{k} {t}")
+        if t > 0:  # the windows of step t start from the run's frame t
+            np.testing.assert_allclose(d["start_obj_pos"][t], d["run_obj_pos"][t], rtol=0, atol=0)
+            np.testing.assert_allclose(d["start_qvel"][t, c], d["run_qvel"][t], rtol=0, atol=0)
+
+
 def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(short_demo: Path, tmp_path: Path) -> None:
     """``quasisim bench profile``: one row per checkpointed piece and one for the rest, with compile events
     counted (a fresh XLA cache, so the sampling stage compiles something)."""

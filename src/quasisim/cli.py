@@ -360,12 +360,17 @@ def _ablation_flags(f: Any) -> Any:
     "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
 )
 @click.option("--render/--no-render", default=_SPEC.render, show_default=True, help="Render the video for the report.")
+@click.option(
+    "--record-transitions", "record", type=click.Path(path_type=Path), default=None,
+    help="Keep every window the sampling stage rolls out in the target, and the final run's states, in "
+    "DIR/<demo>.<method>.npz (data for fitting a simulator to the target; docs/transfer.md).",
+)  # fmt: skip
 @_ablation_flags
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
-    resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, no_residual: bool,
-    no_local_residual: bool, no_control_transform: bool,
+    resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, record: Path | None,
+    no_residual: bool, no_local_residual: bool, no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -379,7 +384,7 @@ def transfer(
     cfg.budget(budget)
     if resume and overwrite:
         raise QuasisimError("options --resume (continue OUT) and --overwrite (replace it): expected one, got both")
-    res = run_transfer(demo, out, spec, cfg, resume, overwrite)
+    res = run_transfer(demo, out, spec, cfg, resume, overwrite, record_transitions=record)
     click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'summary.json'}")
     label = method if method != "ours" else f"ours (stages {stages})"
     runs = {label: res.metrics, "kinematic replay": res.kinematic_metrics}

@@ -52,17 +52,22 @@ PieceHook = Callable[[str, Callable[[], dict[str, Any]]], dict[str, Any]]
 def run_transfer(
     demo_path: str | Path, out: str | Path, spec: TransferSpec | None = None, config: TransferConfig | None = None,
     resume: bool = False, overwrite: bool = False, piece_hook: PieceHook | None = None,
+    record_transitions: str | Path | None = None,
 ) -> TransferResult:  # fmt: skip
     """Transfer one demonstration (see the module docstring); writes ``OUT/controls.npz``,
     ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``.
     An ``out`` holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (start afresh).
-    ``piece_hook`` wraps the computation of each checkpointed piece (``quasisim bench profile`` times them)."""
+    ``piece_hook`` wraps the computation of each checkpointed piece (``quasisim bench profile`` times them);
+    ``record_transitions``: a folder where the sampling stage keeps every window it rolls out in the target
+    (``<demo>.<method>.npz``; the results are the same with or without it)."""
     spec = (spec or TransferSpec()).checked()
     cfg = registry.METHODS[spec.method].config(config or TransferConfig.from_yaml())
     stages, cur, out = registry.stages(spec.stages), load_curriculum(spec.curriculum), Path(out)
     demo = load_demo(demo_path)
     hands = demo_hands(spec.hand, demo.sides)
     _check_run_dir(out, resume, overwrite)
+    if record_transitions is not None:
+        check_out_dir(Path(record_transitions), "--record-transitions")
     warn_long_clip(
         demo,
         *cost_per_frame(cfg.budget(spec.budget), cfg.budgets.get("fast"), stages),
@@ -78,7 +83,8 @@ def run_transfer(
     record.seconds["retarget"] = float(kin["wall_s"])
     bud, rots = cfg.budget(spec.budget), [kin[k] for k in ("base_rot", "left_base_rot")[: len(hands)]]
     prob = make_problem(demo, place_hands(hands, rots), bud.substeps, bud.n_candidates)
-    ctx = Context(prob, cur, cfg, spec, ck, progress, record, np.asarray(kin["q"]))
+    transitions = None if record_transitions is None else Path(record_transitions)
+    ctx = Context(prob, cur, cfg, spec, ck, progress, record, np.asarray(kin["q"]), transitions)
     plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
     outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
     for stage in stages:

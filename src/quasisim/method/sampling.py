@@ -57,12 +57,15 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
+from quasisim.files import save_npz_atomic
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
 from quasisim.targets import Observation, Prediction, Target, TargetRollout, make_target
@@ -252,6 +255,52 @@ def next_plan_window(wins: np.ndarray, costs: np.ndarray, opts: SamplingOptions)
 # ---- the control loop ------------------------------------------------------------------------------
 
 
+TRANSITIONS_FORMAT = "quasisim-transitions-v1"
+STATE_KEYS = ("qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel")
+
+
+class Transitions:
+    """What the sampling stage rolled out in the target, kept for fitting a simulator to it (opt-in:
+    ``quasisim transfer --record-transitions DIR``; the format is in ``docs/transfer.md``).
+
+    Per step ``t`` of the control loop (T - 1 steps, N candidates, windows of H frames, D hand dofs): the
+    state every window starts from, the candidate windows of PD targets, every candidate's states at the
+    window's frames, its cost and which one was applied; and the applied trajectory's states per frame.
+    """
+
+    def __init__(self) -> None:
+        self.steps: list[dict[str, np.ndarray]] = []
+        self.run: dict[str, np.ndarray] = {}
+
+    def add(
+        self, start: Observation, wins: np.ndarray, qd0: np.ndarray | None, pred: Prediction, costs: np.ndarray,
+        chosen: int | None,
+    ) -> None:  # fmt: skip
+        """One step: the target's state ``start`` before the windows ``wins`` (N, H + 1, D) were rolled out
+        (with the hands' velocities ``qd0`` (N, D) per candidate where given), their rollouts and costs."""
+        qvel0 = np.broadcast_to(start["qvel"], wins[:, 0].shape) if qd0 is None else qd0
+        row = {f"start_{k}": np.asarray(start[k]) for k in STATE_KEYS if k != "qvel"}
+        row |= {
+            "start_qvel": np.array(qvel0),
+            "windows": wins,
+            "costs": costs,
+            "chosen": np.array(-1 if chosen is None else chosen),
+        }
+        row |= {k: np.asarray(getattr(pred, k)) for k in (*STATE_KEYS, "keypoints")}
+        self.steps.append(row)
+
+    def finish(self, applied: np.ndarray, frames: list[Observation]) -> None:
+        """The applied PD targets (T, D) and the applied run's state at every frame (T observations)."""
+        self.run = {"applied": np.asarray(applied, np.float64)}
+        self.run |= {f"run_{k}": np.stack([f[k] for f in frames]) for k in (*STATE_KEYS, "keypoints")}
+
+    def save(self, path: Path, meta: dict[str, Any]) -> Path:
+        """Write everything to ``path`` atomically; ``meta``: strings and numbers naming the run."""
+        stacked = {k: np.stack([r[k] for r in self.steps]) for k in self.steps[0]} if self.steps else {}
+        info = {k: np.array(v) for k, v in meta.items()}
+        return save_npz_atomic(path, format=np.array(TRANSITIONS_FORMAT), **stacked, **self.run, **info)
+
+
 def _check_plan(demo: Demo, scene: Scene, plan: np.ndarray) -> np.ndarray:
     plan = np.asarray(plan, dtype=np.float64)
     D = scene.n_dof
@@ -271,20 +320,22 @@ def run_sampling(
     target: str = "mujoco",
     progress: bool = True,
     alternatives: tuple[np.ndarray, ...] = (),
+    transitions: Transitions | None = None,
 ) -> SampleResult:
     """Predictive-sampling MPC of ``demo`` in ``target`` from the nominal PD-target ``plan`` (T, 6 + J),
     e.g. the kinematic retarget, with windows also sampled around each of ``alternatives`` (T, 6 + J);
     ``weights`` (:class:`~quasisim.optim.objective.Weights`) gives ``obj_pos``, ``obj_rot``, ``hand`` and
-    ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring."""
+    ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring. ``transitions``: where
+    every rolled-out window is kept (the result is the same with or without it)."""
     plan = _check_plan(demo, scene, plan)
     alts = tuple(padded(_check_plan(demo, scene, a), opts.horizon) for a in alternatives)
     with make_target(target, scene, threads=opts.threads) as tgt:
-        return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts)
+        return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts, transitions)
 
 
 def _control_loop(
     demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, target: Target, progress: bool,
-    alts: tuple[np.ndarray, ...],
+    alts: tuple[np.ndarray, ...], transitions: Transitions | None = None,
 ) -> SampleResult:  # fmt: skip
     T, H, fps = len(plan), opts.horizon, float(demo.fps)
     ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
@@ -303,11 +354,15 @@ def _control_loop(
         for alt in alts:  # windows around another plan, from the targets this step starts from
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
             wins = np.concatenate([wins, sample(rng, nominal)])
-        pred = target.rollout_windows(wins, (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None)
+        qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
+        start = target.observe() if transitions is not None else None
+        pred = target.rollout_windows(wins, qd0)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
         win, best = next_plan_window(wins, costs, opts)
+        if transitions is not None and start is not None:
+            transitions.add(start, wins, qd0, pred, costs, best)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
         if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
@@ -321,4 +376,6 @@ def _control_loop(
             q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
     wall = time.perf_counter() - t0
+    if transitions is not None:
+        transitions.finish(applied, frames)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err)

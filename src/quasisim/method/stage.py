@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -57,6 +58,8 @@ class Context:
         spec: what the run was asked to do.  ck: the run's checkpoints.  progress: bars and messages.
         record: seconds, curves and notes for ``summary.json`` and the report.
         kinematic_q: (T, D) the kinematic retarget's PD targets (every later stage's first trajectory).
+        transitions: a folder where the sampling stage keeps every window it rolls out in the target
+            (``--record-transitions``), or None.
     """
 
     prob: Problem
@@ -67,6 +70,7 @@ class Context:
     progress: Progress
     record: RunRecord
     kinematic_q: np.ndarray
+    transitions: Path | None = None
 
     def stiffest(self) -> Params:
         """The curriculum's stiffest simulator's parameters (nominal S): the model of stage 3 and MPC."""

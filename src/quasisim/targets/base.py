@@ -123,6 +123,8 @@ class Prediction:
     Attributes:
         qpos: (N, H, D) hands.  obj_pos: (N, H, 3) m.  obj_quat: (N, H, 4) w x y z.
         keypoints: (N, H, K_metric, 3) metric keypoints (m).  n_steps: physics steps simulated.
+        qvel: (N, H, D) hands' velocities.  obj_vel, obj_angvel: (N, H, 3) the object's centre-of-mass linear
+            and angular velocity, world axes (m/s, rad/s); as :meth:`Target.observe` gives them.
     """
 
     qpos: np.ndarray
@@ -130,6 +132,9 @@ class Prediction:
     obj_quat: np.ndarray
     keypoints: np.ndarray
     n_steps: int
+    qvel: np.ndarray | None = None
+    obj_vel: np.ndarray | None = None
+    obj_angvel: np.ndarray | None = None
 
 
 # ---- the PD law ---------------------------------------------------------------------------------------
@@ -287,9 +292,11 @@ class Target(abc.ABC):
         """Roll candidate windows (N, H + 1, D) out from the current state, each for H frames, and leave the
         state as it was; ``qd0`` (N, D) replaces each candidate's initial hand velocity (its hands then start
         at the window's frame 0). Here: one candidate after the other from :meth:`save_state`."""
-        N, H = len(wins), wins.shape[1] - 1
+        N, H, D = len(wins), wins.shape[1] - 1, wins.shape[2]
         metric = np.flatnonzero(self.scene.kp_metric)
-        out = [np.zeros((N, H, *s)) for s in ((wins.shape[2],), (3,), (4,), (len(metric), 3))]
+        shapes = {"qpos": (D,), "obj_pos": (3,), "obj_quat": (4,), "keypoints": (len(metric), 3), "qvel": (D,),
+                  "obj_vel": (3,), "obj_angvel": (3,)}  # fmt: skip
+        out = {k: np.zeros((N, H, *s)) for k, s in shapes.items()}
         state = self.save_state()
         for i in range(N):
             self.restore_state(state)
@@ -298,11 +305,11 @@ class Target(abc.ABC):
             for f in range(H):
                 self.advance(wins[i, f], wins[i, f + 1])
                 o = self.observe()
-                out[0][i, f], out[1][i, f], out[2][i, f] = o["qpos"], o["obj_pos"], o["obj_quat"]
-                out[3][i, f] = o["keypoints"][metric]
+                for k in shapes:
+                    out[k][i, f] = o[k][metric] if k == "keypoints" else o[k]
         self.restore_state(state)
         self.release_state(state)
-        return Prediction(*out, n_steps=N * H * self.substeps)
+        return Prediction(**out, n_steps=N * H * self.substeps)
 
     def judge(self, demo: Demo, q_targets: np.ndarray, weights: Weights) -> float:
         """The whole-clip objective J of :meth:`rollout` of ``q_targets`` (T, D) against ``demo``

@@ -240,6 +240,16 @@ def _add_actuators(spec: Any, hand: HandModel, prefix: str) -> None:
                 act.forcerange = [-limit, limit]
 
 
+def object_twist(quat: np.ndarray, qvel: np.ndarray, com: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The object's world linear velocity of its centre of mass (m/s) and world angular velocity (rad/s),
+    (..., 3) each, from its free joint's orientation ``quat`` (..., 4) w x y z and velocity ``qvel`` (..., 6)
+    (MuJoCo: the frame origin's world linear velocity, then the angular velocity in the body frame), with
+    the centre of mass ``com`` (3,) in the object frame: ``w = R w_body``, ``v = v_origin + w x (R com)``."""
+    R = np_quat_to_mat(quat)
+    w = np.einsum("...ij,...j->...i", R, qvel[..., 3:6])
+    return qvel[..., 0:3] + np.cross(w, R @ np.asarray(com)), w
+
+
 class MujocoModel:
     """A compiled scene with index maps for the hand dofs, keypoint sites and the object."""
 
@@ -340,7 +350,7 @@ class MujocoTarget(Target):
         mujoco.mj_kinematics(mm.model, d)  # site positions of the current qpos (mj_step leaves them one step behind)
         o = mm.obj_qpos
         quat = d.qpos[o + 3 : o + 7].copy()
-        R = np_quat_to_mat(quat)
+        R = np_quat_to_mat(quat)  # object_twist's formula, kept in this form for one state (MPC's bits)
         w = R @ d.qvel[mm.obj_dof + 3 : mm.obj_dof + 6]  # free joint: angular velocity in the body frame
         com = R @ np.asarray(self.scene.obj.com)
         v = d.qvel[mm.obj_dof : mm.obj_dof + 3] + np.cross(w, com)  # free joint: velocity of the frame origin
@@ -398,10 +408,13 @@ class MujocoTarget(Target):
         states, sens = wm.pool.rollout(wm.model, wm.datas, state, ctrl, initial_warmstart=warm)
         ends = np.arange(1, H + 1) * n  # the state after frame f is step f n - 1; its sensors are step f n
         qpos = states[:, ends - 1, wm.qpos_off : wm.qpos_off + wm.model.nq]
-        o = mm.obj_qpos
+        qvel = states[:, ends - 1, wm.qvel_off : wm.qvel_off + wm.model.nv]
+        o, od = mm.obj_qpos, mm.obj_dof
+        obj_vel, obj_angvel = object_twist(qpos[..., o + 3 : o + 7], qvel[..., od : od + 6], self.scene.obj.com)
         return Prediction(
             qpos=qpos[..., mm.hand_qpos], obj_pos=qpos[..., o : o + 3], obj_quat=qpos[..., o + 3 : o + 7],
-            keypoints=sens[:, ends].reshape(N, H, -1, 3), n_steps=N * (H * n + 1),
+            keypoints=sens[:, ends].reshape(N, H, -1, 3), n_steps=N * (H * n + 1), qvel=qvel[..., mm.hand_dof],
+            obj_vel=obj_vel, obj_angvel=obj_angvel,
         )  # fmt: skip
 
     def extras(self) -> dict[str, Any]:
