@@ -54,7 +54,8 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
 
     out = tmp_path / "out"
     good = sorted(p.stem for p in clips_dir.glob("*.npz") if p.stem != "broken")
-    r = _batch_cli(clips_dir, out, fault=good[0])  # the first attempt of this clip kills its worker
+    # the first attempt of this clip kills its worker; every clip keeps what its sampling rolled out
+    r = _batch_cli(clips_dir, out, "--record-transitions", fault=good[0])
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads((out / "batch.json").read_text())
     assert sorted(row["clip"] for row in res["rows"]) == good
@@ -64,6 +65,9 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
         d = json.loads((out / c / "clip.json").read_text())
         assert d["runs"][""]["row"]["metrics"] == json.loads((out / c / "metrics.json").read_text())
         assert (out / c / "controls.npz").is_file() and not (out / c / "checkpoints").exists()
+        with np.load(out / c / "transitions" / f"{c}.sample-target.npz") as z, np.load(out / c / "controls.npz") as ctl:
+            np.testing.assert_array_equal(z["applied"], ctl["q_targets"])
+            assert z["windows"].shape[:2] == (11, FAST["sampling.samples"])  # 12 frames: 11 sampling steps
 
     # the same clip transferred alone, in this process (sampling threads 2): bit-identical controls
     cfg = TransferConfig.from_yaml(overrides=FAST)

@@ -76,6 +76,7 @@ class Settings:
     overrides: dict[str, Any] = field(default_factory=dict)
     max_retries: int = 2
     keep_scratch: bool = False  # keep each clip's checkpoints (later runs of the same clip start from them)
+    record_transitions: bool = False  # each run keeps what its sampling stage rolled out (RUN/transitions/)
 
     def resolved(self) -> Settings:
         cores = os.cpu_count() or 1
@@ -197,9 +198,12 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
         # every checkpoint carries the identity of what made it: pieces made with other settings (an earlier
         # batch) are recomputed, the others reused, so the run's own record of its settings is not needed
         (ck / "run.json").unlink(missing_ok=True)
+        record = run_dir / "transitions" if s.record_transitions and "sample" in r.spec.stages else None
+        if record is not None and not any(record.glob("*.npz")):
+            (ck / "sample.npz").unlink(missing_ok=True)  # a retried clip samples again, to record it
         t0 = time.perf_counter()
         spec = dataclasses.replace(r.spec, progress=False)
-        res = run_transfer(demo, run_dir, spec, cfg, resume=ck.is_dir())
+        res = run_transfer(demo, run_dir, spec, cfg, resume=ck.is_dir(), record_transitions=record)
         rows.append({
             "clip": job.clip, "run": r.name or r.spec.method, "metrics": res.metrics,
             "kinematic_metrics": res.kinematic_metrics, "seconds": res.record.seconds,
@@ -382,8 +386,10 @@ def lifted_as_demo(metrics: dict[str, Any]) -> bool:
 def run_batch_command(
     data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec, out: Path, ray_address: str | None,
     workers: int, threads: int, config_path: Path | None, overrides: dict[str, Any], retries: int = 2,
+    record_transitions: bool = False,
 ) -> BatchResult:  # fmt: skip
-    """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput."""
+    """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput;
+    ``record_transitions``: each clip keeps what its sampling stage rolled out (``OUT/<clip>/transitions/``)."""
     from quasisim.assets.hand import load_hand
     from quasisim.bench.tables import clips
     from quasisim.method.config import CONFIG_PATH, TransferConfig
@@ -398,7 +404,16 @@ def run_batch_command(
             f"{data_dir}: expected clips matching --pattern {pattern!r} (*_long.npz only when the pattern names them), got none"
         )
     cfg_path = str(config_path) if config_path else None
-    s = Settings(ray_address, workers, threads, None, cfg_path, overrides, max_retries=retries).resolved()
+    s = Settings(
+        ray_address,
+        workers,
+        threads,
+        None,
+        cfg_path,
+        overrides,
+        max_retries=retries,
+        record_transitions=record_transitions,
+    ).resolved()
     jobs = [Job(p, (Run("", spec),)) for p in paths]
     meta = {"data_dir": str(data_dir), "spec": dataclasses.asdict(spec), "workers": s.workers, "threads": s.threads,
             "ray": ray_address or "local"}  # fmt: skip

@@ -430,12 +430,18 @@ def transfer(
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
 @click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
 @click.option("--render/--no-render", default=False, show_default=True, help="Render each clip's video.")
+@click.option(
+    "--record-transitions", "record", is_flag=True,
+    help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
+    "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
+)  # fmt: skip
 @_ablation_flags
 @_friendly
 def batch(
     data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
     pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
-    sets: tuple[str, ...], render: bool, no_residual: bool, no_local_residual: bool, no_control_transform: bool,
+    sets: tuple[str, ...], render: bool, record: bool, no_residual: bool, no_local_residual: bool,
+    no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
     reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
@@ -447,7 +453,18 @@ def batch(
     spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, False, nets).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
-        data_dir, names, pattern, spec, out, ray_address, workers, threads, config_path, _parse_sets(sets), retries
+        data_dir,
+        names,
+        pattern,
+        spec,
+        out,
+        ray_address,
+        workers,
+        threads,
+        config_path,
+        _parse_sets(sets),
+        retries,
+        record,
     )
 
 
@@ -559,10 +576,16 @@ def bench_sim(
 @click.option(
     "--set", "sets", multiple=True, help="Override a config key (as in transfer), e.g. --set stage2.mode=none."
 )
+@click.option(
+    "--record-transitions", "record", is_flag=True,
+    help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
+    "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
+)  # fmt: skip
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
+    record: bool,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -579,7 +602,7 @@ def bench_transfer(
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     overrides = _parse_sets(sets)
     TransferConfig.from_yaml(overrides=overrides)  # a bad key fails here, before any clip runs
-    s = Settings(ray_address, workers, overrides=overrides, keep_scratch=True)
+    s = Settings(ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record)
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s)
 
 
