@@ -45,7 +45,9 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     d = ctx.ck.get("smooth", compute, {"q_targets": (ctx.prob.demo.n_frames, ctx.prob.scene.n_dof)})
     ctx.record.seconds["smooth"] = 0.0
     ctx.progress.write(f"smoothed the finger targets over {WIDTH} frames")
-    return out.replace(q=np.asarray(d["q_targets"], np.float64), planned=True)
+    # the targets before smoothing stay a candidate of the selection (and are kept in controls.npz)
+    seen = {**out.seen, "before smoothing": out.q}
+    return out.replace(q=np.asarray(d["q_targets"], np.float64), planned=True, seen=seen)
 
 
 STAGE = Stage(name="smooth", word="smooth", config=(), s_per_frame=0.001, run=run, plans=True)

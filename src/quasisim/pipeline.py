@@ -100,11 +100,12 @@ def run_transfer(
 
 def file_extras(ctx: Context, outcome: Outcome, stages: tuple[Stage, ...]) -> dict[str, Any]:
     """What ``controls.npz`` keeps of the run beside its PD targets: the kinematic retarget, the trajectories
-    the later stages started from (``plan_q``: MPC's, ``sample_nominal_q``: the sampling's), the selection,
-    and the plan's quasi-physical rollout (``sim_qpos``) when a stage optimised in the simulator."""
+    the later stages started from (``plan_q``: MPC's, ``sample_nominal_q``: the sampling's, ``<name>_q`` for
+    what another stage keeps in ``Outcome.seen``), the selection, and the plan's quasi-physical rollout
+    (``sim_qpos``) when a stage optimised in the simulator."""
     extras: dict[str, Any] = {"kinematic_q": ctx.kinematic_q}
     names = {"plan": "plan_q", "sampling nominal": "sample_nominal_q"}
-    extras.update({names[k]: v for k, v in outcome.seen.items()})
+    extras.update({names.get(k, k.replace(" ", "_") + "_q"): v for k, v in outcome.seen.items()})
     if outcome.selected is not None:
         extras["selected"], extras["selection_costs"] = (
             np.array(outcome.selected),

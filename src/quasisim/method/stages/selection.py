@@ -9,15 +9,15 @@ import numpy as np
 from quasisim.method.select import best_in_target
 from quasisim.method.stage import Context, Outcome, Stage
 
-# the candidates, latest first (the first of equal costs wins): name -> where the outcome holds it
-CANDIDATES = ("last stage", "sampling nominal", "plan", "curriculum", "kinematic")
-
 
 def run(ctx: Context, out: Outcome) -> Outcome:
-    """Replay every trajectory the run produced in the target and keep the one with the lowest objective."""
+    """Replay every trajectory the run produced in the target and keep the one with the lowest objective:
+    the last stage's, those the later stages started from (``Outcome.seen``: the sampling's nominal, the
+    MPC's plan, ...; the latest first), the curriculum's plan and the kinematic retarget. The first of equal
+    costs wins, so later stages come first."""
     t0 = time.perf_counter()
-    held = {"last stage": out.q, **out.seen, "curriculum": out.plan.traj.q_targets, "kinematic": ctx.kinematic_q}
-    candidates = {k: np.asarray(held[k], np.float64) for k in CANDIDATES if held.get(k) is not None}
+    held = [("last stage", out.q), *reversed(out.seen.items()), ("curriculum", out.plan.traj.q_targets)]
+    candidates = {k: np.asarray(q, np.float64) for k, q in [*held, ("kinematic", ctx.kinematic_q)]}
     best, costs = best_in_target(ctx.prob.demo, ctx.prob.scene, ctx.spec.target, candidates, ctx.cfg.weights)
     ctx.record.seconds["select"] = time.perf_counter() - t0
     ctx.record.notes.append(
