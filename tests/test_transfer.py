@@ -223,6 +223,9 @@ def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path
     run_transfer(short_demo, tmp_path / "rec", spec, cfg, record_transitions=tmp_path / "tr")
     q = load_controls(tmp_path / "rec" / "controls.npz").q_targets
     np.testing.assert_array_equal(q, load_controls(tmp_path / "plain" / "controls.npz").q_targets)
+    with pytest.raises(QuasisimError, match="expected a run with the sampling stage"):  # before any work
+        run_transfer(short_demo, tmp_path / "kin", TransferSpec(method="kinematic"), cfg, record_transitions=tmp_path)
+    assert not (tmp_path / "kin").exists()
 
     with np.load(tmp_path / "tr" / f"{short_demo.stem}.sample-target.npz") as z:
         d = {k: z[k] for k in z.files}

@@ -25,7 +25,7 @@ import numpy as np
 from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
-from quasisim.errors import InputError
+from quasisim.errors import InputError, QuasisimError
 from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, write_outputs
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
 from quasisim.method import registry
@@ -65,9 +65,14 @@ def run_transfer(
     stages, cur, out = registry.stages(spec.stages), load_curriculum(spec.curriculum), Path(out)
     demo = load_demo(demo_path)
     hands = demo_hands(spec.hand, demo.sides)
-    _check_run_dir(out, resume, overwrite)
     if record_transitions is not None:
+        if "sample" not in spec.stages:
+            raise QuasisimError(
+                f"--record-transitions: expected a run with the sampling stage (stage 'sample'), got stages "
+                f"{','.join(spec.stages) or 'none'} (method {spec.method}): nothing would be recorded"
+            )
         check_out_dir(Path(record_transitions), "--record-transitions")
+    _check_run_dir(out, resume, overwrite)
     warn_long_clip(
         demo,
         *cost_per_frame(cfg.budget(spec.budget), cfg.budgets.get("fast"), stages),
