@@ -27,6 +27,17 @@ def box_object(extents: tuple[float, float, float] = (0.05, 0.05, 0.05), density
     )
 
 
+def smooth_targets(hand, T: int, start: np.ndarray, move: np.ndarray, flex: float) -> np.ndarray:
+    """PD targets (T, 6 + J) of one hand: the base from ``start`` by ``move`` (m) and every joint from 0 towards
+    ``flex`` (rad, within its range), both along a smoothstep; base angles 0."""
+    s = np.linspace(0, 1, T)
+    s = s * s * (3 - 2 * s)
+    q = np.zeros((T, 6 + hand.n_joints))
+    q[:, :3] = start + s[:, None] * move
+    q[:, 6:] = np.clip(s[:, None] * flex, hand.joint_range[:, 0], hand.joint_range[:, 1])
+    return q
+
+
 def scene_with(hand, obj=None, base_rot=None, object_pos=(0.0, 0.0, 0.825), table_top=0.8, half=0.3, fps=20.0):
     from quasisim.targets.scene import Placement, Scene, Table
 

@@ -6,18 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers import scene_with
+from helpers import scene_with, smooth_targets
 from quasisim.targets import Target, make_target, pd_gains, pd_schedule
-
-
-def _targets(hand, T: int, start: np.ndarray, move: np.ndarray, flex: float) -> np.ndarray:
-    s = np.linspace(0, 1, T)
-    s = s * s * (3 - 2 * s)
-    q = np.zeros((T, 6 + hand.n_joints))
-    q[:, :3] = start + s[:, None] * move
-    lo, hi = hand.joint_range[:, 0], hand.joint_range[:, 1]
-    q[:, 6:] = np.clip(s[:, None] * flex, lo, hi)
-    return q
 
 
 def test_actuators_and_joints_carry_the_pd_gains(shadow) -> None:
@@ -38,7 +28,7 @@ def test_actuators_and_joints_carry_the_pd_gains(shadow) -> None:
 def test_advance_applies_the_schedule(shadow) -> None:
     """The controls MuJoCo holds after a frame are the schedule's last step and its velocity."""
     sc = scene_with(shadow, object_pos=(2.0, 0.0, 0.825))
-    q = _targets(shadow, 3, np.array([0.0, 0.0, 1.2]), np.array([0.05, 0.0, 0.0]), 0.4)
+    q = smooth_targets(shadow, 3, np.array([0.0, 0.0, 1.2]), np.array([0.05, 0.0, 0.0]), 0.4)
     tgt = make_target("mujoco", sc)
     with pytest.raises(RuntimeError, match="call reset first"):
         tgt.observe()
@@ -54,7 +44,7 @@ def test_mujoco_rollout_windows_equal_the_generic_loop(shadow) -> None:
     """``mujoco.rollout`` on the sensor model (threads, one extra step for the lagging sensors) predicts what
     the base class's loop (save_state, advance, observe, restore_state) measures on the target itself."""
     sc = scene_with(shadow, object_pos=(0.0, 0.0, 0.86))
-    q = _targets(shadow, 6, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
+    q = smooth_targets(shadow, 6, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
     rng = np.random.default_rng(0)
     wins = np.repeat(q[None, :4], 4, axis=0)
     wins[1:, 1:] += rng.normal(0.0, 0.01, wins[1:, 1:].shape)
@@ -71,7 +61,7 @@ def test_mujoco_rollout_windows_equal_the_generic_loop(shadow) -> None:
 def test_warnings_are_counted_per_run(shadow) -> None:
     """A run's TargetRollout carries MuJoCo's warning counts of that run (a fresh MjData per reset)."""
     sc = scene_with(shadow, object_pos=(2.0, 0.0, 0.825))
-    q = _targets(shadow, 3, np.array([0.0, 0.0, 1.2]), np.zeros(3), 0.0)
+    q = smooth_targets(shadow, 3, np.array([0.0, 0.0, 1.2]), np.zeros(3), 0.0)
     tgt = make_target("mujoco", sc)
     bad = q.copy()
     bad[1:, 0] = 1e30  # an absurd target: MuJoCo flags the controls and velocities

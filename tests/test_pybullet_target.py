@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from helpers import box_object, scene_with
+from helpers import box_object, scene_with, smooth_targets
 from quasisim.assets.hand import SLIDE, Geom
 from quasisim.rotations import np_quat_to_mat
 from quasisim.sim.kinematics import fk_full, keypoints
@@ -29,15 +29,6 @@ def _random_q(hand, rng: np.random.Generator) -> np.ndarray:
     lo = np.where(hand.joint_limited, hand.joint_range[:, 0], -np.pi)
     hi = np.where(hand.joint_limited, hand.joint_range[:, 1], np.pi)
     return np.concatenate([rng.uniform(-1, 1, 3), rng.uniform(-1.4, 1.4, 3), rng.uniform(lo, hi)])
-
-
-def _targets(hand, T: int, start: np.ndarray, move: np.ndarray, flex: float) -> np.ndarray:
-    s = np.linspace(0, 1, T)
-    s = s * s * (3 - 2 * s)
-    q = np.zeros((T, 6 + hand.n_joints))
-    q[:, :3] = start + s[:, None] * move
-    q[:, 6:] = np.clip(s[:, None] * flex, hand.joint_range[:, 0], hand.joint_range[:, 1])
-    return q
 
 
 def _twisted(shadow):
@@ -159,7 +150,7 @@ def test_collision_shapes(hand_fixture: str, request: pytest.FixtureRequest) -> 
 def test_pd_tracking_near_gimbal_lock_allegro(allegro) -> None:
     # middle base angle 85 deg: the outer base hinge axes nearly align (implicit damping keeps it stable)
     with PybulletTarget(scene_with(allegro, object_pos=(2.0, 0.0, 0.825))) as tgt:
-        q = _targets(allegro, 30, np.array([0.0, 0.0, 1.2]), np.array([0.0, 0.05, 0.0]), 0.8)
+        q = smooth_targets(allegro, 30, np.array([0.0, 0.0, 1.2]), np.array([0.0, 0.05, 0.0]), 0.8)
         q[:, 3:6] = np.linspace(0, 1, 30)[:, None] * [0.5, np.radians(85), -0.3]
         r = tgt.rollout(q)
         assert np.abs(r.qpos - q).max() < 0.05
@@ -209,7 +200,7 @@ def test_no_self_collision(shadow) -> None:
     goal = shadow.rest_q()
     for name, bound in (("robot0:FFJ3", lo), ("robot0:MFJ3", hi), ("robot0:RFJ3", lo), ("robot0:LFJ3", hi)):
         goal[j[name]] = bound[j[name]]
-    q = _targets(shadow, 20, np.array([2.0, 0.0, 1.2]), np.zeros(3), 0.0)
+    q = smooth_targets(shadow, 20, np.array([2.0, 0.0, 1.2]), np.zeros(3), 0.0)
     q[:, 6:] = np.linspace(0, 1, 20)[:, None] * goal
     with PybulletTarget(sc) as tgt:
         r = tgt.rollout(q)
@@ -224,7 +215,7 @@ def test_no_self_collision(shadow) -> None:
 def test_hand_pushes_object_at_gimbal_lock(shadow) -> None:
     # the palm sweeps through the box's position at table height, the base's middle angle at 90 deg
     sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825))
-    q = _targets(shadow, 30, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
+    q = smooth_targets(shadow, 30, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
     q[:, 3:6] = [0.0, np.pi / 2, 0.0]
     r = make_target("pybullet", sc).rollout(q)
     assert np.isfinite(r.qpos).all()
@@ -235,7 +226,7 @@ def test_window_rollouts_restore_the_saved_state_and_free_it(shadow) -> None:
     """The base class's window loop on PyBullet: ``saveState`` once, ``restoreState`` per candidate and after,
     ``removeState`` at the end (the state id is gone)."""
     sc = scene_with(shadow, object_pos=(0.0, 0.0, 0.86))
-    q = _targets(shadow, 4, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
+    q = smooth_targets(shadow, 4, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
     with PybulletTarget(sc) as tgt:
         tgt.reset(q[0])
         sid = tgt.save_state()

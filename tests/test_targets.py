@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from helpers import box_object, scene_with
+from helpers import box_object, scene_with, smooth_targets
 from quasisim import targets
 from quasisim.targets import TARGETS, Target, make_target, pd_gains, pd_schedule
 
@@ -36,19 +36,10 @@ BACKENDS = [
 SUBSTEPS = {"mujoco": 25, "pybullet": 100}  # at 20 fps: 2 ms and 0.5 ms physics steps (known backends)
 
 
-def _targets(hand, T: int, start: np.ndarray, move: np.ndarray, flex: float) -> np.ndarray:
-    s = np.linspace(0, 1, T)
-    s = s * s * (3 - 2 * s)
-    q = np.zeros((T, 6 + hand.n_joints))
-    q[:, :3] = start + s[:, None] * move
-    q[:, 6:] = np.clip(s[:, None] * flex, hand.joint_range[:, 0], hand.joint_range[:, 1])
-    return q
-
-
 def _contact_scene(shadow):
     """A box dropped between the fingers of a closing hand: contacts, a moving object (m)."""
     sc = scene_with(shadow, object_pos=(0.0, 0.0, 0.86))
-    return sc, _targets(shadow, 8, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
+    return sc, smooth_targets(shadow, 8, np.array([0.0, -0.1, 0.95]), np.array([0.0, 0.05, -0.02]), 0.8)
 
 
 def _same(a: dict, b: dict, atol: float = 0.0) -> None:
@@ -104,7 +95,7 @@ def test_pd_gains_per_dof(shadow) -> None:
 def test_pd_tracking_free_space(backend: str, shadow) -> None:
     with make_target(backend, scene_with(shadow, object_pos=(2.0, 0.0, 0.825))) as tgt:
         assert isinstance(tgt, Target) and tgt.name == backend
-        q = _targets(shadow, 40, np.array([0.0, 0.0, 1.2]), np.array([0.1, 0.0, 0.05]), 0.5)
+        q = smooth_targets(shadow, 40, np.array([0.0, 0.0, 1.2]), np.array([0.1, 0.0, 0.05]), 0.5)
         q[:, 3:6] = np.linspace(0, 1, 40)[:, None] * [0.3, -0.4, 0.5]
         r = tgt.rollout(q)
         assert r.target == backend and r.substeps == SUBSTEPS.get(backend, r.substeps)
@@ -122,7 +113,7 @@ def test_pd_tracking_free_space(backend: str, shadow) -> None:
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_object_rests_and_falls_onto_table(backend: str, shadow) -> None:
-    q = _targets(shadow, 40, np.array([0.0, 0.0, 1.5]), np.zeros(3), 0.0)
+    q = smooth_targets(shadow, 40, np.array([0.0, 0.0, 1.5]), np.zeros(3), 0.0)
     r = make_target(backend, scene_with(shadow, object_pos=(0.0, 0.0, 0.825))).rollout(q)
     assert np.abs(r.object_pos - r.object_pos[0]).max() < 0.002  # 2 s untouched: stays put
     assert abs(r.object_pos[-1, 2] - 0.825) < 0.002
@@ -137,7 +128,7 @@ def test_hand_pushes_object(backend: str, shadow) -> None:
     # the palm sweeps through the box's position at table height
     base_rot = Rotation.from_euler("y", 90, degrees=True).as_matrix()
     sc = scene_with(shadow, obj=box_object(density=200.0), object_pos=(0.0, 0.0, 0.825), base_rot=base_rot)
-    q = _targets(shadow, 30, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
+    q = smooth_targets(shadow, 30, np.array([-0.2, 0.0, 0.84]), np.array([0.3, 0.0, 0.0]), 0.0)
     with make_target(backend, sc) as tgt:
         r = tgt.rollout(q)
     assert np.isfinite(r.qpos).all()
@@ -283,7 +274,7 @@ def test_observed_velocities_match_finite_differences(backend: str, shadow) -> N
     obj = box_object()
     obj.com = obj.com + np.array([0.01, -0.005, 0.0])  # the origin off the centre of mass
     sc = scene_with(shadow, obj=obj, object_pos=(2.0, 0.0, 1.5))
-    q = _targets(shadow, 3, np.array([0.0, 0.0, 1.2]), np.array([0.02, 0.0, 0.0]), 0.0)
+    q = smooth_targets(shadow, 3, np.array([0.0, 0.0, 1.2]), np.array([0.02, 0.0, 0.0]), 0.0)
     v, w = np.array([0.2, -0.1, 0.5]), np.array([3.0, -2.0, 1.0])
     with make_target(backend, sc) as tgt:
         tgt.reset(q[0])
