@@ -355,13 +355,14 @@ def _control_loop(
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
             wins = np.concatenate([wins, sample(rng, nominal)])
         qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
-        start = target.observe() if transitions is not None else None
+        # the state the windows start from: the frame just observed (before the first step, the reset state)
+        start = (frames[-1] if frames else target.observe()) if transitions is not None else None
         pred = target.rollout_windows(wins, qd0)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
         win, best = next_plan_window(wins, costs, opts)
-        if transitions is not None and start is not None:
+        if transitions is not None and start is not None:  # (start is set whenever transitions is)
             transitions.add(start, wins, qd0, pred, costs, best)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
