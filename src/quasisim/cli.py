@@ -468,6 +468,45 @@ def batch(
     )
 
 
+@main.command()
+@click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="The world model file (.eqx).")
+@click.option(
+    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+    help="Folder of the demos the transitions were recorded on (their meshes beside them).",
+)  # fmt: skip
+@click.option(
+    "--held-out", "held_out", default=None,
+    help="Comma-separated clips never trained on (default: the fixed split of docs/world_model.md).",
+)  # fmt: skip
+@click.option("--steps", default=None, type=click.IntRange(0, None), help="Adam steps (default: the config's).")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(1, 64), help="Clips at once.")
+@_friendly
+def fit(
+    transitions_dir: Path, out: Path, data_dir: Path, held_out: str | None, steps: int | None, workers: int
+) -> None:
+    """Train a world model (the stiffest simulator + a learned correction of the object's state per frame) on
+    the transitions recorded under TRANSITIONS_DIR (transfer/batch --record-transitions); resumable."""
+    from quasisim.files import check_out_dir
+
+    check_out_dir(out.parent, "--out")
+    _setup_runtime()
+    import dataclasses
+
+    from quasisim.method.transitions import HELD_OUT
+    from quasisim.method.world_fit import fit_world_model
+    from quasisim.method.world_model import WorldModelConfig
+
+    cfg = WorldModelConfig() if steps is None else dataclasses.replace(WorldModelConfig(), steps=steps)
+    names = HELD_OUT if held_out is None else tuple(c.strip() for c in held_out.split(",") if c.strip())
+    model = fit_world_model(transitions_dir, data_dir, out, cfg, names, workers)
+    info = model.info
+    click.echo(
+        f"{out}: trained on {len(info['trained_on'])} clips ({info['n_pairs']} frames), held out "
+        f"{len(info['held_out'])}; final loss {info['losses'][-1] if info['losses'] else float('nan'):.3f}"
+    )
+
+
 @main.group()
 def bench() -> None:
     """Benchmarks whose output goes into BENCHMARKS.md."""
@@ -711,6 +750,58 @@ def bench_predict(
 
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_predict_bench(data_dir, names, pattern, horizon, curriculum, hand, out, sims, mus)
+
+
+@bench.command("world")
+@click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--model", "model_path", type=click.Path(path_type=Path), required=True, help="quasisim fit's file.")
+@click.option(
+    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+    help="Folder of the demos the transitions were recorded on.",
+)  # fmt: skip
+@click.option("--clips", "clip_names", default="", help="Comma-separated clips (default: the model's held-out ones).")
+@click.option(
+    "--decompose", is_flag=True, help="Also the nominal simulator with one group of constants changed at a time."
+)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/world"), show_default=True)
+@_friendly
+def bench_world(
+    transitions_dir: Path, model_path: Path, data_dir: Path, clip_names: str, decompose: bool, out: Path
+) -> None:
+    """Open-loop prediction of a fitted world model on held-out clips (final trajectories' windows of 6 and 10
+    frames, sampled candidates) beside the nominal simulator and zero motion; resumable."""
+    _outputs_free(out)
+    _setup_runtime()
+    from quasisim.bench.world import run_world_bench
+
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_world_bench(transitions_dir, data_dir, model_path, out, names, decompose)
+
+
+@bench.command("windows")
+@click.argument("transitions_file", type=click.Path(path_type=Path, exists=True, dir_okay=False))
+@click.option(
+    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+    help="Folder of the demo the transitions were recorded on.",
+)  # fmt: skip
+@click.option("--windows", "n", default=256, show_default=True, type=click.IntRange(1, None), help="Windows predicted.")
+@click.option("--batch", "batches", default="16,64", show_default=True, help="Comma-separated windows per call.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/windows"), show_default=True)
+@_friendly
+def bench_windows(transitions_file: Path, data_dir: Path, n: int, batches: str, out: Path) -> None:
+    """Speed of the quasi-physical simulator predicting sampled windows in batches, on JAX's default device
+    (CPU, or a GPU where JAX has one): what pre-screening candidates in the simulator would cost."""
+    _outputs_free(out)
+    _setup_runtime()
+    from quasisim.bench.world import run_window_speed
+
+    try:
+        chunks = tuple(int(b) for b in batches.split(",") if b.strip())
+    except ValueError:
+        raise QuasisimError(f"--batch: expected comma-separated positive integers, got {batches!r}") from None
+    if not chunks or min(chunks) < 1:
+        raise QuasisimError(f"--batch: expected comma-separated positive integers, got {batches!r}")
+    run_window_speed(transitions_file, data_dir, n, chunks, out)
 
 
 @bench.command("fit")

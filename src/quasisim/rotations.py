@@ -77,6 +77,14 @@ def quat_log(q: Array) -> Array:
     return v * scale
 
 
+def quat_exp(v: Array) -> Array:
+    """Unit quaternion (..., 4) w x y z of rotation vectors (..., 3) (inverse of :func:`quat_log`); smooth at 0."""
+    a2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    a = jnp.sqrt(jnp.maximum(a2, 1e-20))
+    s = jnp.where(a2 > 1e-12, jnp.sin(0.5 * a) / a, 0.5 - a2 / 48.0)
+    return jnp.concatenate([jnp.cos(0.5 * a), v * s], axis=-1)
+
+
 def skew(v: Array) -> Array:
     """(..., 3) -> (..., 3, 3) cross-product matrix: skew(a) @ b == cross(a, b)."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]

@@ -1,0 +1,199 @@
+"""The world model fitted across clips (quasisim.method.world_model, transitions, world_fit; ``quasisim fit``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quasisim.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+    """A 16-frame synthetic clip (its folder: the data), sample-target with 5 samples of 3 frames, recorded."""
+    from quasisim.data.synthetic import write_example
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
+
+    root = tmp_path_factory.mktemp("world")
+    demo = write_example("cube_lift", root / "data", n_frames=16)
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3})
+    spec = TransferSpec(method="sample-target", render=False, progress=False)
+    run_transfer(demo, root / "runs" / demo.stem / "sample-target", spec, cfg,
+                 record_transitions=root / "runs" / demo.stem / "sample-target" / "transitions")  # fmt: skip
+    return root / "runs", demo.parent, demo.stem
+
+
+def test_quat_exp_inverts_quat_log() -> None:
+    from quasisim.rotations import quat_exp, quat_log
+
+    d = np.random.default_rng(0).normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    angle = np.concatenate([np.linspace(0.01, 3.1, 40), np.full(10, 1e-7)])  # shortest arcs, and tiny ones
+    v = jnp.asarray(d * angle[:, None], jnp.float32)
+    v = jnp.concatenate([v, jnp.zeros((1, 3))])
+    q = quat_exp(v)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(quat_log(q), v, atol=1e-5)
+    np.testing.assert_array_equal(quat_exp(jnp.zeros(3)), [1.0, 0.0, 0.0, 0.0])
+
+
+def _state(rng: np.random.Generator) -> object:
+    from quasisim.sim.types import State
+
+    q = rng.normal(size=4)
+    f = lambda *s: jnp.asarray(rng.normal(size=s), jnp.float32)  # noqa: E731
+    return State(f(1, 3), jnp.asarray([[1.0, 0, 0, 0]]), f(5), f(5), f(4, 3), f(4, 3), f(3),
+                 jnp.asarray(q / np.linalg.norm(q), jnp.float32), f(3), f(3), f(4, 3), f(4), f(6, 3), f(6))  # fmt: skip
+
+
+def test_the_correction_target_turns_the_simulators_state_into_the_targets() -> None:
+    """apply_correction(s, e, correction_target(s, e, truth)) is the truth's object state (any start frame s)."""
+    from quasisim.method.world_model import apply_correction, correction_target
+
+    rng = np.random.default_rng(1)
+    s, e, truth = _state(rng), _state(rng), _state(rng)
+    got = apply_correction(s, e, correction_target(s, e, truth))
+    for k in ("obj_pos", "obj_vel", "obj_angvel"):
+        np.testing.assert_allclose(getattr(got, k), getattr(truth, k), atol=1e-5, err_msg=k)
+    assert abs(abs(float(jnp.dot(got.obj_quat, truth.obj_quat))) - 1.0) < 1e-6
+    np.testing.assert_array_equal(got.q, e.q)  # the hand is the simulator's
+
+
+@pytest.mark.slow
+def test_windows_are_the_recorded_states(recorded: tuple[Path, Path, str]) -> None:
+    """``final`` windows follow the applied run frame by frame; ``sampled`` windows start from the step's state
+    and the chosen one's first frame is the run's next frame."""
+    from quasisim.method.transitions import clip_problem, load_clip, transition_files
+
+    runs, data, name = recorded
+    (path,) = transition_files(runs)
+    prob = clip_problem(path, data, 10, 64)
+    with np.load(path) as z:
+        d = {k: z[k] for k in z.files}
+    fin = load_clip(path, prob, "final", horizon=4)
+    assert fin.horizon == 4 and len(fin) == 16 - 4 and fin.demo == name
+    np.testing.assert_array_equal(fin.obj_pos[3, 2], d["run_obj_pos"][5])
+    np.testing.assert_array_equal(fin.q_targets[3], d["applied"][3:8])
+    np.testing.assert_array_equal(fin.keypoints[0, 1], d["run_keypoints"][1, d["kp_metric_index"]])
+    smp = load_clip(path, prob, "sampled", per_step=3)
+    assert smp.horizon == 3 and len(smp) == 15 * 3
+    for t in (0, 7):
+        i = 3 * t  # the chosen window comes first in each step's group
+        np.testing.assert_array_equal(smp.q_targets[i], d["windows"][t, d["chosen"][t]])
+        np.testing.assert_array_equal(smp.qpos[i, 0], d["start_qpos"][t])
+        np.testing.assert_array_equal(smp.obj_quat[i, 1], d["run_obj_quat"][t + 1])
+    with pytest.raises(ValueError, match="valid: final, sampled"):
+        load_clip(path, prob, "all")
+
+
+@pytest.mark.slow
+def test_fit_trains_a_correction_that_predicts_the_target_better(
+    recorded: tuple[Path, Path, str], tmp_path: Path
+) -> None:
+    """``quasisim fit`` end to end on one recorded clip (held out: none): the file records what it was trained on
+    and loads back; the untrained correction is exactly the analytical simulator; the trained one predicts the
+    target's next frame better than it on the windows it was trained on; a rerun reuses the clip's pairs."""
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+    from quasisim.method.transitions import clip_problem, load_clip, transition_files
+    from quasisim.method.world_fit import stiffest_params
+    from quasisim.method.world_model import WorldModel, init_correction, predict, teacher_forced
+
+    runs, data, name = recorded
+    out = tmp_path / "w.eqx"
+    args = [
+        "fit",
+        str(runs),
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--held-out",
+        "",
+        "--steps",
+        "400",
+        "--workers",
+        "1",
+    ]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    wm = WorldModel.load(out)
+    assert wm.info["trained_on"] == [name] and wm.info["held_out"] == [] and wm.info["hand"] == "shadow"
+    assert wm.info["losses"][-1] < 0.5 * wm.info["losses"][0]
+    part = next((tmp_path / "w.eqx.parts").iterdir())
+    mtime = part.stat().st_mtime_ns
+    assert CliRunner().invoke(main, [*args[:-4], "--steps", "1", "--workers", "1"]).exit_code == 0
+    assert part.stat().st_mtime_ns == mtime  # pairs reused, not recomputed
+
+    (path,) = transition_files(runs)
+    prob = clip_problem(path, data, 20, 128)
+    params = stiffest_params(prob)
+    w = load_clip(path, prob, "final", horizon=1)
+    feats, target = teacher_forced(params, w, wm.cfg)
+    zero = init_correction(wm.cfg, feats.extra, target)
+    nominal = predict(params, None, w, wm.cfg)
+    np.testing.assert_allclose(predict(params, zero, w, wm.cfg)["obj_pos"], nominal["obj_pos"], atol=1e-6)
+    fitted = predict(params, wm.net, w, wm.cfg)
+    err = lambda p: np.linalg.norm(p["obj_pos"] - w.obj_pos[:, 1:], axis=-1).mean()  # noqa: E731
+    assert err(fitted) < 0.7 * err(nominal), (err(fitted), err(nominal))
+
+    # the benchmarks: the table names every window set and predictor; the speed table every batch size
+    bench = tmp_path / "bench"
+    res = CliRunner().invoke(main, ["bench", "world", str(runs), "--model", str(out), "--data", str(data), "--clips",
+                                    name, "--out", str(bench)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    rows = json.loads((bench / "world.json").read_text())
+    assert {(r["windows"], r["predictor"]) for r in rows} == {
+        (f"{k} {h}", p) for k, h in (("final", 6), ("final", 10), ("sampled", 3))
+        for p in ("zero motion", "nominal", "world model")
+    }  # fmt: skip
+    assert f"clips here that it was trained on: {name}" in (bench / "world.md").read_text()
+    res = CliRunner().invoke(main, ["bench", "windows", str(path), "--data", str(data), "--windows", "6", "--batch",
+                                    "2,4", "--out", str(tmp_path / "speed")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    speed = json.loads((tmp_path / "speed" / "windows.json").read_text())
+    assert [r["batch"] for r in speed] == [2, 4] and all(r["windows_per_s"] > 0 for r in speed)
+
+
+def test_a_file_that_is_not_a_world_model_is_refused_naming_it(tmp_path: Path) -> None:
+    from quasisim.method.world_model import WorldModel
+
+    bad = tmp_path / "x.eqx"
+    bad.write_bytes(b'{"format": "something-else"}\n\x00\x01')
+    with pytest.raises(InputError, match=r"x\.eqx: field 'format': expected a quasisim-world-model-v1 file"):
+        WorldModel.load(bad)
+    bad.write_bytes(b"\x89PNG\r\n")
+    with pytest.raises(InputError, match=r"x\.eqx"):
+        WorldModel.load(bad)
+    with pytest.raises(InputError, match="no such file"):
+        WorldModel.load(tmp_path / "missing.eqx")
+
+
+def test_fit_refuses_a_folder_without_transitions(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    res = CliRunner().invoke(main, ["fit", str(tmp_path), "--data", str(tmp_path), "--out", str(tmp_path / "w.eqx")])
+    assert res.exit_code != 0
+    assert "expected a folder holding recorded transitions" in res.output and "Traceback" not in res.output
+    assert json.dumps(res.output).count("\\n") <= 2
+
+
+def test_bench_windows_refuses_bad_batch_sizes(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    f = tmp_path / "t.npz"
+    f.write_bytes(b"x")
+    for bad in ("0", "a,b", ""):
+        res = CliRunner().invoke(main, ["bench", "windows", str(f), "--data", str(tmp_path), "--batch", bad])
+        assert res.exit_code != 0 and "--batch: expected comma-separated positive integers" in res.output, bad
