@@ -41,6 +41,7 @@ demo-ours: setup
 # benchmarks (`quasisim bench ...`) measure the programs as users compile them.
 TEST_XLA := --xla_backend_optimization_level=0
 test: setup
+	@sh scripts/test_deps.sh
 	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile
 
 test-fast: setup

@@ -260,11 +260,11 @@ def test_kinematic_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
 
 @pytest.fixture(scope="module")
 def arctic_clip():
-    from conftest import DATA
+    from conftest import ARCTIC_CLIP as p
+    from helpers import missing_data
 
-    p = DATA / "arctic" / "arctic_s2_box_grab_01.npz"
     if not p.is_file():
-        pytest.skip(f"ARCTIC clip not found at {p} (set QUASISIM_DATA to the folder that holds arctic/)")
+        missing_data(f"ARCTIC clip not found at {p} (set QUASISIM_DATA to the folder that holds arctic/)")
     return p
 
 

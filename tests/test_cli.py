@@ -149,3 +149,30 @@ def _check_outputs_no_video(out: Path, demo: Path) -> dict:
     assert np.load(out / "rollout.npz")["object_pos"].shape[1] == 3
     assert "Per-frame errors" in (out / "report.html").read_text()
     return m
+
+
+def test_a_libraries_warning_that_comes_with_an_error_is_folded_into_our_one_line(tmp_path: Path) -> None:
+    """MuJoCo prints "WARNING: Must provide extension ..." to stderr before failing on a model file without an
+    extension: the process's stderr is our one line, with MuJoCo's words in it (a real process: the warning is
+    written by C code to file descriptor 2, which an in-process runner does not see)."""
+    import subprocess
+    import sys
+
+    from quasisim.assets.hand import HANDS_DIR
+    from quasisim.data.synthetic import write_example
+
+    demo = write_example("cube_lift", tmp_path, n_frames=12)
+    (tmp_path / "model").write_bytes(b"\x89PNG\r\n\x1a\n0000")  # no extension, not a model
+    yaml = (HANDS_DIR / "shadow.yaml").read_text().splitlines()
+    yaml = [f"model: {tmp_path / 'model'}" if line.startswith("model:") else line for line in yaml]
+    (tmp_path / "hand.yaml").write_text("\n".join(yaml) + "\n")
+    cmd = [sys.executable, "-m", "quasisim.cli", "retarget", str(demo), "--hand", str(tmp_path / "hand.yaml"),
+           "--out", str(tmp_path / "o")]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert (
+        lines[0].startswith(f"error: {tmp_path / 'model'}: expected an MJCF or URDF file")
+        and "(MuJoCo: WARNING" in lines[0]
+    )

@@ -16,6 +16,7 @@ import pytest
 import trimesh
 
 import quasisim.assets.object as obj
+from helpers import missing_data
 from quasisim.assets.object import ObjectAsset, SDFGrid, bake_sdf, hull_gap, load_object, sdf_query
 from quasisim.errors import InputError
 
@@ -33,7 +34,7 @@ def _tmp_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 def real_mesh(name: str) -> Path:
     path = MESHES / name
     if not path.is_file():
-        pytest.skip(f"development mesh {path} not found (set QUASISIM_DATA)")
+        missing_data(f"development mesh {path} not found (set QUASISIM_DATA)")
     return path
 
 

@@ -262,6 +262,54 @@ def test_overwrite_only_when_asked(clip: dict[str, Path], tmp_path: Path) -> Non
     assert r.exit_code == 0  # a folder without an example demo in it is fine
 
 
+def _lock_of(pid: int) -> str:
+    import socket
+
+    return json.dumps(
+        {"pid": pid, "host": socket.gethostname(), "since": "2026-11-26 06:00:00", "command": "transfer x"}
+    )
+
+
+def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(
+    clip: dict[str, Path], tmp_path: Path
+) -> None:
+    """One run per folder: a second run on an --out that a live process is writing is refused with one line
+    naming that process, before any work; a lock whose process has ended is taken over; the lock is gone after
+    the run."""
+    from quasisim.files import LOCK
+
+    out = tmp_path / "run"
+    out.mkdir()
+    holder = subprocess.Popen(["sleep", "60"])
+    try:
+        (out / LOCK).write_text(_lock_of(holder.pid))
+        for cmd in (
+            ["evaluate", str(clip["cube"]), str(clip["controls"]), "--no-render", "--out", str(out)],
+            ["transfer", str(clip["cube"]), "--method", "kinematic", "--no-render", "--out", str(out)],
+            ["retarget", str(clip["cube"]), "--out", str(out)],
+        ):
+            r = CliRunner().invoke(main, cmd)
+            assert r.exit_code != 0, cmd
+            line = r.stderr.strip()
+            assert "\n" not in line and f"process {holder.pid}" in line and "another quasisim run (transfer x)" in line
+            assert sorted(p.name for p in out.iterdir()) == [LOCK]  # nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder is gone: its lock is stale and the next run takes it over
+    r = CliRunner().invoke(
+        main, ["evaluate", str(clip["cube"]), str(clip["controls"]), "--no-render", "--out", str(out)]
+    )
+    assert r.exit_code == 0, r.output
+    assert (out / MANIFEST).is_file() and not (out / LOCK).exists()
+    # a folder made only for the lock is removed again when the run leaves it empty
+    from quasisim.files import run_lock
+
+    with run_lock(tmp_path / "a" / "b"):
+        assert (tmp_path / "a" / "b" / LOCK).is_file()
+    assert not (tmp_path / "a" / "b").exists()
+
+
 def test_long_clips_warn_with_an_estimate(capsys) -> None:
     from types import SimpleNamespace
 
@@ -308,9 +356,10 @@ def _transfer(demo: Path, out: Path, *extra: str) -> subprocess.Popen:
 
 
 @pytest.mark.slow
-def test_sigkill_at_random_points_then_resume_is_bit_identical(clip: dict[str, Path], tmp_path: Path) -> None:
-    """A short transfer (sample-target, 16 frames) killed with SIGKILL at random moments, resumed until it
-    finishes: every array (controls, rollout, checkpoints) and metrics.json equal an uninterrupted run's."""
+def test_killed_or_interrupted_then_resumed_is_bit_identical(clip: dict[str, Path], tmp_path: Path) -> None:
+    """A short transfer (sample-target, 16 frames) killed with SIGKILL at random moments, or stopped by SIGTERM
+    or SIGINT, resumed until it finishes: every array (controls, rollout, checkpoints) and metrics.json equal
+    an uninterrupted run's."""
     from quasisim.method.compare import compare_runs
 
     t0 = time.perf_counter()
@@ -335,9 +384,17 @@ def test_sigkill_at_random_points_then_resume_is_bit_identical(clip: dict[str, P
         assert diffs == [] and n >= 4, diffs
         assert read_manifest(out) is not None and not [q for q in out.rglob(".*")]
     assert kills >= 2  # the kills did land
-    # SIGTERM: the command ends at once and its temporary files go with it
-    p = _transfer(clip["cube"], tmp_path / "term")
-    time.sleep(0.7 * t_ref)
-    p.send_signal(signal.SIGTERM)
-    assert p.wait() in (0, 128 + signal.SIGTERM, -signal.SIGTERM)
-    assert not [q for q in (tmp_path / "term").rglob(".*")]
+    # SIGTERM (a scheduler) and SIGINT (Ctrl-C): the command ends at once, its temporary files and its run lock
+    # go with it, and --resume finishes bit-identical to the uninterrupted run
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        out = tmp_path / sig.name
+        p = _transfer(clip["cube"], out)
+        time.sleep(0.7 * t_ref)
+        p.send_signal(sig)
+        assert p.wait() in (0, 1, 128 + sig, -sig), sig.name
+        assert not [q for q in out.rglob(".*")], sig.name
+        extra = ("--resume",) if (out / "checkpoints").is_dir() else ("--overwrite",)
+        p = _transfer(clip["cube"], out, *extra)
+        assert p.wait() == 0, p.stderr.read().decode()
+        n, diffs = compare_runs(tmp_path / "ref", out)
+        assert diffs == [] and n >= 4, (sig.name, diffs)

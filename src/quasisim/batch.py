@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from quasisim.errors import QuasisimError
-from quasisim.files import save_json_atomic, save_text_atomic
+from quasisim.files import LOCK, save_json_atomic, save_text_atomic
 from quasisim.method.spec import TransferSpec
 
 CLIP_FILE = "clip.json"  # written last into a clip's folder: its metrics and what made them
@@ -198,6 +198,8 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
         # every checkpoint carries the identity of what made it: pieces made with other settings (an earlier
         # batch) are recomputed, the others reused, so the run's own record of its settings is not needed
         (ck / "run.json").unlink(missing_ok=True)
+        # the batch runs one attempt of a clip at a time: a lock here is a killed attempt's, maybe on another host
+        (run_dir / LOCK).unlink(missing_ok=True)
         record = run_dir / "transitions" if s.record_transitions and "sample" in r.spec.stages else None
         if record is not None and not any(record.glob("*.npz")):
             (ck / "sample.npz").unlink(missing_ok=True)  # a retried clip samples again, to record it

@@ -143,11 +143,15 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
 
     d = load_demo(demo)
     hands = demo_hands(hand, d.sides)  # two-hand demos: the hand and its mirror image
-    _outputs_free(out, ("kinematic.npz",), overwrite)
-    warn_long_clip(d, 0.05, 1.0, "retargeting")
-    t0 = time.perf_counter()
-    c = kinematic_controls(hands, d, hand, progress=True)
-    path = c.save(out / "kinematic.npz")
+    from quasisim.files import check_out_dir, run_lock
+
+    check_out_dir(out)
+    with run_lock(out, f"retarget {d.name}"):  # one run per folder
+        _outputs_free(out, ("kinematic.npz",), overwrite)
+        warn_long_clip(d, 0.05, 1.0, "retargeting")
+        t0 = time.perf_counter()
+        c = kinematic_controls(hands, d, hand, progress=True)
+        path = c.save(out / "kinematic.npz")
     metric = np.concatenate([h.kp_metric for h in hands])
     err = c.extras["retarget_keypoint_error"][:, metric].mean() * 1e3
     click.echo(
@@ -178,11 +182,15 @@ def evaluate(
     c = load_controls(controls)
     check_controls(d, c, hands_of(c, controls), controls)
     note = check_demo_hash(c, content_hash(d), controls, force)
-    _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
-    if note:
-        click.echo(f"warning: {note}", err=True)
-    warn_long_clip(d, 0.2, 2.0, "evaluation" + (" with rendering" if render else ""))
-    ev = evaluate_controls(d, c, target, out, render=render, progress=True)
+    from quasisim.files import check_out_dir, run_lock
+
+    check_out_dir(out)
+    with run_lock(out, f"evaluate {d.name}"):  # one run per folder
+        _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
+        if note:
+            click.echo(f"warning: {note}", err=True)
+        warn_long_clip(d, 0.2, 2.0, "evaluation" + (" with rendering" if render else ""))
+        ev = evaluate_controls(d, c, target, out, render=render, progress=True)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
     _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -52,3 +57,43 @@ def shaped_array(
         want = "(" + ", ".join(axis if s is None else str(s) for s in shape) + ")"
         raise InputError(path, field, f"an array of shape {want}", str(a.shape))
     return a
+
+
+class CapturedStderr:
+    """What C libraries (MuJoCo, PyBullet) wrote to file descriptor 2 inside :func:`captured_stderr`:
+    ``text`` once the block has ended."""
+
+    text: str = ""
+
+    def said(self) -> str:
+        """The captured lines as one line ("" when nothing was written)."""
+        return " ".join(self.text.split())
+
+
+@contextlib.contextmanager
+def captured_stderr() -> Iterator[CapturedStderr]:
+    """Capture file descriptor 2 (where C libraries print their warnings) for the block, so that a warning that
+    comes with an error can be folded into our one-line message; the caller re-emits it when there is no
+    error (:func:`emit`)."""
+    out = CapturedStderr()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                sys.stderr.flush()
+                os.dup2(saved, 2)
+                tmp.seek(0)
+                out.text = tmp.read().decode("utf-8", errors="replace")
+    finally:
+        os.close(saved)
+
+
+def emit(captured: CapturedStderr) -> None:
+    """Write what was captured to stderr as it came (a block that succeeded keeps its library's warnings)."""
+    if captured.text:
+        sys.stderr.write(captured.text)
+        sys.stderr.flush()

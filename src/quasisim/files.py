@@ -7,7 +7,9 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 import tempfile
+import time
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -15,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.errors import InputError
+from quasisim.errors import InputError, QuasisimError
 
 TMP_MARK = ".tmp"  # every temporary file or folder of this module is named ``.NAME.<random>.tmp[.ext]``
 MANIFEST = "manifest.json"  # written last into a folder of outputs: the files of the set and their sha256
@@ -282,3 +284,68 @@ def read_manifest(out: Path) -> dict[str, str] | None:
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return files if ok else None
+
+
+# ---- one run per folder --------------------------------------------------------------------------
+
+LOCK = ".quasisim.lock"  # in a run folder while a run writes it: {"pid", "host", "since", "command"}
+
+
+def _holder(lock: Path) -> dict[str, Any] | None:
+    """The lock's holder, or None when the lock is gone or stale (its process has ended, on this host)."""
+    try:
+        info = json.loads(lock.read_text())
+        pid, host = int(info["pid"]), str(info["host"])
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # unreadable or half-written: a writer that died before finishing it
+    if host == socket.gethostname():
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:
+            pass  # alive, another user's
+    return info
+
+
+@contextlib.contextmanager
+def run_lock(out: Path, command: str = "") -> Iterator[None]:
+    """Hold ``out/.quasisim.lock`` while a run writes ``out`` (created if missing; removed again, with ``out``
+    when the run left it empty). Another live process holding it: :class:`QuasisimError` naming that process;
+    a stale lock (its process gone) is taken over."""
+    out = Path(out)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    lock = out / LOCK
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+          "command": command}  # fmt: skip
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            holder = _holder(lock)
+            if holder is not None and holder.get("pid") != os.getpid():
+                what = f" ({holder['command']})" if holder.get("command") else ""
+                raise QuasisimError(
+                    f"{out}: another quasisim run{what} is writing this folder: process {holder['pid']} on "
+                    f"{holder['host']} since {holder.get('since', '?')}; wait for it to end or choose another "
+                    f"output folder (if that process is gone, remove {lock})"
+                ) from None
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()  # stale: its process has ended
+            continue
+        with os.fdopen(fd, "w") as f:
+            json.dump(me, f)
+        break
+    else:
+        raise QuasisimError(f"{out}: could not take the run lock {lock} (another run keeps taking it)")
+    try:
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            lock.unlink()
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only when empty

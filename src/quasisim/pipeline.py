@@ -27,7 +27,7 @@ from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError, QuasisimError
 from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, write_outputs
-from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans
+from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans, run_lock
 from quasisim.method import registry
 from quasisim.method.checkpoints import Checkpoints
 from quasisim.method.config import Budget, TransferConfig
@@ -72,35 +72,37 @@ def run_transfer(
                 f"{','.join(spec.stages) or 'none'} (method {spec.method}): nothing would be recorded"
             )
         check_out_dir(Path(record_transitions), "--record-transitions")
-    _check_run_dir(out, resume, overwrite)
-    warn_long_clip(
-        demo,
-        *cost_per_frame(cfg.budget(spec.budget), cfg.budgets.get("fast"), stages),
-        f"transfer ({spec.budget} budget)",
-    )
-    info = identity(demo_path, demo, spec, cur, cfg)
-    ck = Checkpoints(out / "checkpoints", info, resume, overwrite, lambda name: piece_scope(info, name), piece_hook)
-    progress, record = Progress(spec.progress), RunRecord()
+    check_out_dir(out)
+    with run_lock(out, f"transfer {demo.name}, method {spec.method}"):  # one run per folder
+        _check_run_dir(out, resume, overwrite)
+        warn_long_clip(
+            demo,
+            *cost_per_frame(cfg.budget(spec.budget), cfg.budgets.get("fast"), stages),
+            f"transfer ({spec.budget} budget)",
+        )
+        info = identity(demo_path, demo, spec, cur, cfg)
+        ck = Checkpoints(out / "checkpoints", info, resume, overwrite, lambda name: piece_scope(info, name), piece_hook)
+        progress, record = Progress(spec.progress), RunRecord()
 
-    T, D = demo.n_frames, sum(6 + h.n_joints for h in hands)
-    kin_expect = {"q": (T, D), "base_rot": (3, 3), **({"left_base_rot": (3, 3)} if len(hands) > 1 else {})}
-    kin = timed(ck, "kinematic", lambda: _kinematic(hands, demo, progress), kin_expect)
-    record.seconds["retarget"] = float(kin["wall_s"])
-    bud, rots = cfg.budget(spec.budget), [kin[k] for k in ("base_rot", "left_base_rot")[: len(hands)]]
-    prob = make_problem(demo, place_hands(hands, rots), bud.substeps, bud.n_candidates)
-    transitions = None if record_transitions is None else Path(record_transitions)
-    ctx = Context(prob, cur, cfg, spec, ck, progress, record, np.asarray(kin["q"]), transitions)
-    plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
-    outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
-    for stage in stages:
-        outcome = stage.run(ctx, outcome)
+        T, D = demo.n_frames, sum(6 + h.n_joints for h in hands)
+        kin_expect = {"q": (T, D), "base_rot": (3, 3), **({"left_base_rot": (3, 3)} if len(hands) > 1 else {})}
+        kin = timed(ck, "kinematic", lambda: _kinematic(hands, demo, progress), kin_expect)
+        record.seconds["retarget"] = float(kin["wall_s"])
+        bud, rots = cfg.budget(spec.budget), [kin[k] for k in ("base_rot", "left_base_rot")[: len(hands)]]
+        prob = make_problem(demo, place_hands(hands, rots), bud.substeps, bud.n_candidates)
+        transitions = None if record_transitions is None else Path(record_transitions)
+        ctx = Context(prob, cur, cfg, spec, ck, progress, record, np.asarray(kin["q"]), transitions)
+        plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
+        outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
+        for stage in stages:
+            outcome = stage.run(ctx, outcome)
 
-    controls = Controls(
-        hand=spec.hand, demo=demo.name, method=f"{spec.method}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
-        fps=demo.fps, base_rots=prob.scene.base_rots, q_targets=np.asarray(outcome.q), joint_names=hands[0].joint_names,
-        extras=file_extras(ctx, outcome, stages), demo_hash=content_hash(demo),
-    )  # fmt: skip
-    return write_outputs(ctx, controls, outcome.plan.sysid, out)
+        controls = Controls(
+            hand=spec.hand, demo=demo.name, method=f"{spec.method}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
+            fps=demo.fps, base_rots=prob.scene.base_rots, q_targets=np.asarray(outcome.q), joint_names=hands[0].joint_names,
+            extras=file_extras(ctx, outcome, stages), demo_hash=content_hash(demo),
+        )  # fmt: skip
+        return write_outputs(ctx, controls, outcome.plan.sysid, out)
 
 
 def file_extras(ctx: Context, outcome: Outcome, stages: tuple[Stage, ...]) -> dict[str, Any]:

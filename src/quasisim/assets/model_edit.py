@@ -28,7 +28,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from quasisim.errors import InputError
+from quasisim.errors import InputError, captured_stderr, emit
 from quasisim.files import save_text_atomic, write_atomic
 
 QUAT = mujoco.mjtOrientation.mjORIENTATION_QUAT
@@ -61,9 +61,13 @@ class ModelEdit:
 def read_spec(path: Path) -> Any:
     """The spec of an MJCF or URDF file; an :class:`InputError` naming the file when MuJoCo cannot parse it."""
     try:
-        spec = mujoco.MjSpec.from_file(str(path))
+        with captured_stderr() as said:  # MuJoCo prints warnings that come with its errors: fold them in
+            spec = mujoco.MjSpec.from_file(str(path))
     except Exception as e:
-        raise InputError(path, None, "an MJCF or URDF file MuJoCo can parse", str(e).replace("\n", " ")) from None
+        extra = f" (MuJoCo: {said.said()})" if said.said() else ""
+        got = " ".join(str(e).split()) + extra
+        raise InputError(path, None, "an MJCF or URDF file MuJoCo can parse", got) from None
+    emit(said)
     spec.compiler.balanceinertia = True
     spec.compiler.fusestatic = False
     spec.compiler.discardvisual = False
@@ -73,9 +77,13 @@ def read_spec(path: Path) -> Any:
 def compile_spec(spec: Any, path: str | Path) -> Any:
     """Compile ``spec`` (read from ``path``); an :class:`InputError` naming the file when it fails."""
     try:
-        return spec.compile()
+        with captured_stderr() as said:
+            model = spec.compile()
     except Exception as e:
-        raise InputError(path, None, "a model MuJoCo can compile", str(e).replace("\n", " ")) from None
+        extra = f" (MuJoCo: {said.said()})" if said.said() else ""
+        raise InputError(path, None, "a model MuJoCo can compile", " ".join(str(e).split()) + extra) from None
+    emit(said)
+    return model
 
 
 def apply_edits(spec: Any, edits: tuple[ModelEdit, ...], path: str | Path) -> Any:

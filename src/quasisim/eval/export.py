@@ -12,7 +12,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from quasisim.errors import QuasisimError
+from quasisim.errors import InputError, QuasisimError, captured_stderr, emit
 from quasisim.files import open_npz, save_npz_atomic, save_text_atomic
 from quasisim.targets import TargetRollout
 from quasisim.targets.mujoco_target import build_spec, dof_names
@@ -64,7 +64,14 @@ def load_export(run_dir: str | Path) -> tuple[mujoco.MjModel, np.ndarray, float]
     """``(model, qpos (T, nq), fps)`` of an exported run folder (:func:`export_mujoco`)."""
     run_dir = Path(run_dir)
     z = open_npz(run_dir / TRAJECTORY_FILE, TRAJECTORY_FORMAT, "exported trajectory")
-    model = mujoco.MjModel.from_xml_path(str(run_dir / str(z["scene"])))
+    scene = run_dir / str(z["scene"])
+    try:
+        with captured_stderr() as said:
+            model = mujoco.MjModel.from_xml_path(str(scene))
+    except Exception as e:
+        extra = f" (MuJoCo: {said.said()})" if said.said() else ""
+        raise InputError(scene, None, "the run's MJCF scene", " ".join(str(e).split()) + extra) from None
+    emit(said)
     return model, np.asarray(z["qpos"]), float(z["fps"])
 
 
