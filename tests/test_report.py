@@ -83,3 +83,15 @@ def test_report_plays_in_chromium(tmp_path: Path) -> None:
     x0, x1 = 42.0, 320.0  # the plot's first and last frame (PAD_L, SVG_W - PAD_R)
     assert later["cursors"] == pytest.approx([x0 + (x1 - x0) * 12 / (T - 1)] * 4, abs=0.01)
     assert later["errors"] == [] and later["console"] == []
+
+
+@pytest.mark.parametrize("n", [2, 60, 600, 3000, 10_000, 100_000])
+def test_per_frame_plots_of_any_length(n: int) -> None:
+    """A clip of any length gets its plots (a 10,000-frame clip ended in a traceback here): at most 9 frame
+    ticks, the last frame on the axis."""
+    from quasisim.eval.report import svg_plot
+
+    svg = svg_plot(np.linspace(0.0, 3.0, n), "object translation error", "cm", 2.0)
+    ticks = [int(t) for t in re.findall(r"text-anchor='middle'>(\d+)</text>", svg)]
+    assert 1 <= len(ticks) <= 9 and ticks[0] == 0 and ticks == sorted(ticks) and ticks[-1] <= n - 1
+    assert svg.count("<polyline") == 1

@@ -112,7 +112,13 @@ SVG_W, SVG_H, PAD_L, PAD_R, PAD_T, PAD_B = 330, 170, 42, 10, 24, 26
 
 
 def _frame_step(n: int) -> int:
-    return next(s for s in (5, 10, 20, 50, 100, 200, 500, 1000) if n / s <= 8) if n > 5 else 1
+    """The frame axis' tick step: the smallest 1-2-5 multiple of 5 that gives at most 8 steps (any length)."""
+    if n <= 5:
+        return 1
+    step = 5
+    while n / step > 8:
+        step = step * 5 // 2 if str(step)[0] == "2" else step * 2  # 5, 10, 20, 50, 100, 200, 500, ...
+    return step
 
 
 def svg_plot(y: np.ndarray, title: str, unit: str, limit: float | None) -> str:
