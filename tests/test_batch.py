@@ -69,11 +69,13 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
             np.testing.assert_array_equal(z["applied"], ctl["q_targets"])
             assert z["windows"].shape[:2] == (11, FAST["sampling.samples"])  # 12 frames: 11 sampling steps
 
-    # the same clip transferred alone, in this process (sampling threads 2): bit-identical controls
+    # each clip transferred alone, in this process (sampling threads 2): bit-identical controls, the clip whose
+    # worker was killed in its middle (after its first checkpointed piece) and retried included
     cfg = TransferConfig.from_yaml(overrides=FAST)
-    single = run_transfer(clips_dir / f"{good[1]}.npz", tmp_path / "single", SPEC, cfg)
-    with np.load(out / good[1] / "controls.npz") as z:
-        np.testing.assert_array_equal(z["q_targets"], single.controls.q_targets)
+    for c in good[:2]:
+        single = run_transfer(clips_dir / f"{c}.npz", tmp_path / f"single_{c}", SPEC, cfg)
+        with np.load(out / c / "controls.npz") as z:
+            np.testing.assert_array_equal(z["q_targets"], single.controls.q_targets, err_msg=c)
 
     # resumed: finished clips are not redone (files untouched), the broken clip is tried and reported again
     stamp = (out / good[0] / "controls.npz").stat().st_mtime_ns

@@ -310,6 +310,33 @@ def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(
     assert not (tmp_path / "a" / "b").exists()
 
 
+def test_a_full_disk_while_writing_outputs_ends_cleanly(
+    clip: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No space left while the outputs are written (injected ENOSPC): one line naming the file, exit code not 0,
+    no manifest and no temporary files; a later run in the same folder works."""
+    import errno
+
+    import quasisim.files as files
+
+    real = files.np.savez_compressed
+
+    def full(*a, **k) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    out = tmp_path / "out"
+    args = ["evaluate", str(clip["cube"]), str(clip["controls"]), "--no-render", "--out", str(out)]
+    monkeypatch.setattr(files.np, "savez_compressed", full)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and r.stderr.count("\n") == 1, r.output
+    assert r.stderr.startswith(f"error: {out}") and "No space left on device" in r.stderr and ".npz" in r.stderr
+    assert not (out / MANIFEST).exists() and not [q for q in out.rglob(".*")]
+    monkeypatch.setattr(files.np, "savez_compressed", real)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert read_manifest(out) is not None
+
+
 def test_long_clips_warn_with_an_estimate(capsys) -> None:
     from types import SimpleNamespace
 

@@ -165,12 +165,22 @@ def _read_tree(root: Path) -> dict[str, bytes]:
     }
 
 
-def _inject_fault(clip: str, scratch: Path) -> None:
-    """Tests of the retry: the first attempt of clip ``$QUASISIM_BATCH_FAULT`` kills its own worker."""
-    if os.environ.get(FAULT_ENV) == clip and not (scratch / "fault-injected").exists():
-        scratch.mkdir(parents=True, exist_ok=True)
-        (scratch / "fault-injected").touch()
-        os.kill(os.getpid(), 9)
+def _fault_hook(clip: str, scratch: Path) -> Any:
+    """Tests of the retry: the first attempt of clip ``$QUASISIM_BATCH_FAULT`` kills its own worker in the
+    middle of the clip, as its second checkpointed piece starts (the first one is saved); None otherwise."""
+    if os.environ.get(FAULT_ENV) != clip or (scratch / "fault-injected").exists():
+        return None
+    pieces: list[str] = []
+
+    def hook(name: str, compute: Any) -> Any:
+        pieces.append(name)
+        if len(pieces) == 2:
+            scratch.mkdir(parents=True, exist_ok=True)
+            (scratch / "fault-injected").touch()
+            os.kill(os.getpid(), 9)
+        return compute()
+
+    return hook
 
 
 def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> dict[str, Any]:
@@ -182,7 +192,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
 
     configure()
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
-    _inject_fault(job.clip, scratch)
+    fault = _fault_hook(job.clip, scratch)
     cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sampling.threads": s.threads, **s.overrides})
     _write_tree(scratch / "input", files)
     demo = scratch / "input" / job.demo_path.name
@@ -205,7 +215,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
             (ck / "sample.npz").unlink(missing_ok=True)  # a retried clip samples again, to record it
         t0 = time.perf_counter()
         spec = dataclasses.replace(r.spec, progress=False)
-        res = run_transfer(demo, run_dir, spec, cfg, resume=ck.is_dir(), record_transitions=record)
+        res = run_transfer(demo, run_dir, spec, cfg, resume=ck.is_dir(), piece_hook=fault, record_transitions=record)
         rows.append({
             "clip": job.clip, "run": r.name or r.spec.method, "metrics": res.metrics,
             "kinematic_metrics": res.kinematic_metrics, "seconds": res.record.seconds,
