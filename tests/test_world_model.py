@@ -156,10 +156,10 @@ def test_fit_trains_a_correction_that_predicts_the_target_better(
     }  # fmt: skip
     assert f"clips here that it was trained on: {name}" in (bench / "world.md").read_text()
     res = CliRunner().invoke(main, ["bench", "windows", str(path), "--data", str(data), "--windows", "6", "--batch",
-                                    "2,4", "--out", str(tmp_path / "speed")])  # fmt: skip
+                                    "4", "--out", str(tmp_path / "speed")])  # fmt: skip
     assert res.exit_code == 0, res.output
     speed = json.loads((tmp_path / "speed" / "windows.json").read_text())
-    assert [r["batch"] for r in speed] == [2, 4] and all(r["windows_per_s"] > 0 for r in speed)
+    assert [(r["batch"], r["windows"]) for r in speed] == [(4, 6)] and speed[0]["windows_per_s"] > 0
 
 
 def test_a_file_that_is_not_a_world_model_is_refused_naming_it(tmp_path: Path) -> None:
