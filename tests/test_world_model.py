@@ -155,6 +155,12 @@ def test_fit_trains_a_correction_that_predicts_the_target_better(
         for p in ("zero motion", "nominal", "world model")
     }  # fmt: skip
     assert f"clips here that it was trained on: {name}" in (bench / "world.md").read_text()
+    cached = bench / "clips" / f"{name}.json"
+    stamp = cached.stat().st_mtime_ns
+    res = CliRunner().invoke(main, ["bench", "world", str(runs), "--model", str(out), "--data", str(data), "--clips",
+                                    name, "--out", str(bench)])  # fmt: skip
+    assert res.exit_code == 0 and cached.stat().st_mtime_ns == stamp  # the same model: the clip is not redone
+    assert json.loads((bench / "world.json").read_text()) == rows
     res = CliRunner().invoke(main, ["bench", "windows", str(path), "--data", str(data), "--windows", "6", "--batch",
                                     "4", "--out", str(tmp_path / "speed")])  # fmt: skip
     assert res.exit_code == 0, res.output
@@ -168,6 +174,13 @@ def test_a_file_that_is_not_a_world_model_is_refused_naming_it(tmp_path: Path) -
     bad = tmp_path / "x.eqx"
     bad.write_bytes(b'{"format": "something-else"}\n\x00\x01')
     with pytest.raises(InputError, match=r"x\.eqx: field 'format': expected a quasisim-world-model-v1 file"):
+        WorldModel.load(bad)
+    good_head = json.dumps({"format": "quasisim-world-model-v1", "config": {}}).encode()
+    bad.write_bytes(good_head + b"\n\x00\x01")  # a file cut short
+    with pytest.raises(InputError, match=r"x\.eqx: expected a complete world model file, got damaged"):
+        WorldModel.load(bad)
+    bad.write_bytes(json.dumps({"format": "quasisim-world-model-v1", "config": {"layers": 3}}).encode() + b"\n")
+    with pytest.raises(InputError, match="field 'config': expected the settings of WorldModelConfig"):
         WorldModel.load(bad)
     bad.write_bytes(b"\x89PNG\r\n")
     with pytest.raises(InputError, match=r"x\.eqx"):

@@ -6,7 +6,7 @@ candidates (6 frames). Each is predicted open loop from the target's start state
 simulator, by the world model (the same simulator + its learned correction) and by zero motion (the object
 stays where it is), and compared with what the target did: object position and rotation error and metric
 keypoint error after the window's last frame (and after each frame). One JSON per clip is kept in
-``OUT/clips/`` (resumable).
+``OUT/clips/`` (resumable: reused only for the same model file and transitions file, by their sha256).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from quasisim.bench.tables import header, publish
 from quasisim.errors import QuasisimError
-from quasisim.files import save_json_atomic
+from quasisim.files import file_sha256, save_json_atomic
 from quasisim.method.transitions import ClipWindows, clip_problem, load_clip, read_meta, transition_files
 from quasisim.method.world_fit import SIMULATOR, stiffest_params
 from quasisim.method.world_model import WorldModel, predict
@@ -99,19 +99,31 @@ def run_world_bench(
     trained = sorted(set(names) & set(model.info["trained_on"]))
     per_clip = out / "clips"
     per_clip.mkdir(parents=True, exist_ok=True)
+    key = {"model_sha256": file_sha256(model_path), "transitions_sha256": None}
     rows: list[dict[str, Any]] = []
     for name in tqdm(names, desc="clips", unit="clip"):
-        cached = per_clip / f"{name}.json"
-        if cached.is_file() and (
-            not decompose or any(r["predictor"] in VARIANTS for r in json.loads(cached.read_text()))
-        ):
-            rows += json.loads(cached.read_text())
-            continue
-        free_compiled_programs()
-        r = clip_rows(files[name], data_dir, model, decompose)
-        save_json_atomic(cached, r)
-        rows += r
+        key["transitions_sha256"] = file_sha256(files[name])
+        cached = _cached(per_clip / f"{name}.json", key, decompose)
+        if cached is None:
+            free_compiled_programs()
+            cached = clip_rows(files[name], data_dir, model, decompose)
+            save_json_atomic(per_clip / f"{name}.json", {**key, "rows": cached})
+        rows += cached
     return publish(out, "world", rows, _markdown(rows, model, model_path, trained))
+
+
+def _cached(path: Path, key: dict[str, Any], decompose: bool) -> list[dict[str, Any]] | None:
+    """A clip's rows from an earlier run of the same model on the same transitions (and, for ``decompose``,
+    with the variants), else None."""
+    try:
+        d = json.loads(path.read_text())
+        ok = all(d.get(k) == v for k, v in key.items())
+        rows = d["rows"] if ok else None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    if rows is None or (decompose and not any(r["predictor"] in VARIANTS for r in rows)):
+        return None
+    return rows
 
 
 def _markdown(rows: list[dict[str, Any]], model: WorldModel, path: Path, trained: list[str]) -> list[str]:

@@ -389,8 +389,11 @@ class WorldModel:
             info, fmt = {}, None
         if fmt != FORMAT:
             raise InputError(path, "format", f"a {FORMAT} file (quasisim fit)", repr(fmt) if fmt else "another file")
-        cfg_d = info.pop("config")
-        cfg = WorldModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg_d.items()})
+        try:
+            cfg_d = info.pop("config")
+            cfg = WorldModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg_d.items()})
+        except (KeyError, TypeError, AttributeError) as e:
+            raise InputError(path, "config", "the settings of WorldModelConfig", " ".join(str(e).split())) from None
         skeleton = Correction(cfg, np.ones(N_EXTRA), np.ones(12))
         try:
             net = eqx.tree_deserialise_leaves(io.BytesIO(body), skeleton)
