@@ -146,19 +146,18 @@ def test_fit_trains_a_correction_that_predicts_the_target_better(
 
     # the benchmarks: the table names every window set and predictor; the speed table every batch size
     bench = tmp_path / "bench"
-    res = CliRunner().invoke(main, ["bench", "world", str(runs), "--model", str(out), "--data", str(data), "--clips",
-                                    name, "--out", str(bench)])  # fmt: skip
+    world = ["bench", "world", str(runs), "--model", str(out), "--data", str(data), "--clips", name, "--horizons", "6",
+             "--out", str(bench)]  # fmt: skip
+    res = CliRunner().invoke(main, world)
     assert res.exit_code == 0, res.output
     rows = json.loads((bench / "world.json").read_text())
     assert {(r["windows"], r["predictor"]) for r in rows} == {
-        (f"{k} {h}", p) for k, h in (("final", 6), ("final", 10), ("sampled", 3))
-        for p in ("zero motion", "nominal", "world model")
+        (w, p) for w in ("final 6", "sampled 3") for p in ("zero motion", "nominal", "world model")
     }  # fmt: skip
     assert f"clips here that it was trained on: {name}" in (bench / "world.md").read_text()
     cached = bench / "clips" / f"{name}.json"
     stamp = cached.stat().st_mtime_ns
-    res = CliRunner().invoke(main, ["bench", "world", str(runs), "--model", str(out), "--data", str(data), "--clips",
-                                    name, "--out", str(bench)])  # fmt: skip
+    res = CliRunner().invoke(main, world)
     assert res.exit_code == 0 and cached.stat().st_mtime_ns == stamp  # the same model: the clip is not redone
     assert json.loads((bench / "world.json").read_text()) == rows
     res = CliRunner().invoke(main, ["bench", "windows", str(path), "--data", str(data), "--windows", "6", "--batch",

@@ -771,10 +771,17 @@ def bench_predict(
 @click.option(
     "--decompose", is_flag=True, help="Also the nominal simulator with one group of constants changed at a time."
 )
+@click.option("--horizons", default="6,10", show_default=True, help="Frames of the final trajectories' windows.")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/world"), show_default=True)
 @_friendly
 def bench_world(
-    transitions_dir: Path, model_path: Path, data_dir: Path, clip_names: str, decompose: bool, out: Path
+    transitions_dir: Path,
+    model_path: Path,
+    data_dir: Path,
+    clip_names: str,
+    decompose: bool,
+    horizons: str,
+    out: Path,
 ) -> None:
     """Open-loop prediction of a fitted world model on held-out clips (final trajectories' windows of 6 and 10
     frames, sampled candidates) beside the nominal simulator and zero motion; resumable."""
@@ -783,7 +790,13 @@ def bench_world(
     from quasisim.bench.world import run_world_bench
 
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    run_world_bench(transitions_dir, data_dir, model_path, out, names, decompose)
+    try:
+        hs = tuple(sorted({int(h) for h in horizons.split(",") if h.strip()}))
+    except ValueError:
+        hs = ()
+    if not hs or min(hs) < 1:
+        raise QuasisimError(f"--horizons: expected comma-separated positive integers, got {horizons!r}")
+    run_world_bench(transitions_dir, data_dir, model_path, out, names, decompose, hs)
 
 
 @bench.command("windows")

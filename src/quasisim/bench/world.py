@@ -30,7 +30,7 @@ from quasisim.rotations import quat_angle_deg
 from quasisim.runtime import free_compiled_programs
 from quasisim.sim.types import Params
 
-SETS = (("final", 6), ("final", 10), ("sampled", 0))  # (kind, frames; 0: the recorded horizon)
+HORIZONS = (6, 10)  # frames of the final trajectories' windows (the sampled ones have the recorded horizon)
 PREDICTORS = ("zero motion", "nominal", "world model")
 # --decompose: the nominal simulator with one group of constants changed at a time (which error each moves)
 VARIANTS: dict[str, Callable[[Params], Params]] = {
@@ -63,15 +63,17 @@ def window_errors(w: ClipWindows, pred: dict[str, np.ndarray] | None) -> dict[st
     return {"pos_cm": pos.tolist(), "rot_deg": rot.tolist(), "kp_mm": kp.tolist(), **med}
 
 
-def clip_rows(path: Path, data_dir: Path, model: WorldModel, decompose: bool = False) -> list[dict[str, Any]]:
+def clip_rows(
+    path: Path, data_dir: Path, model: WorldModel, decompose: bool = False, horizons: tuple[int, ...] = HORIZONS
+) -> list[dict[str, Any]]:
     """Every set of windows x predictor of one clip (module docstring); ``decompose``: also the
     :data:`VARIANTS` of the nominal simulator on the 6-frame final windows and the sampled ones."""
     prob = clip_problem(path, data_dir, SIMULATOR["substeps"], SIMULATOR["n_candidates"])
     params = stiffest_params(prob)
     rows = []
-    for kind, H in SETS:
+    for kind, H in [*(("final", h) for h in horizons), ("sampled", 0)]:
         w = load_clip(path, prob, kind, horizon=H, per_step=model.cfg.per_step, seed=model.cfg.seed + 1)
-        names = [*PREDICTORS, *(VARIANTS if decompose and H != 10 else ())]
+        names = [*PREDICTORS, *(VARIANTS if decompose and H != max(horizons) else ())]
         for name in names:
             t0 = time.perf_counter()
             par = VARIANTS[name](params) if name in VARIANTS else params
@@ -87,7 +89,13 @@ def clip_rows(path: Path, data_dir: Path, model: WorldModel, decompose: bool = F
 
 
 def run_world_bench(
-    folder: Path, data_dir: Path, model_path: Path, out: Path, clip_names: tuple[str, ...] = (), decompose: bool = False
+    folder: Path,
+    data_dir: Path,
+    model_path: Path,
+    out: Path,
+    clip_names: tuple[str, ...] = (),
+    decompose: bool = False,
+    horizons: tuple[int, ...] = HORIZONS,
 ) -> str:
     """The table of the module docstring for ``clip_names`` (default: the model's held-out clips)."""
     model = WorldModel.load(model_path)
@@ -99,14 +107,14 @@ def run_world_bench(
     trained = sorted(set(names) & set(model.info["trained_on"]))
     per_clip = out / "clips"
     per_clip.mkdir(parents=True, exist_ok=True)
-    key = {"model_sha256": file_sha256(model_path), "transitions_sha256": None}
+    key = {"model_sha256": file_sha256(model_path), "transitions_sha256": None, "horizons": list(horizons)}
     rows: list[dict[str, Any]] = []
     for name in tqdm(names, desc="clips", unit="clip"):
         key["transitions_sha256"] = file_sha256(files[name])
         cached = _cached(per_clip / f"{name}.json", key, decompose)
         if cached is None:
             free_compiled_programs()
-            cached = clip_rows(files[name], data_dir, model, decompose)
+            cached = clip_rows(files[name], data_dir, model, decompose, horizons)
             save_json_atomic(per_clip / f"{name}.json", {**key, "rows": cached})
         rows += cached
     return publish(out, "world", rows, _markdown(rows, model, model_path, trained))
