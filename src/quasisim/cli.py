@@ -69,6 +69,21 @@ def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True
 
 
 _OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
+_TRANSITIONS_DATA = click.option(
+    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+    help="Folder of the demos the transitions were recorded on (their meshes beside them).",
+)  # fmt: skip
+
+
+def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
+    """``text`` as comma-separated positive integers; a one-line error naming ``option`` otherwise."""
+    try:
+        values = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        raise QuasisimError(f"{option}: expected comma-separated positive integers (e.g. {example}), got {text!r}")
+    return values
 
 
 def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
@@ -479,10 +494,7 @@ def batch(
 @main.command()
 @click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="The world model file (.eqx).")
-@click.option(
-    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
-    help="Folder of the demos the transitions were recorded on (their meshes beside them).",
-)  # fmt: skip
+@_TRANSITIONS_DATA
 @click.option(
     "--held-out", "held_out", default=None,
     help="Comma-separated clips never trained on (default: the fixed split of docs/world_model.md).",
@@ -575,14 +587,7 @@ def bench_sim(
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     if not (data / f"{clip}.npz").is_file():
         raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
-    try:
-        study = tuple(int(x) for x in dt_study.split(",") if x.strip())
-    except ValueError:
-        study = ()
-    if not study or min(study) < 1:
-        raise QuasisimError(
-            f"--dt-study expects positive integers separated by commas (e.g. 50,20,10), got {dt_study!r}"
-        )
+    study = _positive_ints(dt_study, "--dt-study", "50,20,10")
     clips_ = tuple(c for c in study_clips.split(",") if c.strip())
     run_sim_bench(data, clip, clips_, hand, substeps, study, as_json)
 
@@ -763,10 +768,7 @@ def bench_predict(
 @bench.command("world")
 @click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option("--model", "model_path", type=click.Path(path_type=Path), required=True, help="quasisim fit's file.")
-@click.option(
-    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
-    help="Folder of the demos the transitions were recorded on.",
-)  # fmt: skip
+@_TRANSITIONS_DATA
 @click.option("--clips", "clip_names", default="", help="Comma-separated clips (default: the model's held-out ones).")
 @click.option(
     "--decompose", is_flag=True, help="Also the nominal simulator with one group of constants changed at a time."
@@ -790,21 +792,13 @@ def bench_world(
     from quasisim.bench.world import run_world_bench
 
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    try:
-        hs = tuple(sorted({int(h) for h in horizons.split(",") if h.strip()}))
-    except ValueError:
-        hs = ()
-    if not hs or min(hs) < 1:
-        raise QuasisimError(f"--horizons: expected comma-separated positive integers, got {horizons!r}")
+    hs = tuple(sorted(set(_positive_ints(horizons, "--horizons", "6,10"))))
     run_world_bench(transitions_dir, data_dir, model_path, out, names, decompose, hs)
 
 
 @bench.command("windows")
 @click.argument("transitions_file", type=click.Path(path_type=Path, exists=True, dir_okay=False))
-@click.option(
-    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
-    help="Folder of the demo the transitions were recorded on.",
-)  # fmt: skip
+@_TRANSITIONS_DATA
 @click.option("--windows", "n", default=256, show_default=True, type=click.IntRange(1, None), help="Windows predicted.")
 @click.option("--batch", "batches", default="16,64", show_default=True, help="Comma-separated windows per call.")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/windows"), show_default=True)
@@ -816,13 +810,7 @@ def bench_windows(transitions_file: Path, data_dir: Path, n: int, batches: str, 
     _setup_runtime()
     from quasisim.bench.world import run_window_speed
 
-    try:
-        chunks = tuple(int(b) for b in batches.split(",") if b.strip())
-    except ValueError:
-        raise QuasisimError(f"--batch: expected comma-separated positive integers, got {batches!r}") from None
-    if not chunks or min(chunks) < 1:
-        raise QuasisimError(f"--batch: expected comma-separated positive integers, got {batches!r}")
-    run_window_speed(transitions_file, data_dir, n, chunks, out)
+    run_window_speed(transitions_file, data_dir, n, _positive_ints(batches, "--batch", "16,64"), out)
 
 
 @bench.command("fit")

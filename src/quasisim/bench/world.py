@@ -25,7 +25,7 @@ from quasisim.errors import QuasisimError
 from quasisim.files import file_sha256, save_json_atomic
 from quasisim.method.transitions import ClipWindows, clip_problem, load_clip, read_meta, transition_files
 from quasisim.method.world_fit import SIMULATOR, stiffest_params
-from quasisim.method.world_model import WorldModel, predict
+from quasisim.method.world_model import WorldModel, batch, predict
 from quasisim.rotations import quat_angle_deg
 from quasisim.runtime import free_compiled_programs
 from quasisim.sim.types import Params
@@ -74,11 +74,12 @@ def clip_rows(
     for kind, H in [*(("final", h) for h in horizons), ("sampled", 0)]:
         w = load_clip(path, prob, kind, horizon=H, per_step=model.cfg.per_step, seed=model.cfg.seed + 1)
         names = [*PREDICTORS, *(VARIANTS if decompose and H != max(horizons) else ())]
+        prepared = batch(w)  # the simulator's inputs, shared by every predictor of these windows
         for name in names:
             t0 = time.perf_counter()
             par = VARIANTS[name](params) if name in VARIANTS else params
             net = model.net if name == "world model" else None
-            pred = None if name == "zero motion" else predict(par, net, w, model.cfg)
+            pred = None if name == "zero motion" else predict(par, net, w, model.cfg, prepared=prepared)
             e = window_errors(w, pred)
             rows.append({
                 "clip": w.demo, "windows": f"{kind} {w.horizon}", "n": len(w), "predictor": name, **e,
@@ -180,7 +181,7 @@ def run_window_speed(path: Path, data_dir: Path, n: int, chunks: tuple[int, ...]
     params = stiffest_params(prob)
     w = load_clip(path, prob, "sampled", per_step=10**6)
     n = min(n, len(w))
-    w = ClipWindows(**{**w.__dict__, **{k: getattr(w, k)[:n] for k in _WINDOW_ARRAYS}})
+    w = w.first(n)
     device = str(jax.devices()[0])
     rows = []
     for c in tqdm(chunks, desc="batch sizes", unit="size"):
@@ -202,6 +203,3 @@ def run_window_speed(path: Path, data_dir: Path, n: int, chunks: tuple[int, ...]
     lines += [f"| {r['batch']} | {r['first_s']:.1f} | {r['second_s']:.2f} | {r['windows_per_s']:.1f} | "
               f"{1000.0 / r['windows_per_s']:.1f} |" for r in rows]  # fmt: skip
     return publish(out, "windows", rows, lines)
-
-
-_WINDOW_ARRAYS = ("q_targets", "qpos", "qvel", "obj_pos", "obj_quat", "obj_vel", "obj_angvel", "keypoints")

@@ -16,6 +16,7 @@ trained on (all three clips of one object, the flashlight, and three clips of ob
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +39,7 @@ HELD_OUT = (
     "grab_s1_mug_drink_4",
 )
 KINDS = ("final", "sampled")
+WINDOW_ARRAYS = ("q_targets", *STATE_KEYS, "keypoints")  # the per-window arrays of ClipWindows (leading axis B)
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,6 +76,10 @@ class ClipWindows:
     @property
     def horizon(self) -> int:
         return self.q_targets.shape[1] - 1
+
+    def first(self, n: int) -> ClipWindows:
+        """The first ``n`` windows."""
+        return dataclasses.replace(self, **{k: getattr(self, k)[:n] for k in WINDOW_ARRAYS})
 
     def state(self, k: int) -> dict[str, np.ndarray]:
         """The target's state at frame ``k`` of every window (keys of ``STATE_KEYS``, leading axis B)."""

@@ -74,10 +74,11 @@ def fit_world_model(
     workers: int = 1,
 ) -> WorldModel:  # fmt: skip
     """Steps 1-2 of the module docstring; returns the saved model."""
-    files = [f for f in transition_files(folder) if read_meta(f)[0] not in held_out]
+    meta = {f: read_meta(f)[:2] for f in transition_files(folder)}  # (demo, hand) of each file
+    files = [f for f, (demo, _) in meta.items() if demo not in held_out]
     if not files:
         raise QuasisimError(f"{folder}: every recorded clip is held out ({', '.join(held_out)}); nothing to train on")
-    hands = sorted({read_meta(f)[1] for f in files})
+    hands = sorted({meta[f][1] for f in files})
     if len(hands) > 1:
         raise QuasisimError(f"{folder}: transitions of several hands ({', '.join(hands)}); one world model per hand")
     parts = out.with_name(out.name + ".parts")
@@ -106,7 +107,7 @@ def fit_world_model(
     net, losses = train(init_correction(cfg, data.extra, target), data, target, cfg, progress)
     bar.close()
     info = {
-        "hand": hands[0], "simulator": SIMULATOR, "trained_on": sorted({read_meta(f)[0] for f in files}),
+        "hand": hands[0], "simulator": SIMULATOR, "trained_on": sorted({meta[f][0] for f in files}),
         "transition_files": [str(f.relative_to(folder)) for f in files], "held_out": list(held_out),
         "n_pairs": len(target), "losses": losses, "pairs_s": round(t_pairs, 1),
         "train_s": round(time.perf_counter() - t1, 1),

@@ -47,6 +47,7 @@ from quasisim.method.transitions import ClipWindows
 from quasisim.optim.objective import hand_keypoints
 from quasisim.optim.trajectory import Trajectory, root_positions, root_quats, sim_controls, split_q
 from quasisim.rotations import quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat
+from quasisim.sim.residual import nearest_points
 from quasisim.sim.step import Points, frame, initial_state, object_pose, residual_input, select_candidates
 from quasisim.sim.types import Control, Model, Params, State
 
@@ -143,12 +144,6 @@ class Features(eqx.Module):
     extra: Array
 
 
-def _nearest(points: Array, center: Array, k: int, radius: float) -> tuple[Array, Array]:
-    d = jnp.linalg.norm(points - center, axis=-1)
-    neg, idx = jax.lax.top_k(-jax.lax.stop_gradient(d), k)
-    return idx, -neg <= radius
-
-
 def features(model: Model, params: Params, s: State, e: State, cfg: WorldModelConfig, fps: float) -> Features:
     """:class:`Features` of the frame from ``s`` to the simulator's ``e`` (module docstring), object frame."""
     idx = select_candidates(model, params, s)
@@ -157,8 +152,8 @@ def features(model: Model, params: Params, s: State, e: State, cfg: WorldModelCo
     x, R = residual_input(model, params, s, pts, sub)
     w = jnp.maximum(x.depth, 0.0)
     center = jnp.where(jnp.sum(w) > 0, jnp.sum(w[:, None] * x.contact_pt, 0) / (jnp.sum(w) + 1e-12), 0.0)
-    oi, om = _nearest(x.obj_pts, center, min(cfg.n_object, len(x.obj_pts)), cfg.radius)
-    hi, hm = _nearest(x.hand_pts, center, min(cfg.n_hand, len(x.hand_pts)), cfg.radius)
+    oi, om = nearest_points(x.obj_pts, center, min(cfg.n_object, len(x.obj_pts)), cfg.radius)
+    hi, hm = nearest_points(x.hand_pts, center, min(cfg.n_hand, len(x.hand_pts)), cfg.radius)
     fo = jnp.concatenate([x.obj_pts[oi] - center, x.obj_vel[oi], x.obj_nrm[oi], jnp.zeros((len(oi), 1))], -1)
     fh = jnp.concatenate([x.hand_pts[hi] - center, x.hand_vel[hi], x.contact_nrm[hi], x.depth[hi, None]], -1)
     kinds = jnp.concatenate([jnp.zeros(len(oi), jnp.int32), jnp.ones(len(hi), jnp.int32)])
@@ -293,10 +288,11 @@ def _predict(model: Model, params: Params, net: Correction | None, s0: State, co
 
 
 def predict(params: Params, net: Correction | None, w: ClipWindows, cfg: WorldModelConfig,
-            chunk: int = 16) -> dict[str, np.ndarray]:  # fmt: skip
+            chunk: int = 16, prepared: Batch | None = None) -> dict[str, np.ndarray]:  # fmt: skip
     """Open-loop predictions of every window of ``w`` from the target's start state under its PD targets:
-    object frame origin (B, H, 3), orientation (B, H, 4) and metric keypoints (B, H, K, 3)."""
-    b, n = batch(w), len(w)
+    object frame origin (B, H, 3), orientation (B, H, 4) and metric keypoints (B, H, K, 3); ``prepared``:
+    ``batch(w)`` when the caller predicts the same windows several times."""
+    b, n = prepared or batch(w), len(w)
     s0 = jax.tree_util.tree_map(lambda x: x[:, 0], b.states)
     outs = [_predict(w.prob.model, params, net, _take(s0, i), _take(b.controls, i), cfg, w.fps)
             for i in _chunks(n, min(chunk, n))]  # fmt: skip

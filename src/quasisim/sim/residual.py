@@ -133,7 +133,8 @@ class ResidualInput(NamedTuple):
     contact_nrm: Array
 
 
-def _nearest(points: Array, center: Array, k: int, radius: float) -> tuple[Array, Array]:
+def nearest_points(points: Array, center: Array, k: int, radius: float) -> tuple[Array, Array]:
+    """Indices (k,) of the ``k`` of ``points`` (P, 3) nearest to ``center`` (3,) and whether each is within ``radius``."""
     d = jnp.linalg.norm(points - center, axis=-1)
     neg, idx = jax.lax.top_k(-jax.lax.stop_gradient(d), k)
     return idx, -neg <= radius
@@ -141,8 +142,8 @@ def _nearest(points: Array, center: Array, k: int, radius: float) -> tuple[Array
 
 def _region(x: ResidualInput, center: Array, n: int, radius: float) -> tuple[Array, Array, Array]:
     """Features (2n, 9), kinds (2n,) and mask (2n,) of the object and hand points nearest to ``center``."""
-    oi, om = _nearest(x.obj_pts, center, min(n, x.obj_pts.shape[0]), radius)
-    hi, hm = _nearest(x.hand_pts, center, min(n, x.hand_pts.shape[0]), radius)
+    oi, om = nearest_points(x.obj_pts, center, min(n, x.obj_pts.shape[0]), radius)
+    hi, hm = nearest_points(x.hand_pts, center, min(n, x.hand_pts.shape[0]), radius)
     fo = jnp.concatenate([x.obj_pts[oi] - center, x.obj_vel[oi], x.obj_nrm[oi]], -1)
     fh = jnp.concatenate([x.hand_pts[hi] - center, x.hand_vel[hi], jnp.zeros_like(x.hand_vel[hi])], -1)
     kinds = jnp.concatenate([jnp.zeros(len(oi), jnp.int32), jnp.ones(len(hi), jnp.int32)])
