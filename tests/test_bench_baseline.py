@@ -19,7 +19,8 @@ def test_bench_baseline_rows_are_the_evaluation_of_the_kinematic_retarget(data_d
 
     out = tmp_path / "baseline"
     r = CliRunner().invoke(
-        main, ["bench", "baseline", str(data_dir), "--pattern", "grab_s1_cup_lift.npz", "--out", str(out)]
+        main,
+        ["bench", "baseline", str(data_dir), "--pattern", "grab_s1_cup_lift.npz", "--out", str(out), "--robust", "0"],
     )
     assert r.exit_code == 0, r.output
     rows = json.loads((out / "baseline.json").read_text())

@@ -137,6 +137,8 @@ def test_real_clip_both_targets(tmp_path: Path, data_dir: Path) -> None:
                 "--out",
                 str(out),
                 "--no-render",
+                "--robust",
+                "0",
             ]
         )
         m = _check_outputs_no_video(out, demo)

@@ -218,7 +218,7 @@ def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path
     from quasisim.pipeline import run_transfer
 
     cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3})
-    spec = TransferSpec(method="sample-target", target=target, render=False, progress=False)
+    spec = TransferSpec(method="sample-target", target=target, render=False, progress=False, robust=0)
     run_transfer(short_demo, tmp_path / "plain", spec, cfg)
     run_transfer(short_demo, tmp_path / "rec", spec, cfg, record_transitions=tmp_path / "tr")
     q = load_controls(tmp_path / "rec" / "controls.npz").q_targets

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from quasisim.errors import QuasisimError
 from quasisim.method.registry import METHODS as REGISTERED_METHODS
@@ -84,6 +85,19 @@ def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
     if not values or min(values) < 1:
         raise QuasisimError(f"{option}: expected comma-separated positive integers (e.g. {example}), got {text!r}")
     return values
+
+
+_ROBUST = click.option(
+    "--robust", type=click.IntRange(0, 1000), default=None,
+    help="Perturbed replays for robust success (default: n of configs/robust.yaml; 0: none).",
+)  # fmt: skip
+
+
+def _robust_config(n: int | None) -> Any:
+    """The robust-success settings (``configs/robust.yaml``), with ``n`` replays where given."""
+    from quasisim.eval.robust import RobustConfig
+
+    return RobustConfig.from_yaml(None, None if n is None else {"n": n})
 
 
 def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
@@ -181,10 +195,12 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
 @click.option("--force", is_flag=True, help="Replay controls made for another demo (a different content hash).")
+@_ROBUST
 @_OVERWRITE
 @_friendly
 def evaluate(
-    demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, overwrite: bool
+    demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, robust: int | None,
+    overwrite: bool,
 ) -> None:  # fmt: skip
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
@@ -205,7 +221,7 @@ def evaluate(
         if note:
             click.echo(f"warning: {note}", err=True)
         warn_long_clip(d, 0.2, 2.0, "evaluation" + (" with rendering" if render else ""))
-        ev = evaluate_controls(d, c, target, out, render=render, progress=True)
+        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=_robust_config(robust))
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
     _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")
@@ -213,12 +229,28 @@ def evaluate(
 
 @main.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--web", is_flag=True, help="Serve a 3D viewer to a browser instead (headless servers; docs/viewer.md).")
+@click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True, help="--web: port to serve on.")
+@click.option("--host", default="127.0.0.1", show_default=True, help="--web: address to listen on (0.0.0.0: all).")
+@click.option("--demo", type=click.Path(path_type=Path), help="--web: the run's demo .npz (default: found by name).")
 @_friendly
-def view(run_dir: Path) -> None:
-    """Play RUN_DIR's result (scene.xml + trajectory.npz, written by evaluate and transfer) in MuJoCo's viewer."""
-    from quasisim.eval.export import view as play
+def view(run_dir: Path, web: bool, port: int, host: str, demo: Path | None) -> None:
+    """Play RUN_DIR's result (scene.xml + trajectory.npz, written by evaluate and transfer) in MuJoCo's viewer,
+    or with --web in a browser: prints the URL and serves until Ctrl-C."""
+    if not web:
+        ctx = click.get_current_context()
+        given = [
+            f"--{n}" for n in ("port", "host", "demo") if ctx.get_parameter_source(n) is ParameterSource.COMMANDLINE
+        ]
+        if given:
+            raise click.UsageError(f"{', '.join(given)} only with --web")
+        from quasisim.eval.export import view as play
 
-    play(run_dir)
+        play(run_dir)
+        return
+    from quasisim.eval.web_view import serve
+
+    serve(run_dir, host, port, demo)
 
 
 @main.group()
@@ -388,12 +420,13 @@ def _ablation_flags(f: Any) -> Any:
     help="Keep every window the sampling stage rolls out in the target, and the final run's states, in "
     "DIR/<demo>.<method>.npz (data for fitting a simulator to the target; docs/transfer.md).",
 )  # fmt: skip
+@_ROBUST
 @_ablation_flags
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
     resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, record: Path | None,
-    no_residual: bool, no_local_residual: bool, no_control_transform: bool,
+    robust: int | None, no_residual: bool, no_local_residual: bool, no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -402,7 +435,7 @@ def transfer(
     from quasisim.pipeline import run_transfer
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
-    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets)
+    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets, robust)
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     if resume and overwrite:
@@ -458,12 +491,13 @@ def transfer(
     help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
     "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
 )  # fmt: skip
+@_ROBUST
 @_ablation_flags
 @_friendly
 def batch(
     data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
     pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
-    sets: tuple[str, ...], render: bool, record: bool, no_residual: bool, no_local_residual: bool,
+    sets: tuple[str, ...], render: bool, record: bool, robust: int | None, no_residual: bool, no_local_residual: bool,
     no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
@@ -473,7 +507,9 @@ def batch(
     from quasisim.batch import run_batch_command
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
-    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, False, nets).checked()
+    spec = TransferSpec(
+        hand, target, curriculum, parse_stages(stages), budget, method, render, False, nets, robust
+    ).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
         data_dir,
@@ -489,6 +525,66 @@ def batch(
         retries,
         record,
     )
+
+
+@main.command("export")
+@click.argument("batch_dir", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="The dataset file (.hdf5).")
+@click.option(
+    "--only", type=click.Choice(["strict", "20", "any"]), default="any", show_default=True,
+    help="Runs to keep: strict success, success at 20 deg / 20 cm, or any finished run (unstable ones never).",
+)  # fmt: skip
+@click.option(
+    "--min-robust", type=click.FloatRange(0.0, 1.0), default=None,
+    help="Also require this robust success (fraction of perturbed replays) for --only's criterion (20 for any).",
+)  # fmt: skip
+@click.option(
+    "--data", "data_dirs", multiple=True, type=click.Path(path_type=Path, exists=True, file_okay=False),
+    help="Folder of the runs' demos (repeatable; default: the batch's data_dir, then $QUASISIM_DATA).",
+)  # fmt: skip
+@click.option("--check", is_flag=True, help="Then replay every episode in MuJoCo; exit 1 if one deviates > 1e-9.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@_friendly
+def export_cmd(
+    batch_dir: Path, out: Path, only: str, min_robust: float | None, data_dirs: tuple[Path, ...], check: bool,
+    overwrite: bool,
+) -> None:  # fmt: skip
+    """Finished runs under BATCH_DIR (batch, transfer or bench transfer outputs) as one HDF5 training set in
+    robomimic's layout: observations, PD-target actions, MuJoCo states, the scene (docs/dataset.md)."""
+    from quasisim.errors import InputError
+    from quasisim.files import check_out_dir
+
+    if out.suffix not in (".hdf5", ".h5"):
+        raise InputError(out, "--out", "a file name ending in .hdf5 or .h5", repr(out.name))
+    check_out_dir(out.parent)
+    if out.exists() and not overwrite:
+        raise InputError(out, "--out", "a new file (pass --overwrite to replace it)", "an existing file")
+    _setup_runtime()
+    from quasisim.data.dataset_export import export_dataset
+
+    res = export_dataset(batch_dir, out, only, min_robust, data_dirs)
+    mb = out.stat().st_size / 1e6
+    click.echo(f"wrote {out}: {len(res.episodes)} episodes, {res.total} samples, {mb:.1f} MB in {res.seconds:.1f} s")
+    if res.skipped:
+        click.echo(f"skipped {len(res.skipped)}: " + "; ".join(f"{r} ({why})" for r, why in res.skipped))
+    if check:
+        _export_check(out, {name: run for name, run, _ in res.episodes})
+
+
+def _export_check(out: Path, runs: dict[str, str]) -> None:
+    """``export --check``: replay each episode of ``out`` in its MJCF; exit 1 when one deviates."""
+    from quasisim.data.dataset import REPLAY_TOL, load_episodes, replay_episode
+
+    t0, worst = time.perf_counter(), {}
+    for ep in load_episodes(out):
+        worst[ep.name] = float(replay_episode(ep).max())
+        label = runs.get(ep.name, ep.clip)
+        click.echo(f"check {ep.name} {label}: {ep.num_samples} frames, max deviation {worst[ep.name]:.3g}")
+    bad = [n for n, d in worst.items() if not d <= REPLAY_TOL]
+    click.echo(f"check: {len(worst)} episodes replayed in {time.perf_counter() - t0:.1f} s, max deviation "
+               f"{max(worst.values()):.3g} (tolerance {REPLAY_TOL:g}): " + (f"FAILED ({', '.join(bad)})" if bad else "ok"))  # fmt: skip
+    if bad:
+        sys.exit(1)
 
 
 @main.command()
@@ -543,14 +639,17 @@ def bench() -> None:
     "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz are skipped unless named."
 )
 @click.option("--render/--no-render", default=False, show_default=True)
+@_ROBUST
 @_friendly
-def bench_baseline(data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool) -> None:
+def bench_baseline(
+    data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool, robust: int | None
+) -> None:  # fmt: skip
     """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
     _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.baseline import run_baseline
 
-    run_baseline(data_dir, hand, targets, out, pattern, render)
+    run_baseline(data_dir, hand, targets, out, pattern, render, _robust_config(robust))
 
 
 @bench.command("sim")
@@ -811,6 +910,39 @@ def bench_windows(transitions_file: Path, data_dir: Path, n: int, batches: str, 
     from quasisim.bench.world import run_window_speed
 
     run_window_speed(transitions_file, data_dir, n, _positive_ints(batches, "--batch", "16,64"), out)
+
+
+@bench.command("long")
+@click.option("--frames", "frames_", default="60,600,3000,10000", show_default=True, help="Clip lengths.")
+@click.option("--commands", default=",".join(("retarget", "evaluate", "sample-target")), show_default=True)
+@click.option("--render/--no-render", default=True, show_default=True, help="evaluate and transfer render videos.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/long"), show_default=True)
+@_friendly
+def bench_long(frames_: str, commands: str, render: bool, out: Path) -> None:
+    """Wall time and peak memory of retarget, evaluate and sample-target on clips of 60 to 10,000 frames,
+    beside the clip-length warning's estimate (resumable per row)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
+    from quasisim.bench.long import run_long_bench
+
+    lengths = _positive_ints(frames_, "--frames", "60,600,3000,10000")
+    click.echo(run_long_bench(lengths, tuple(c.strip() for c in commands.split(",") if c.strip()), out, render))
+
+
+@bench.command("failures")
+@click.argument("runs", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--data", "data_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder of the runs' demos (default: $QUASISIM_DATA).")  # fmt: skip
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None, help="Output folder (default: RUNS).")
+@_friendly
+def bench_failures(runs: Path, data_dir: Path | None, out: Path | None) -> None:
+    """Why each finished run under RUNS fails strict success: first frame over a limit, which limit, and a
+    label (symmetric, drop, never grasped, lost contact, slip); writes failures.md and failures.json."""
+    import os
+
+    from quasisim.eval.failures import analyse, write
+
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    click.echo(write(runs, analyse(runs, data), out or runs))
 
 
 @bench.command("fit")

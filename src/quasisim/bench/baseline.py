@@ -11,18 +11,20 @@ from tqdm import tqdm
 from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, clips, header, lifted, publish, summary_rows
 from quasisim.data.demo import load_demo
 from quasisim.eval.evaluate import evaluate_controls
+from quasisim.eval.robust import RobustConfig
 from quasisim.method.retarget import kinematic_controls
 from quasisim.targets.build import demo_hands, scene_for
 from quasisim.targets.scene import place_hands
 
 
 def run_baseline(
-    data_dir: Path, hand_name: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool
-) -> str:
+    data_dir: Path, hand_name: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool,
+    robust: RobustConfig | None = None,
+) -> str:  # fmt: skip
     """Kinematic retargeting replayed with PD control in each target, on every clip (two-hand clips: both
     hands)."""
     rows: list[dict[str, Any]] = []
-    paths = clips(data_dir, pattern)
+    paths, robust = clips(data_dir, pattern), robust or RobustConfig.from_yaml()
     for p in tqdm(paths, desc="clips", unit="clip"):
         demo = load_demo(p)
         t0 = time.perf_counter()
@@ -32,7 +34,9 @@ def run_baseline(
         scene = scene_for(demo, place_hands(hands, controls.base_rots))
         for tgt in targets:
             t1 = time.perf_counter()
-            ev = evaluate_controls(demo, controls, tgt, out / demo.name / tgt if render else None, render, scene=scene)
+            ev = evaluate_controls(
+                demo, controls, tgt, out / demo.name / tgt if render else None, render, scene=scene, robust=robust
+            )
             rows.append(
                 {
                     "clip": demo.name,

@@ -58,6 +58,17 @@ def clips(data_dir: Path, pattern: str, names: tuple[str, ...] = ()) -> list[Pat
     return paths
 
 
+ROBUST_KEYS = ("strict", "20deg_20cm")  # the robust-success columns (fractions of perturbed replays)
+
+
+def robust_cells(rs: list[dict[str, Any]]) -> str:
+    """``robust strict | robust 20`` (%): the mean over ``rs`` of the fraction of perturbed replays that pass
+    (metrics ``robust``, :mod:`quasisim.eval.robust`); ``-`` where a row has none (runs made before it)."""
+    if not rs or any(not r.get("robust") for r in rs):
+        return " | ".join("-" for _ in ROBUST_KEYS)
+    return " | ".join(f"{100.0 * np.mean([r['robust'][k] for r in rs]):.0f}" for k in ROBUST_KEYS)
+
+
 def summary_rows(rows: list[dict[str, Any]], group: str) -> list[str]:
     out = []
     for g in sorted({r[group] for r in rows}):
@@ -67,18 +78,19 @@ def summary_rows(rows: list[dict[str, Any]], group: str) -> list[str]:
         out.append(
             f"| {g} | {len(rs)} | {m['R_err_deg']:.1f} | {m['T_err_cm']:.2f} | {m['MPJPE_mm']:.1f} | {m['CD_mm']:.1f} | "
             + " | ".join(f"{s[k]:.0f}" for k in SUCCESS_KEYS)
-            + f" | {np.mean([r['wall_s'] for r in rs]):.2f} |"
+            + f" | {robust_cells(rs)} | {np.mean([r['wall_s'] for r in rs]):.2f} |"
         )
     return out
 
 
 SUMMARY_HEAD = (
-    "| {g} | clips | R_err (deg) | T_err (cm) | MPJPE (mm) | CD (mm) | succ 10 (%) | succ 15 (%) | succ 20 (%) | strict (%) | wall s/clip |\n"
-    "|---|---|---|---|---|---|---|---|---|---|---|"
+    "| {g} | clips | R_err (deg) | T_err (cm) | MPJPE (mm) | CD (mm) | succ 10 (%) | succ 15 (%) | succ 20 (%) | strict (%) "
+    "| robust strict (%) | robust 20 (%) | wall s/clip |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 )
 CLIP_HEAD = (
-    "| clip | {g} | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | lifted | wall s |\n"
-    "|---|---|---|---|---|---|---|---|---|---|---|---|"
+    "| clip | {g} | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | robust strict | robust 20 | lifted | wall s |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
 
@@ -88,7 +100,7 @@ def clip_row(r: dict[str, Any], group: str) -> str:
     return (
         f"| {r['clip']} | {r[group]} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | {r['CD_mm']:.1f} | "
         + " | ".join(yn(s[k]) for k in SUCCESS_KEYS)
-        + f" | {yn(r['lifted'])} | {r['wall_s']:.2f} |"
+        + f" | {robust_cells([r])} | {yn(r['lifted'])} | {r['wall_s']:.2f} |"
     )
 
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.batch import Job, Run, Settings, finished_runs, lifted_as_demo, method_seconds, run_batch
-from quasisim.bench.tables import SUMMARY_HEAD, clips, header, publish, summary_rows
+from quasisim.bench.tables import SUMMARY_HEAD, clips, header, publish, robust_cells, summary_rows
 from quasisim.data.controls import load_controls
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
@@ -149,8 +149,9 @@ def _markdown(
         "",
         "`stiffest`: stage 2's best loss in its stiffest simulator and the start the restart guard chose there.",
         "",
-        "| clip | method | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | s (stages) | stiffest |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| clip | method | R_err | T_err | MPJPE | CD | 10 | 15 | 20 | strict | robust strict | robust 20 | s (stages) "
+        "| stiffest |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     yn = lambda b: "y" if b else "-"  # noqa: E731
     for r in rows:
@@ -158,7 +159,9 @@ def _markdown(
         st = f"{r['stiffest_loss']:.4f} ({r['stiffest_start']})" if "stiffest_loss" in r else "-"
         lines.append(
             f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
-            f"{r['CD_mm']:.1f} | " + " | ".join(yn(s[k]) for k in SUCCESS_KEYS) + f" | {r['wall_s']:.0f} | {st} |"
+            f"{r['CD_mm']:.1f} | "
+            + " | ".join(yn(s[k]) for k in SUCCESS_KEYS)
+            + f" | {robust_cells([r])} | {r['wall_s']:.0f} | {st} |"
         )
     return lines
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-import time
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,8 +16,9 @@ from quasisim.data.demo import Demo
 from quasisim.errors import InputError, QuasisimError
 from quasisim.eval.export import export_mujoco
 from quasisim.eval.metrics import PerFrame, evaluate_rollout
-from quasisim.eval.render import annotate, render_side_by_side
+from quasisim.eval.render import RenderedFrames
 from quasisim.eval.report import write_report
+from quasisim.eval.robust import ROBUST_KEY, RobustConfig, robust_success
 from quasisim.files import output_set, save_json_atomic
 from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
 from quasisim.targets import TargetRollout, make_target
@@ -107,10 +107,12 @@ def evaluate_controls(
     extra_info: dict[str, Any] | None = None,
     extra_images: dict[str, bytes] | None = None,
     progress: bool = False,
+    robust: RobustConfig | None = None,
 ) -> Evaluation:
     """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
     ``metrics.json``, ``rollout.npz``, ``report.html`` (+ ``video.mp4``), ``scene.xml`` and ``trajectory.npz``
-    there, as one set (with ``manifest.json``)."""
+    there, as one set (with ``manifest.json``). With ``robust`` (``n`` > 0), the metrics hold ``robust``: the
+    fraction of ``n`` perturbed replays that pass each success criterion (:mod:`quasisim.eval.robust`)."""
     hands = scene.hands if scene is not None else demo_hands(controls.hand, controls.sides)
     check_controls(demo, controls, hands)
     scene = scene or scene_for(demo, place_hands(hands, controls.base_rots))
@@ -118,7 +120,10 @@ def evaluate_controls(
         rollout = tgt.rollout(controls.q_targets)
     surf = scene_surface(scene, rollout.qpos)
     metrics, pf = evaluate_rollout(demo, rollout, surf)
-    ev = Evaluation(mark_stability(metrics, rollout.instability, f"{demo.name} in {target}"), pf, rollout, scene)
+    metrics = mark_stability(metrics, rollout.instability, f"{demo.name} in {target}")
+    if robust is not None and robust.n > 0:
+        metrics[ROBUST_KEY] = robust_success(demo, scene, controls.q_targets, target, robust)
+    ev = Evaluation(metrics, pf, rollout, scene)
     if out_dir is not None:
         with output_set(Path(out_dir)) as stage:
             write_outputs(ev, demo, controls, target, stage, render, title, extra_info, extra_images, progress)
@@ -156,16 +161,12 @@ def write_outputs(
     if ev.rollout.instability:
         notes.insert(0, f"UNSTABLE simulation, counted as a failure: {ev.rollout.instability}")
     if render:
-        t0 = time.perf_counter()
-        try:
+        try:  # rendered frame by frame while the video is written (memory does not grow with the clip)
             r = ev.rollout
-            frames = render_side_by_side(ev.scene, demo, r.qpos, r.object_pos, r.object_quat, progress=progress)
-            frames = annotate(frames, ("reference (demo)", f"result ({target})"), demo.fps)
+            labels = ("reference (demo)", f"result ({target})")
+            frames = RenderedFrames(ev.scene, demo, r.qpos, r.object_pos, r.object_quat, labels, progress=progress)
         except Exception as e:  # no GL context on this machine: keep the report, say why
             notes.append(f"rendering unavailable ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
-        render_s = time.perf_counter() - t0
-    else:
-        render_s = 0.0
     t = ev.scene.table
     info = {
         "demo": f"{demo.name} ({demo.n_frames} frames at {demo.fps:g} fps)",
@@ -175,17 +176,20 @@ def write_outputs(
         "object": f"{ev.scene.obj.name}: {ev.scene.obj.mass * 1e3:.0f} g, {len(ev.scene.obj.convex_parts())} convex parts",
         "table": f"x [{t.xmin:.3f}, {t.xmax:.3f}] y [{t.ymin:.3f}, {t.ymax:.3f}] top {t.top:.3f} m",
         "rollout wall time": f"{ev.rollout.wall_s:.2f} s",
-        "render wall time": f"{render_s:.1f} s",
         **(extra_info or {}),
     }
-    write_report(
-        out_dir / "report.html",
-        title or f"{demo.name}: {controls.method} in {target}",
-        ev.metrics,
-        ev.per_frame,
-        demo.fps,
-        frames,
-        info,
-        notes,
-        extra_images,
-    )
+    try:
+        write_report(
+            out_dir / "report.html",
+            title or f"{demo.name}: {controls.method} in {target}",
+            ev.metrics,
+            ev.per_frame,
+            demo.fps,
+            frames,
+            info,
+            notes,
+            extra_images,
+        )
+    finally:
+        if frames is not None:
+            frames.close()

@@ -5,6 +5,7 @@ Rendering uses ``MUJOCO_GL`` (``egl`` by default, set by ``import quasisim``; ``
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -123,45 +124,56 @@ class SideBySide:
         self.renderer.close()
 
 
-def render_side_by_side(
-    scene: Scene,
-    demo: Demo,
-    qpos: np.ndarray,
-    opos: np.ndarray,
-    oquat: np.ndarray,
-    frames: list[int] | None = None,
-    width: int = 400,
-    height: int = 300,
-    progress: bool = False,
-) -> list[np.ndarray]:
-    """Side-by-side images [reference | result] (H, 2W, 3) for ``frames`` (default: all)."""
-    frames = list(range(demo.n_frames)) if frames is None else frames
-    r = SideBySide(scene, demo, width, height)
-    try:
-        out = []
-        for t in tqdm(frames, desc="render", disable=not progress, leave=False):
-            out.append(np.concatenate([r.reference(t), r.result(t, qpos, opos, oquat)], axis=1))
-        return out
-    finally:
-        r.close()
+class RenderedFrames(Sequence[np.ndarray]):
+    """The labelled side-by-side images [reference | result] (H, 2W, 3) of a rollout, rendered when read: a
+    video is written frame by frame, so memory does not grow with the clip's length (a 10,000-frame clip held
+    as images would take about 13 GB). Iterating shows a progress bar with ``progress``; :meth:`close` frees
+    the renderer."""
+
+    def __init__(
+        self, scene: Scene, demo: Demo, qpos: np.ndarray, opos: np.ndarray, oquat: np.ndarray,
+        labels: tuple[str, ...], width: int = 400, height: int = 300, progress: bool = False,
+    ) -> None:  # fmt: skip
+        self._r = SideBySide(scene, demo, width, height)
+        self._rollout, self._labels, self._progress = (qpos, opos, oquat), labels, progress
+        self._n, self._fps = demo.n_frames, demo.fps
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, t: int) -> np.ndarray:  # type: ignore[override]
+        if not -self._n <= t < self._n:
+            raise IndexError(f"frame {t} of {self._n}")
+        t %= self._n
+        img = np.concatenate([self._r.reference(t), self._r.result(t, *self._rollout)], axis=1)
+        return label_frame(img, t, self._n, self._labels, self._fps)
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for t in tqdm(range(self._n), desc="render", disable=not self._progress, leave=False):
+            yield self[t]
+
+    def close(self) -> None:
+        self._r.close()
+
+
+def label_frame(frame: np.ndarray, t: int, n: int, labels: tuple[str, ...], fps: float) -> np.ndarray:
+    """``frame`` (H, W, 3) with a label burnt into each of its equally wide panels (e.g. ``("reference
+    (demo)", "result (mujoco)")``) and frame ``t`` of ``n`` and its time into the top-right corner."""
+    h, w = frame.shape[:2]
+    font = ImageFont.load_default(size=max(12, h // 20))
+    panel = w // len(labels)
+    img = Image.fromarray(frame)
+    draw = ImageDraw.Draw(img, "RGBA")
+    texts = [((i * panel + 6, 6), lab) for i, lab in enumerate(labels)]
+    stamp = f"frame {t} / {n - 1}   {t / fps:.2f} s"  # top right: the player's controls cover the bottom
+    texts.append(((w - 6 - draw.textlength(stamp, font=font), 6), stamp))
+    for xy, text in texts:
+        box = draw.textbbox(xy, text, font=font)
+        draw.rectangle((box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3), fill=(20, 20, 20, 170))
+        draw.text(xy, text, font=font, fill=(255, 255, 255, 255))
+    return np.asarray(img)
 
 
 def annotate(frames: list[np.ndarray], labels: tuple[str, ...], fps: float) -> list[np.ndarray]:
-    """Burn a label into each of the equally wide panels of every frame (e.g. ``("reference (demo)",
-    "result (mujoco)")``) and the frame number and time into the top-right corner."""
-    h, w = frames[0].shape[:2]
-    font = ImageFont.load_default(size=max(12, h // 20))
-    panel = w // len(labels)
-    out = []
-    for t, frame in enumerate(frames):
-        img = Image.fromarray(frame)
-        draw = ImageDraw.Draw(img, "RGBA")
-        texts = [((i * panel + 6, 6), lab) for i, lab in enumerate(labels)]
-        stamp = f"frame {t} / {len(frames) - 1}   {t / fps:.2f} s"  # top right: the player's controls cover the bottom
-        texts.append(((w - 6 - draw.textlength(stamp, font=font), 6), stamp))
-        for xy, text in texts:
-            box = draw.textbbox(xy, text, font=font)
-            draw.rectangle((box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3), fill=(20, 20, 20, 170))
-            draw.text(xy, text, font=font, fill=(255, 255, 255, 255))
-        out.append(np.asarray(img))
-    return out
+    """:func:`label_frame` on every frame of ``frames``."""
+    return [label_frame(f, t, len(frames), labels, fps) for t, f in enumerate(frames)]

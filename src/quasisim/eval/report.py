@@ -89,6 +89,7 @@ def _metrics_table(metrics: dict[str, Any]) -> str:
         *[(f"success {k} (paper's threshold)", yes_no(s[k]), "mean R_err <= {0} deg, T_err <= {0} cm, MPJPE <= {0} cm".format(k.split("deg")[0])) for k in PAPER_KEYS],
         ("object lifted as in the demo", lifted_text(mo), f"the rollout's object rose at least {MOVE_FRACTION:.0%} as high as the demo's"),
         ("object moved as in the demo", yes_no(mo["as_demo"]), f"lifted, and at the demo's farthest frame displaced like it (off by {mo['displacement_error_cm']:.1f} of {mo['demo_displacement_cm']:.1f} cm); every success above requires it"),
+        *_robust_rows(metrics.get("robust")),
         ("object rotation error R_err", f"{metrics['R_err_deg']:.2f} deg", "mean over frames"),
         ("object translation error T_err", f"{metrics['T_err_cm']:.2f} cm", "mean over frames"),
         ("hand keypoint error MPJPE", f"{metrics['MPJPE_mm']:.1f} mm", "mean over frames and metric keypoints"),
@@ -99,6 +100,18 @@ def _metrics_table(metrics: dict[str, Any]) -> str:
         for a, b, c in rows
     )
     return f"<table>{body}</table>"
+
+
+def _robust_rows(robust: dict[str, Any] | None) -> list[tuple[str, str, str]]:
+    """The robust-success rows of the metrics table (none without robust replays)."""
+    if not robust:
+        return []
+    why = (f"fraction of {robust['n']} replays of the same controls in perturbed targets (object mass, friction, "
+           "initial object position, PD gains; configs/robust.yaml) that pass")  # fmt: skip
+    return [
+        ("robust success strict", f"{robust['strict']:.0%}", f"{why} strict"),
+        ("robust success 20deg_20cm", f"{robust['20deg_20cm']:.0%}", f"{why} 20 deg / 20 cm"),
+    ]
 
 
 # (PerFrame field, title, unit, strict limit): the per-frame plots, in order

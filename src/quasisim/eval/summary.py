@@ -60,6 +60,10 @@ def summary_lines(title: str, runs: dict[str, dict[str, Any]], report: Path | No
     lines += [_row(n, m, width) for n, m in runs.items()]
     for n, m in runs.items():
         lines += _motion_note(n, m)
+        if m.get("robust"):
+            r = m["robust"]
+            lines.append(f"{n}: robust success (the same controls in {r['n']} perturbed targets) strict "
+                         f"{r['strict']:.0%}, 20deg/20cm {r['20deg_20cm']:.0%}")  # fmt: skip
     lines += legend()
     if report is not None:
         lines.append(f"report: {report} (open it in a browser; see README for a headless server)")

@@ -31,6 +31,8 @@ class TransferSpec:
         render: render the report's video.  progress: show progress bars.
         networks: what stage 3 trains on top of S and the constants, of :data:`NETWORKS` (``local`` and
             ``global`` residual networks, ``control`` transformation); the ablation flags remove them.
+        robust: perturbed replays of the result for robust success (None: ``n`` of ``configs/robust.yaml``;
+            0: none). Judging only: not part of the run's identity.
     """
 
     hand: str = "shadow"
@@ -42,6 +44,7 @@ class TransferSpec:
     render: bool = True
     progress: bool = True
     networks: tuple[str, ...] = ("local", "global", "control")
+    robust: int | None = None
 
     def checked(self) -> TransferSpec:
         """Validated, with the stages that ``method`` implies."""
@@ -66,8 +69,9 @@ class TransferSpec:
         return dataclasses.replace(self, stages=registry.order(stages), networks=networks)
 
     def identity(self) -> dict[str, object]:
-        """The fields that determine the run's results (progress aside; stage 3's networks only with stage 3)."""
-        d = {k: v for k, v in dataclasses.asdict(self).items() if k != "progress"}
+        """The fields that determine the run's results (progress and robust replays aside; stage 3's networks
+        only with stage 3)."""
+        d = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("progress", "robust")}
         if "3" not in self.stages:
             d.pop("networks")
         return d

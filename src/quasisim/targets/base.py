@@ -155,12 +155,13 @@ class PDGains(NamedTuple):
     damping: np.ndarray
 
 
-def pd_gains(hand: HandModel) -> PDGains:
+def pd_gains(hand: HandModel, scale: float = 1.0) -> PDGains:
     """The PD gains of every dof of ``hand`` (its config's ``pd``: ``base_pos`` on the 3 base translations,
-    ``base_rot`` on the 3 base angles, ``joint`` on the J joints)."""
+    ``base_rot`` on the 3 base angles, ``joint`` on the J joints), ``kp`` and ``kv`` times ``scale``
+    (:attr:`~quasisim.targets.scene.PhysicsOptions.gain_scale`: 1 but in a perturbed target)."""
     pd, J = hand.config.pd, hand.n_joints
-    kp = np.array([pd.base_pos.kp] * 3 + [pd.base_rot.kp] * 3 + [pd.joint.kp] * J)
-    kv = np.array([pd.base_pos.kv] * 3 + [pd.base_rot.kv] * 3 + [pd.joint.kv] * J)
+    kp = scale * np.array([pd.base_pos.kp] * 3 + [pd.base_rot.kp] * 3 + [pd.joint.kp] * J)
+    kv = scale * np.array([pd.base_pos.kv] * 3 + [pd.base_rot.kv] * 3 + [pd.joint.kv] * J)
     limit = np.r_[np.full(6, np.inf), np.full(J, pd.joint_force_limit)]
     damping = np.r_[np.zeros(6), np.full(J, pd.joint_damping)]
     return PDGains(kp, kv, limit, damping)

@@ -68,7 +68,7 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
         _add_hand_geoms(spec, hand, prefix, bodies, visual, fr)
     _add_object(spec, scene, visual, fr)
     for hand, prefix in zip(scene.hands, scene.prefixes, strict=True):
-        _add_actuators(spec, hand, prefix)
+        _add_actuators(spec, hand, prefix, scene.physics.gain_scale)
     return spec
 
 
@@ -216,10 +216,10 @@ def _add_object(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
         )  # fmt: skip
 
 
-def _add_actuators(spec: Any, hand: HandModel, prefix: str) -> None:
+def _add_actuators(spec: Any, hand: HandModel, prefix: str, gain_scale: float = 1.0) -> None:
     """PD position + velocity feed-forward actuators on every dof of the hand with name prefix ``prefix``
     (gains and force limits of :func:`~quasisim.targets.base.pd_gains`)."""
-    g = pd_gains(hand)
+    g = pd_gains(hand, gain_scale)
     for i, jn in enumerate(hand_dof_names(hand, prefix)):
         kp, kv, limit = float(g.kp[i]), float(g.kv[i]), float(g.force_limit[i])
         for kind in ("pd", "ff"):

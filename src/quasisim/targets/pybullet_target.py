@@ -504,7 +504,10 @@ class PybulletTarget(Target):
         ``qb`` (D each) with their velocity fed forward; the PD law of the module docstring, per hand."""
         pb, kw = self.pb, self._kw()
         targets, _ = pd_schedule(qa, qb, self.substeps, self.scene.fps)
-        hands = [(i, part, sl, pd_gains(part.hand)) for i, (part, sl) in enumerate(self._slices())]
+        hands = [
+            (i, part, sl, pd_gains(part.hand, self.scene.physics.gain_scale))
+            for i, (part, sl) in enumerate(self._slices())
+        ]
         ff = [feed_forward(g.kv, qa[sl], qb[sl], self.scene.fps) for _, _, sl, g in hands]  # kv qd*
         for target in targets:
             for (i, part, sl, g), f in zip(hands, ff, strict=True):

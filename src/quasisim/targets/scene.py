@@ -57,12 +57,15 @@ class Table:
 
 @dataclass(frozen=True)
 class PhysicsOptions:
-    """Target-simulator settings (SI units). ``friction`` is the sliding coefficient on every contact."""
+    """Target-simulator settings (SI units). ``friction`` is the sliding coefficient on every contact;
+    ``gain_scale`` multiplies every PD gain (kp and kv) of the hands (1; else a perturbed target,
+    :mod:`quasisim.eval.robust`)."""
 
     mujoco_dt: float = 0.002
     pybullet_dt: float = 0.0005
     friction: float = 1.0
     gravity: float = 9.81
+    gain_scale: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)

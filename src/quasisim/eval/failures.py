@@ -1,0 +1,204 @@
+"""Why a run fails strict success: the first frame over a strict limit, which limit, and what the hand and the
+object did there, from the run's own outputs (``rollout.npz``, ``scene.xml``, ``trajectory.npz``) and its demo.
+
+Labels, the first that applies at the first failing frame ``f``:
+
+* ``symmetric``: at every failing frame only the rotation limit is exceeded, and the rotation error moves
+  the object's surface by less than :data:`SYMMETRIC_MM` on average (a rotation the shape hides, e.g. about
+  a cylinder's axis or a cube's quarter turn);
+* ``drop``: within :data:`AFTER` frames of ``f`` the hand touches the object nowhere and the object ends at
+  least :data:`DROP_CM` lower than the demo's;
+* ``lost contact``: no hand contact at ``f`` (the object was pushed or left behind);
+* ``never grasped``: no hand contact at any frame up to ``f``;
+* ``slip``: the hand touches the object at ``f``, yet the object drifts off the demo's pose.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.data.demo import Demo
+from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
+from quasisim.rotations import np_quat_to_mat
+
+SYMMETRIC_MM = 1.0  # mean surface distance (mm) under which a rotation error is a symmetry of the shape
+DROP_CM = 3.0  # the object this much below the demo's, with no hand contact: dropped
+AFTER = 10  # frames after the first failing one in which a drop is looked for
+SURFACE_POINTS = 400
+
+
+@dataclass(frozen=True)
+class Failure:
+    """One run's strict failure (or its pass: ``frame`` -1, ``label`` "pass")."""
+
+    clip: str
+    method: str
+    label: str
+    frame: int  # first frame over a strict limit (-1: none)
+    frames: int  # frames of the clip
+    over: str  # "translation", "rotation" or "both" at ``frame``
+    rot_deg: float  # errors at ``frame``
+    trans_cm: float
+    surface_mm: float  # how far the rotation error at ``frame`` moves the object's surface (mean, mm)
+    contacts: int  # hand-object contacts at ``frame``
+    failing_frames: int  # frames over a limit
+    max_rot_deg: float
+    max_trans_cm: float
+
+
+def hand_contacts(scene_xml: Path, qpos: np.ndarray) -> np.ndarray:
+    """(T,) number of contacts between the hand(s) and the object at each frame's ``qpos`` (T, nq) of the
+    run's exported scene (``scene.xml``: body ``object``; the world's geoms are the table and the floor)."""
+    import mujoco
+
+    from quasisim.errors import captured_stderr
+
+    with captured_stderr():
+        model = mujoco.MjModel.from_xml_path(str(scene_xml))
+    data, obj = mujoco.MjData(model), mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
+    out = np.zeros(len(qpos), int)
+    for t, q in enumerate(qpos):
+        data.qpos[:] = q
+        mujoco.mj_forward(model, data)
+        b1 = model.geom_bodyid[data.contact.geom1[: data.ncon]]
+        b2 = model.geom_bodyid[data.contact.geom2[: data.ncon]]
+        out[t] = int(np.sum(((b1 == obj) & (b2 > 0) & (b2 != obj)) | ((b2 == obj) & (b1 > 0) & (b1 != obj))))
+    return out
+
+
+def rotation_distance(mesh: Any, points: np.ndarray, quat_a: np.ndarray, quat_b: np.ndarray) -> float:
+    """Mean distance (mm) of the object's surface ``points`` (P, 3; object frame) turned by the rotation from
+    pose a to pose b (quaternions w x y z, the same origin) to the object's surface ``mesh`` (a trimesh):
+    0 where the rotation is a symmetry of the shape, whatever its angle."""
+    R = np_quat_to_mat(quat_a).T @ np_quat_to_mat(quat_b)  # b's frame seen from a's
+    _, dist, _ = mesh.nearest.on_surface(points @ R.T)
+    return 1000.0 * float(np.mean(dist))
+
+
+def classify(demo: Demo, run_dir: Path, method: str, mesh: Any, surface: np.ndarray) -> Failure:
+    """The :class:`Failure` of the finished run in ``run_dir`` (its ``rollout.npz``, ``scene.xml``,
+    ``trajectory.npz``) against ``demo``; ``mesh`` the object's surface (trimesh), ``surface`` (P, 3) points
+    on it (object frame)."""
+    with np.load(run_dir / "rollout.npz") as z:
+        pos, quat = z["object_pos"], z["object_quat"]
+    rot, trans = object_errors(demo.object_pos, demo.object_quat, pos, quat)
+    bad = (rot > STRICT_DEG) | (trans > STRICT_CM)
+    common = {"clip": demo.name, "method": method, "frames": demo.n_frames, "failing_frames": int(bad.sum()),
+              "max_rot_deg": float(rot.max()), "max_trans_cm": float(trans.max())}  # fmt: skip
+    if not bad.any():
+        return Failure(label="pass", frame=-1, over="", rot_deg=0.0, trans_cm=0.0, surface_mm=0.0, contacts=0,
+                       **common)  # fmt: skip
+    f = int(np.argmax(bad))
+    with np.load(run_dir / "trajectory.npz") as z:
+        contacts = hand_contacts(run_dir / "scene.xml", z["qpos"])
+    over = (
+        "both" if rot[f] > STRICT_DEG and trans[f] > STRICT_CM else "rotation" if rot[f] > STRICT_DEG else "translation"
+    )
+    hidden = [rotation_distance(mesh, surface, demo.object_quat[t], quat[t]) for t in np.flatnonzero(bad)]
+    after = slice(f, min(len(pos), f + AFTER + 1))
+    below = 100.0 * (demo.object_pos[after, 2] - pos[after, 2])
+    if not (trans[bad] > STRICT_CM).any() and max(hidden) < SYMMETRIC_MM:
+        label = "symmetric"
+    elif (contacts[after] == 0).any() and below.max() >= DROP_CM:
+        label = "drop"
+    elif not contacts[: f + 1].any():
+        label = "never grasped"
+    elif contacts[f] == 0:
+        label = "lost contact"
+    else:
+        label = "slip"
+    return Failure(label=label, frame=f, over=over, rot_deg=float(rot[f]), trans_cm=float(trans[f]),
+                   surface_mm=hidden[0], contacts=int(contacts[f]), **common)  # fmt: skip
+
+
+def finished_runs(root: Path) -> list[Path]:
+    """Folders under ``root`` (itself included; hidden folders and checkpoints skipped) that hold a finished
+    run judged in MuJoCo's exported scene: ``manifest.json``, ``rollout.npz``, ``scene.xml``, ``trajectory.npz``."""
+    need = ("manifest.json", "rollout.npz", "scene.xml", "trajectory.npz", "controls.npz")
+    found = [p.parent for p in sorted(root.rglob("manifest.json"))]
+
+    def ok(d: Path) -> bool:
+        hidden = any(part.startswith(".") or part == "checkpoints" for part in d.relative_to(root).parts)
+        return not hidden and all((d / n).is_file() for n in need)
+
+    return [d for d in found if ok(d)]
+
+
+def run_method(run_dir: Path) -> str:
+    """The method of a finished run (``controls.npz``'s, e.g. ``sample-target``; ``ours`` with its stages)."""
+    with np.load(run_dir / "controls.npz") as z:
+        return str(z["method"]).split("[")[0] or run_dir.name
+
+
+def as_rows(failures: list[Failure]) -> list[dict[str, Any]]:
+    return [asdict(f) for f in failures]
+
+
+def markdown(failures: list[Failure]) -> str:
+    """Per clip (failures only) and a count of the labels per method."""
+    lines = [
+        "| clip | method | label | first failing frame | over | rot (deg) | trans (cm) | rot moves surface (mm) | contacts "
+        "| frames over | max rot (deg) | max trans (cm) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for f in failures:
+        if f.label != "pass":
+            lines.append(
+                f"| {f.clip} | {f.method} | {f.label} | {f.frame} of {f.frames} | {f.over} | {f.rot_deg:.1f} | "
+                f"{f.trans_cm:.2f} | {f.surface_mm:.1f} | {f.contacts} | {f.failing_frames} | {f.max_rot_deg:.1f} | "
+                f"{f.max_trans_cm:.2f} |"
+            )
+    lines += ["", "| method | runs | strict passes | " + " | ".join(LABELS) + " |", "|---" * (3 + len(LABELS)) + "|"]
+    for m in sorted({f.method for f in failures}):
+        fs = [f for f in failures if f.method == m]
+        counts = [sum(f.label == lab for f in fs) for lab in LABELS]
+        lines.append(
+            f"| {m} | {len(fs)} | {sum(f.label == 'pass' for f in fs)} | " + " | ".join(map(str, counts)) + " |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+LABELS = ("symmetric", "drop", "never grasped", "lost contact", "slip")
+
+
+def analyse(root: Path, data_dir: Path) -> list[Failure]:
+    """:func:`classify` every finished run under ``root``; its demo is ``data_dir/<demo>.npz`` (the name in
+    its ``controls.npz``), checked against the demo's content hash recorded there."""
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import content_hash, load_demo
+    from quasisim.errors import InputError, QuasisimError
+    from quasisim.targets.build import load_object_for
+
+    runs = finished_runs(root)
+    if not runs:
+        raise QuasisimError(f"{root}: no finished runs (folders with manifest.json, rollout.npz, scene.xml, "
+                            "trajectory.npz, controls.npz)")  # fmt: skip
+    out, demos = [], {}
+    for d in runs:
+        c = load_controls(d / "controls.npz")
+        if c.demo not in demos:
+            demo = load_demo(data_dir / f"{c.demo}.npz")
+            obj = load_object_for(demo)
+            demos[c.demo] = (demo, obj.to_trimesh(), obj.surface_points(SURFACE_POINTS)[0])
+        demo, mesh, surface = demos[c.demo]
+        if c.demo_hash and c.demo_hash != content_hash(demo):
+            raise InputError(d / "controls.npz", "demo_hash", f"the content hash of {data_dir / c.demo}.npz",
+                             c.demo_hash)  # fmt: skip
+        out.append(classify(demo, d, run_method(d), mesh, surface))
+    return out
+
+
+def write(root: Path, failures: list[Failure], out: Path) -> str:
+    from quasisim.bench.tables import header
+    from quasisim.files import save_text_atomic
+
+    md = header(f"Strict failures of the runs under {root}") + "\n" + markdown(failures)
+    out.mkdir(parents=True, exist_ok=True)
+    save_text_atomic(out / "failures.json", json.dumps(as_rows(failures), indent=1))
+    save_text_atomic(out / "failures.md", md)
+    return md

@@ -1,0 +1,108 @@
+"""Robust success (:mod:`quasisim.eval.robust`): the perturbed targets are what the settings say, seeded, and
+reach the simulators (gains in MuJoCo's actuators); replays in unperturbed copies agree with the nominal
+judgement; ``evaluate --robust N`` writes the fractions into metrics.json; bad settings name the field."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from quasisim.errors import InputError
+from quasisim.eval.robust import ROBUST_PATH, RobustConfig, perturbed_scene, robust_success
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """The bundled example (20 frames), its kinematic retarget and their scene."""
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    folder = tmp_path_factory.mktemp("robust")
+    path = write_example("cube_lift", folder, n_frames=20)
+    demo, hand = load_demo(path), load_hand("shadow")
+    controls = kinematic_controls(hand, demo, "shadow")
+    controls.save(folder / "kinematic.npz")
+    return path, demo, controls, scene_for(demo, place_hands((hand,), controls.base_rots))
+
+
+def test_the_shipped_settings_load_and_bad_ones_name_the_field(tmp_path) -> None:
+    cfg = RobustConfig.from_yaml()
+    assert cfg.n >= 1 and (cfg.mass, cfg.friction, cfg.object_pos, cfg.pd_gains) == (0.15, 0.20, 0.003, 0.10)
+    assert RobustConfig.from_yaml(None, {"n": 3}).n == 3
+    with pytest.raises(InputError, match=r"friction.*\[0, 1\)"):
+        RobustConfig.from_yaml(None, {"friction": 1.5})
+    bad = tmp_path / "robust.yaml"
+    bad.write_text(ROBUST_PATH.read_text().replace("n: 8", "n: -1"))
+    with pytest.raises(InputError, match=rf"{bad}.*n.*>= 0"):
+        RobustConfig.from_yaml(bad)
+
+
+def test_perturbed_scenes_stay_within_their_ranges_and_are_seeded(clip) -> None:
+    _, _, _, scene = clip
+    cfg = RobustConfig.from_yaml()
+    copies = [perturbed_scene(scene, cfg, i) for i in range(20)]
+    mass = np.array([s.obj.mass for s in copies]) / scene.obj.mass
+    fric = np.array([s.physics.friction for s in copies]) / scene.physics.friction
+    gain = np.array([s.physics.gain_scale for s in copies])
+    shift = np.array([s.object_pos0 - scene.object_pos0 for s in copies])
+    for ratio, r in ((mass, cfg.mass), (fric, cfg.friction), (gain, cfg.pd_gains)):
+        assert np.all(np.abs(ratio - 1) <= r) and np.ptp(ratio) > r  # within the range, and spread over it
+    assert np.all(np.abs(shift[:, :2]) <= cfg.object_pos) and np.all(shift[:, 2] == 0)
+    for s in copies:  # inertia scales with the mass (the same shape, another density)
+        np.testing.assert_allclose(s.obj.inertia, scene.obj.inertia * s.obj.mass / scene.obj.mass, rtol=1e-12)
+    again = perturbed_scene(scene, cfg, 7)
+    assert again.obj.mass == copies[7].obj.mass and np.array_equal(again.object_pos0, copies[7].object_pos0)
+    other = perturbed_scene(scene, dataclasses.replace(cfg, seed=1), 7)
+    assert other.obj.mass != copies[7].obj.mass
+    assert scene.physics.gain_scale == 1.0 and scene.obj.mass == copies[0].obj.mass / mass[0]  # untouched
+
+
+def test_the_gain_scale_reaches_mujocos_actuators(clip) -> None:
+    import mujoco
+
+    from quasisim.targets import pd_gains
+    from quasisim.targets.mujoco_target import build_spec
+
+    _, _, _, scene = clip
+    scaled = dataclasses.replace(scene, physics=dataclasses.replace(scene.physics, gain_scale=1.1))
+    m0, m1 = build_spec(scene, visual=False).compile(), build_spec(scaled, visual=False).compile()
+    kp = pd_gains(scene.hands[0]).kp
+    pd = [i for i in range(m0.nu) if mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_ACTUATOR, i).startswith("pd/")]
+    np.testing.assert_allclose(m0.actuator_gainprm[pd, 0], kp, rtol=1e-12)
+    np.testing.assert_allclose(m1.actuator_gainprm[pd, 0], 1.1 * kp, rtol=1e-12)
+    np.testing.assert_allclose(m1.actuator_biasprm[pd, 2], 1.1 * m0.actuator_biasprm[pd, 2], rtol=1e-12)
+
+
+def test_replays_in_unperturbed_copies_agree_with_the_nominal_judgement(clip) -> None:
+    from quasisim.eval.evaluate import evaluate_controls
+
+    _, demo, controls, scene = clip
+    none = RobustConfig(n=3, mass=0.0, friction=0.0, object_pos=0.0, pd_gains=0.0)
+    ev = evaluate_controls(demo, controls, "mujoco", None, render=False, scene=scene, robust=none)
+    r = ev.metrics["robust"]
+    assert r["n"] == 3 and r["unstable"] == 0
+    for k, ok in ev.metrics["success"].items():
+        assert r[k] == float(ok), k
+    assert robust_success(demo, scene, controls.q_targets, "mujoco", dataclasses.replace(none, n=0)) == {}
+
+
+def test_evaluate_writes_robust_success_with_the_number_of_replays_asked(clip, tmp_path) -> None:
+    path, _, _, _ = clip
+    out = tmp_path / "ev"
+    cmd = [sys.executable, "-m", "quasisim.cli", "evaluate", str(path), str(path.parent / "kinematic.npz"),
+           "--out", str(out), "--no-render", "--robust", "2"]  # fmt: skip
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    r = json.loads((out / "metrics.json").read_text())["robust"]
+    assert r["n"] == 2 and set(r) >= {"strict", "20deg_20cm", "unstable"}
+    assert all(0.0 <= r[k] <= 1.0 for k in ("strict", "20deg_20cm"))
+    assert "robust success" in res.stdout and "robust success strict" in (out / "report.html").read_text()
