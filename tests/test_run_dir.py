@@ -346,7 +346,10 @@ def test_long_clips_warn_with_an_estimate(capsys) -> None:
     assert capsys.readouterr().err == ""
     warn_long_clip(SimpleNamespace(name="c", n_frames=10_000), 0.36, 0.4, "transfer")
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 1 and "10000 frames" in err[0] and "60 min" in err[0] and "3.9 GB" in err[0]
+    # BASE + T * per frame: (15 s + 3600 s) / 60 and (600 MB + 4000 MB) / 1024
+    assert len(err) == 1 and "10000 frames" in err[0] and "60 min" in err[0] and "4.5 GB" in err[0]
+    warn_long_clip(SimpleNamespace(name="c", n_frames=1600), 0.01, 0.1, "retargeting")
+    assert "about 0.5 min and 0.7 GB" in capsys.readouterr().err  # under 10 min: one decimal
 
 
 # ---- transfer: another demo's checkpoints, and kills at random points -----------------------------------

@@ -167,7 +167,7 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
     import numpy as np
 
     from quasisim.data.demo import load_demo, warn_long_clip
-    from quasisim.method.retarget import kinematic_controls
+    from quasisim.method.retarget import RETARGET_MB_PER_FRAME, RETARGET_S_PER_FRAME, kinematic_controls
     from quasisim.targets.build import demo_hands
 
     d = load_demo(demo)
@@ -177,7 +177,7 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
     check_out_dir(out)
     with run_lock(out, f"retarget {d.name}"):  # one run per folder
         _outputs_free(out, ("kinematic.npz",), overwrite)
-        warn_long_clip(d, 0.05, 1.0, "retargeting")
+        warn_long_clip(d, RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME, "retargeting")
         t0 = time.perf_counter()
         c = kinematic_controls(hands, d, hand, progress=True)
         path = c.save(out / "kinematic.npz")
@@ -206,7 +206,7 @@ def evaluate(
     _setup_runtime()
     from quasisim.data.controls import check_demo_hash, load_controls
     from quasisim.data.demo import content_hash, load_demo, warn_long_clip
-    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hands_of
+    from quasisim.eval.evaluate import OUTPUTS, check_controls, evaluate_controls, hands_of, judging_cost
     from quasisim.files import MANIFEST
 
     d = load_demo(demo)
@@ -220,8 +220,9 @@ def evaluate(
         _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
         if note:
             click.echo(f"warning: {note}", err=True)
-        warn_long_clip(d, 0.2, 2.0, "evaluation" + (" with rendering" if render else ""))
-        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=_robust_config(robust))
+        robust_cfg = _robust_config(robust)
+        warn_long_clip(d, *judging_cost(render, robust_cfg), "evaluation" + (" with rendering" if render else ""))
+        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
     _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")

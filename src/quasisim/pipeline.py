@@ -26,6 +26,8 @@ from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError, QuasisimError
+from quasisim.eval.evaluate import judging_cost
+from quasisim.eval.robust import RobustConfig
 from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, write_outputs
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans, run_lock
 from quasisim.method import registry
@@ -33,7 +35,7 @@ from quasisim.method.checkpoints import Checkpoints
 from quasisim.method.config import Budget, TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import Problem, make_problem
-from quasisim.method.retarget import retarget_hands
+from quasisim.method.retarget import RETARGET_S_PER_FRAME, retarget_hands
 from quasisim.method.spec import TransferSpec
 from quasisim.method.stage import Context, Outcome, Plan, RunRecord, Stage
 from quasisim.method.stages._common import timed
@@ -77,7 +79,7 @@ def run_transfer(
         _check_run_dir(out, resume, overwrite)
         warn_long_clip(
             demo,
-            *cost_per_frame(cfg.budget(spec.budget), cfg.budgets.get("fast"), stages),
+            *cost_per_frame(cfg.budget(spec.budget), cfg.budgets.get("fast"), stages, spec),
             f"transfer ({spec.budget} budget)",
         )
         info = identity(demo_path, demo, spec, cur, cfg)
@@ -145,15 +147,16 @@ def _kinematic(hands: tuple[Any, ...], demo: Any, progress: Progress) -> dict[st
     return out if len(rt) == 1 else {**out, "left_base_rot": rt[1].base_rot}
 
 
-# seconds per frame of the kinematic retarget, and memory per frame (a 10,000-frame clip took about 4 GB): the
-# clip-length warning's estimate, with each stage's own figure (Stage.s_per_frame)
-RETARGET_S_PER_FRAME = 0.05
-MB_PER_FRAME = 0.4
+# memory per frame of a transfer (bench long: 0.15-0.2 MB per frame for sample-target), with the fast budget
+MB_PER_FRAME = 0.2
 
 
-def cost_per_frame(budget: Budget, fast: Budget | None, stages: tuple[Stage, ...]) -> tuple[float, float]:
-    """(seconds, MB) per frame of a run of ``stages`` with ``budget``: each stage's figure for the ``fast``
-    budget, scaled by the substeps and the Adam steps of its budget parts against ``fast``'s."""
+def cost_per_frame(
+    budget: Budget, fast: Budget | None, stages: tuple[Stage, ...], spec: TransferSpec
+) -> tuple[float, float]:
+    """(seconds, MB) per frame of a run of ``stages`` with ``budget``: the kinematic retarget, each stage's
+    figure for the ``fast`` budget scaled by the substeps and the Adam steps of its budget parts against
+    ``fast``'s, and judging the result (robust replays, the video)."""
     f = fast or budget
     sub = budget.substeps / f.substeps
 
@@ -163,7 +166,10 @@ def cost_per_frame(budget: Budget, fast: Budget | None, stages: tuple[Stage, ...
     def scale(st: Stage) -> float:
         return sub * steps(budget, st.budget_parts) / max(1, steps(f, st.budget_parts)) if st.budget_parts else 1.0
 
-    return RETARGET_S_PER_FRAME + sum(st.s_per_frame * scale(st) for st in stages), MB_PER_FRAME * sub
+    robust = RobustConfig.from_yaml(None, None if spec.robust is None else {"n": spec.robust})
+    judge_s, judge_mb = judging_cost(spec.render, robust)
+    s = RETARGET_S_PER_FRAME + sum(st.s_per_frame * scale(st) for st in stages) + judge_s
+    return s, max(MB_PER_FRAME * sub, judge_mb)
 
 
 def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:

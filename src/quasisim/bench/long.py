@@ -24,7 +24,7 @@ from quasisim.files import save_json_atomic, save_text_atomic
 
 COMMANDS = ("retarget", "evaluate", "sample-target")
 # "...; retargeting will take about 8 min and 9.8 GB of memory"
-_ESTIMATE = re.compile(r"will take about (\d+) min and ([\d.]+) GB of memory")
+_ESTIMATE = re.compile(r"will take about ([\d.]+) min and ([\d.]+) GB of memory")
 
 
 def _argv(command: str, clip: Path, folder: Path, render: bool) -> list[str]:
@@ -100,7 +100,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         est, ratio = "-", "-"
         if r["estimate_min"] is not None:
             est = f"{r['estimate_min']:.0f}, {r['estimate_gb']:.1f}"
-            t = r["wall_s"] / 60 / max(r["estimate_min"], 0.5)
+            t = r["wall_s"] / 60 / max(r["estimate_min"], 0.1)
             ratio = f"{t:.2f}, {r['peak_gb'] / r['estimate_gb']:.2f}"
         lines.append(
             f"| {r['command']} | {'yes' if r['render'] else 'no'} | {r['frames']} | {r['wall_s']:.1f} | {1e3 * r['wall_s'] / r['frames']:.1f} | "

@@ -11,10 +11,8 @@ to 6 digits, and a replay in it drifts off the run by millimetres.
 from __future__ import annotations
 
 import datetime
-import glob
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +23,8 @@ import numpy as np
 
 from quasisim.data.controls import Controls, load_controls
 from quasisim.data.dataset import FORMAT, OBS_KEYS
-from quasisim.data.demo import Demo, content_hash, load_demo
+from quasisim.data.demo import Demo
+from quasisim.data.run_demo import RunDemos
 from quasisim.errors import InputError, QuasisimError
 from quasisim.files import MANIFEST, atomic_path, open_npz, read_manifest
 from quasisim.targets.base import pd_schedule
@@ -154,66 +153,6 @@ def check_robust(run: RunInput) -> None:
         raise InputError(
             run.path / "metrics.json", "robust",
             "robust success fractions for --min-robust (evaluate or transfer with --robust N, N > 0)", "missing",
-        )  # fmt: skip
-
-
-# ---- the demo of a run --------------------------------------------------------------------------------
-
-
-class DemoFinder:
-    """Finds the demo a run was made from by its name and content hash, in (first found wins): ``--data``
-    folders, the ``data_dir`` of a ``batch.json`` above the run, the run's folder and those above it, and
-    ``$QUASISIM_DATA``; in each, ``NAME.npz`` and ``*/NAME.npz`` (e.g. ``arctic/``)."""
-
-    def __init__(self, root: Path, data_dirs: tuple[Path, ...] = ()) -> None:
-        self.root = Path(root).resolve()
-        self.data_dirs = tuple(data_dirs)
-        self._loaded: dict[Path, tuple[Demo, str]] = {}
-
-    def _roots(self, run: Path) -> list[tuple[Path, bool]]:
-        """(folder, also search its subfolders) in order: the run's folder and those above it are searched
-        one level down as far as the export root, by themselves above it."""
-        roots = [(d, True) for d in self.data_dirs]
-        for p in [run.resolve(), *run.resolve().parents]:
-            b = p / "batch.json"
-            if b.is_file():
-                data_dir = _json(b).get("data_dir")
-                if isinstance(data_dir, str):
-                    roots.append((Path(data_dir), True))
-            roots.append((p, p == self.root or self.root in p.parents))
-        env = os.environ.get("QUASISIM_DATA")
-        if env:
-            roots.append((Path(env), True))
-        return roots
-
-    def _load(self, path: Path) -> tuple[Demo, str]:
-        path = path.resolve()
-        if path not in self._loaded:
-            d = load_demo(path)
-            self._loaded[path] = (d, content_hash(d))
-        return self._loaded[path]
-
-    def find(self, run: RunInput) -> Demo:
-        c, seen, other = run.controls, [], []
-        for root, deep in self._roots(run.path):
-            below = sorted(root.glob(f"*/{glob.escape(c.demo)}.npz")) if deep and root.is_dir() else []
-            cands = [root / f"{c.demo}.npz", *below]
-            seen.append(str(root))
-            for p in cands:
-                if p.is_file():
-                    demo, h = self._load(p)
-                    if not c.demo_hash or h == c.demo_hash:
-                        return demo
-                    other.append(str(p))
-        got = (
-            f"other content in {', '.join(other)}"
-            if other
-            else f"not found (searched {', '.join(dict.fromkeys(seen))})"
-        )
-        raise InputError(
-            run.path / "controls.npz", "demo",
-            f"the demo {c.demo!r} (content hash {c.demo_hash or 'not recorded'}) as {c.demo}.npz under --data DIR, "
-            "the batch's data_dir or $QUASISIM_DATA", got,
         )  # fmt: skip
 
 
@@ -427,14 +366,14 @@ def export_dataset(
         want = f"--only {only}" + ("" if min_robust is None else f" --min-robust {min_robust:g}")
         raise InputError(root, None, f"at least one run that passes {want}",
                          f"none of {len(runs)} ({'; '.join(f'{a}: {b}' for a, b in res.skipped[:5])})")  # fmt: skip
-    finder = DemoFinder(root, tuple(data_dirs))
+    demos = RunDemos(tuple(data_dirs), root)
     fps, dts = [], []
     bar = tqdm(total=len(keep), desc="export", unit="run", disable=None if progress else True, leave=False)
     with bar, atomic_path(out) as tmp, h5py.File(tmp, "w", libver="v108") as f:
         data, mask = f.create_group("data"), {k: [] for k in SUCCESS_FLAGS}
         for i, r in enumerate(keep):
             bar.set_postfix_str(r.label)
-            ep = record_episode(r, finder.find(r))
+            ep = record_episode(r, demos.find(r.path))
             bar.update(1)
             name = f"demo_{i}"
             _write_episode(data.create_group(name), ep)

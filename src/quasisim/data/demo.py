@@ -265,14 +265,20 @@ def _validate_hand(j: np.ndarray, side: str, object_pos: np.ndarray, path: str |
         )  # fmt: skip
 
 
+# what every command costs whatever the clip's length (start-up, compiling, the scene): the constant term of
+# the clip-length warning's estimate (bench long, BENCHMARKS.md "Commands on long clips")
+BASE_S, BASE_MB = 15.0, 600.0
+
+
 def warn_long_clip(demo: Demo, s_per_frame: float, mb_per_frame: float, what: str) -> None:
     """One line on stderr for a clip longer than :data:`LONG_CLIP` frames: an estimate of ``what``'s wall
-    time and memory (both linear in the frames)."""
+    time and peak memory, ``BASE + T * per_frame`` for ``T`` frames (both linear in the frames)."""
     T = demo.n_frames
     if T > LONG_CLIP:
+        minutes = (BASE_S + T * s_per_frame) / 60
         print(
             f"warning: {demo.name}: {T} frames (more than {LONG_CLIP}); {what} will take about "
-            f"{T * s_per_frame / 60:.0f} min and {T * mb_per_frame / 1024:.1f} GB of memory",
+            f"{minutes:.{0 if minutes >= 10 else 1}f} min and {(BASE_MB + T * mb_per_frame) / 1024:.1f} GB of memory",
             file=sys.stderr,
         )
 

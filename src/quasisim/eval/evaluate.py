@@ -26,6 +26,17 @@ from quasisim.targets.build import demo_hands, scene_for
 from quasisim.targets.scene import Scene, place_hands
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
+# the clip-length warning's estimate of judging a clip, per frame (2-core machine, MuJoCo; bench long):
+# the rollout, metrics and outputs; each perturbed replay of robust success; rendering the report's video
+JUDGE_S_PER_FRAME, REPLAY_S_PER_FRAME, RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME = 0.004, 0.002, 0.2, 0.15
+
+
+def judging_cost(render: bool, robust: RobustConfig | None) -> tuple[float, float]:
+    """(seconds, MB) per frame of judging a clip in MuJoCo (PyBullet's rollouts are slower)."""
+    n = robust.n if robust is not None else 0
+    return JUDGE_S_PER_FRAME + n * REPLAY_S_PER_FRAME + render * RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME
+
+
 OUTPUTS = ("metrics.json", "rollout.npz", "report.html", "video.mp4", "scene.xml", "trajectory.npz")
 STABILITY_KEY = "unstable"  # metrics.json: the metrics of eval.metrics plus this flag (see mark_stability)  # what evaluate writes (as one set, see files.output_set)
 

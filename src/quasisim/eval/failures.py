@@ -167,29 +167,23 @@ LABELS = ("symmetric", "drop", "never grasped", "lost contact", "slip")
 
 
 def analyse(root: Path, data_dir: Path) -> list[Failure]:
-    """:func:`classify` every finished run under ``root``; its demo is ``data_dir/<demo>.npz`` (the name in
-    its ``controls.npz``), checked against the demo's content hash recorded there."""
-    from quasisim.data.controls import load_controls
-    from quasisim.data.demo import content_hash, load_demo
-    from quasisim.errors import InputError, QuasisimError
+    """:func:`classify` every finished run under ``root``; its demo is found by the name and content hash in its
+    ``controls.npz``, first in ``data_dir`` (:class:`~quasisim.data.run_demo.RunDemos`)."""
+    from quasisim.data.run_demo import RunDemos
+    from quasisim.errors import QuasisimError
     from quasisim.targets.build import load_object_for
 
     runs = finished_runs(root)
     if not runs:
         raise QuasisimError(f"{root}: no finished runs (folders with manifest.json, rollout.npz, scene.xml, "
                             "trajectory.npz, controls.npz)")  # fmt: skip
-    out, demos = [], {}
+    out, demos, objects = [], RunDemos((data_dir,), root), {}
     for d in runs:
-        c = load_controls(d / "controls.npz")
-        if c.demo not in demos:
-            demo = load_demo(data_dir / f"{c.demo}.npz")
+        demo = demos.find(d)
+        if demo.path not in objects:
             obj = load_object_for(demo)
-            demos[c.demo] = (demo, obj.to_trimesh(), obj.surface_points(SURFACE_POINTS)[0])
-        demo, mesh, surface = demos[c.demo]
-        if c.demo_hash and c.demo_hash != content_hash(demo):
-            raise InputError(d / "controls.npz", "demo_hash", f"the content hash of {data_dir / c.demo}.npz",
-                             c.demo_hash)  # fmt: skip
-        out.append(classify(demo, d, run_method(d), mesh, surface))
+            objects[demo.path] = (obj.to_trimesh(), obj.surface_points(SURFACE_POINTS)[0])
+        out.append(classify(demo, d, run_method(d), *objects[demo.path]))
     return out
 
 

@@ -8,8 +8,8 @@ What it shows, per frame of the run (a slider, play/pause and one-frame steps):
 * the robot's keypoints from ``rollout.npz`` (``all_keypoints``: the points matched to the human keypoints);
 * the demo: its human keypoints and skeleton (blue) and its object pose (a translucent blue copy of the
   object). A run folder does not hold the demo's keypoints, only its name and hashes (``checkpoints/run.json``,
-  ``controls.npz``); the demo is read from ``--demo`` or found by that name beside the run folder, one level
-  above it, or in ``$QUASISIM_DATA``, and used only when its hash matches (:func:`find_demo`).
+  ``controls.npz``); the demo is read from ``--demo`` or found by that name beside the run folder, above it,
+  or in ``$QUASISIM_DATA``, and used only when its hash matches (:func:`find_demo`).
 
 viser is an optional dependency (``pip install 'quasisim[viewer]'``); it is imported here only, and this
 module only by the ``view`` command.
@@ -19,14 +19,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import hashlib
 import json
 import os
 import socket
 import sys
 import threading
 import time
-import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +43,7 @@ if TYPE_CHECKING:
     from quasisim.data.demo import Demo
 
 INSTALL_HINT = "pip install 'quasisim[viewer]'"
-ROLLOUT_FILE, CONTROLS_FILE, RUN_INFO = "rollout.npz", "controls.npz", Path("checkpoints") / "run.json"
+ROLLOUT_FILE = "rollout.npz"
 SPEEDS = ("0.25x", "0.5x", "1x", "2x")
 DEFAULT_HDRI = "city"  # viser's default environment map
 FAST_HINT = "No shadows or environment lighting: smooth in a browser without a GPU (WebGL in software)"
@@ -96,72 +94,30 @@ def robot_keypoints(run_dir: Path, n_frames: int) -> np.ndarray | None:
     return kp
 
 
-def recorded_demo(run_dir: Path) -> tuple[str, str, str]:
-    """The demo a run was made from, as the folder records it: its name, file hash (sha256, 16 hex digits;
-    ``checkpoints/run.json``, written by ``transfer``) and content hash (``controls.npz`` ``demo_hash``; a
-    ``batch`` clip's folder has only these). ``""`` for what is not recorded (``evaluate``'s folders: nothing)."""
-    name = sha = content = ""
-    with contextlib.suppress(OSError, ValueError, AttributeError):
-        info = json.loads((run_dir / RUN_INFO).read_text())
-        name, sha = str(info.get("demo", "")), str(info.get("demo_sha256", ""))
-    with contextlib.suppress(OSError, ValueError, KeyError, zipfile.BadZipFile):
-        with np.load(run_dir / CONTROLS_FILE, allow_pickle=False) as z:
-            name, content = name or str(z["demo"]), str(z["demo_hash"]) if "demo_hash" in z.files else ""
-    return name, sha, content
-
-
-def _file_hash(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-
-
-def _is_recorded(path: Path, demo: Demo, sha: str, content: str) -> bool:
-    """Whether the demo read from ``path`` is the one recorded (by file hash, else by content hash)."""
-    from quasisim.data.demo import content_hash
-
-    if sha:
-        return _file_hash(path) == sha
-    try:
-        return not content or content_hash(demo) == content
-    except OSError:  # its mesh is missing
-        return False
-
-
-def demo_candidates(run_dir: Path, name: str) -> list[Path]:
-    """Where a run's demo ``name`` may lie: beside the run folder, one level up, in ``$QUASISIM_DATA``."""
-    run_dir = run_dir.resolve()
-    dirs = [run_dir.parent, run_dir.parent.parent]
-    if os.environ.get("QUASISIM_DATA"):
-        dirs.append(Path(os.environ["QUASISIM_DATA"]))
-    return [d / f"{name}.npz" for d in dirs]
-
-
 def find_demo(run_dir: Path, explicit: Path | None, n_frames: int) -> tuple[Demo | None, str]:
     """The run's demo (for its keypoints and object pose) and a note on where it came from or why there is
     none. ``explicit`` (``--demo``) must exist and have the run's frame count; a found one must also be the
-    recorded one (:func:`recorded_demo`)."""
-    from quasisim.data.demo import load_demo
+    recorded one and have that frame count (:class:`~quasisim.data.run_demo.RunDemos`)."""
+    from quasisim.data.run_demo import RunDemos, recorded
 
-    name, sha, content = recorded_demo(run_dir)
+    rec, demos = recorded(run_dir), RunDemos(check_mesh=False)
     if explicit is not None:
-        demo = load_demo(explicit, check_mesh=False)
+        demo = demos.load(explicit)
         if demo.n_frames != n_frames:
             raise InputError(explicit, "right_joints", f"the run's {n_frames} frames", f"{demo.n_frames} frames")
         note = f"demo: {explicit}"
-        if name and not _is_recorded(explicit, demo, sha, content):
-            note += f" (warning: not the demo the run was made from, {name!r})"
+        if rec.name and not demos.is_recorded(explicit, rec):
+            note += f" (warning: not the demo the run was made from, {rec.name!r})"
         return demo, note
-    if not name:
+    if not rec.name:
         return None, "demo: not recorded in the run folder (pass --demo DEMO.npz to show it)"
-    for path in demo_candidates(run_dir, name):
-        if not path.is_file() or (sha and _file_hash(path) != sha):
-            continue
-        try:
-            demo = load_demo(path, check_mesh=False)
-        except InputError as e:
-            return None, f"demo: {e} (pass --demo DEMO.npz to show another)"
-        if demo.n_frames == n_frames and _is_recorded(path, demo, sha, content):
-            return demo, f"demo: {path}"
-    return None, f"demo: {name}.npz not found beside the run or in $QUASISIM_DATA (pass --demo DEMO.npz to show it)"
+    try:
+        for path, demo in demos.matches(run_dir, rec):
+            if demo.n_frames == n_frames:
+                return demo, f"demo: {path}"
+    except InputError as e:
+        return None, f"demo: {e} (pass --demo DEMO.npz to show another)"
+    return None, f"demo: {rec.name}.npz not found beside the run or in $QUASISIM_DATA (pass --demo DEMO.npz to show it)"
 
 
 # ---- geometry and per-frame poses ----------------------------------------------------------------

@@ -71,6 +71,9 @@ def rigid_root_fit(hand: HandModel, joints: np.ndarray) -> tuple[np.ndarray, np.
     return np.array(Rs), np.array(ps)
 
 
+# the clip-length warning's estimate of the retarget, per frame (2-core machine; bench long)
+RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME = 0.015, 0.1
+
 # compiled solvers per hand object and options; entries live and die with their hand
 _SOLVERS: weakref.WeakKeyDictionary[HandModel, dict[RetargetOptions, tuple]] = weakref.WeakKeyDictionary()
 
@@ -133,6 +136,8 @@ def retarget(
         # warm start: previous solution with the root moved by the rigid fit
         q0 = qs[-1].at[:6].set(jnp.asarray(base_init[t], dtype=jnp.float32))
         qs.append(solve(q0, qs[-1], targets[t], R0))
+        if t % 64 == 0:  # bounded queue of dispatched solves: memory and time stay linear in the frames
+            qs[-1].block_until_ready()
     q_all = np.asarray(jnp.stack(qs), dtype=np.float64)
     kp = np.asarray(kp_fn(jnp.asarray(q_all, dtype=jnp.float32), R0), dtype=np.float64)
     err = np.linalg.norm(kp - J[:, hand.kp_human], axis=-1)
