@@ -42,7 +42,7 @@ demo-ours: setup
 TEST_XLA := --xla_backend_optimization_level=0
 test: setup
 	@sh scripts/test_deps.sh
-	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25
 
 test-fast: setup
 	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow"

@@ -8,22 +8,22 @@ from types import SimpleNamespace
 
 from click.testing import CliRunner
 
-from quasisim.bench.long import _ESTIMATE, table
+from quasisim.bench.long import estimate, table
 from quasisim.cli import main
 
 
-def test_the_warnings_estimate_is_read_back(capsys) -> None:
+def test_the_estimate_is_the_warnings(capsys) -> None:
+    """The table's estimate is the number the command's warning prints, and the ratio is measured / estimate."""
     from quasisim.data.demo import warn_long_clip
+    from quasisim.method.retarget import RETARGET_MB_PER_FRAME, RETARGET_S_PER_FRAME
 
-    warn_long_clip(SimpleNamespace(name="c", n_frames=3000), 0.02, 0.15, "evaluation")
-    m = _ESTIMATE.search(capsys.readouterr().err)
-    assert m is not None and (float(m.group(1)), float(m.group(2))) == (
-        1.2,
-        1.0,
-    )  # (15 + 60) s = 1.25 min, (600 + 450) MB
-    row = {"command": "evaluate", "render": False, "frames": 3000, "wall_s": 39.0, "peak_gb": 2.0,
-           "estimate_min": 1.3, "estimate_gb": 1.0}  # fmt: skip
-    assert "| 0.50, 2.00 |" in table([row])  # measured / estimate: time, memory
+    warn_long_clip(SimpleNamespace(name="c", n_frames=3000), RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME, "retargeting")
+    minutes, gb = estimate("retarget", 3000, False)
+    assert f"about {minutes:.1f} min and {gb:.1f} GB" in capsys.readouterr().err
+    row = {"command": "retarget", "render": False, "frames": 3000, "wall_s": 30 * minutes, "peak_gb": 2 * gb}
+    assert "| 0.50, 2.00 |" in table([row])
+    e0, e1 = estimate("sample-target", 3000, False), estimate("sample-target", 3000, True)
+    assert e1[0] > e0[0] + 3000 * 0.1 / 60  # the video costs 0.2 s per frame
 
 
 def test_commands_are_measured_once_and_tabulated(tmp_path) -> None:
@@ -33,7 +33,7 @@ def test_commands_are_measured_once_and_tabulated(tmp_path) -> None:
     assert r.exit_code == 0, r.output
     rows = json.loads((out / "long.json").read_text())
     assert [(x["command"], x["frames"], x["rc"]) for x in rows] == [("retarget", 20, 0), ("evaluate", 20, 0)]
-    assert all(x["wall_s"] > 0 and 0.1 < x["peak_gb"] < 20 and x["estimate_min"] is None for x in rows)
+    assert all(x["wall_s"] > 0 and 0.1 < x["peak_gb"] < 20 for x in rows)
     assert (out / "20" / "evaluate" / "metrics.json").is_file()  # the command ran for real
     kept = (out / "rows" / "20-retarget-no-render.json").stat().st_mtime_ns
     r = CliRunner().invoke(main, args)

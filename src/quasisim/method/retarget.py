@@ -72,7 +72,7 @@ def rigid_root_fit(hand: HandModel, joints: np.ndarray) -> tuple[np.ndarray, np.
 
 
 # the clip-length warning's estimate of the retarget, per frame (2-core machine; bench long)
-RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME = 0.015, 0.1
+RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME = 0.008, 0.03
 
 # compiled solvers per hand object and options; entries live and die with their hand
 _SOLVERS: weakref.WeakKeyDictionary[HandModel, dict[RetargetOptions, tuple]] = weakref.WeakKeyDictionary()
