@@ -212,9 +212,14 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     assert np.all(np.isfinite(summary["stage3"]["held_out_after"])) and summary["stage3"]["networks"] == [
         "local", "global", "control"
     ]  # fmt: skip
+    from quasisim.eval.robust import RobustConfig
+
     m = res.metrics
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"]]).all()
-    assert evaluate_controls(load_demo(two_hand_clip), c, "mujoco", None, render=False).metrics == m
+    again = evaluate_controls(
+        load_demo(two_hand_clip), c, "mujoco", None, render=False, robust=RobustConfig.from_yaml()
+    )
+    assert again.metrics == m  # robust success too: the perturbed replays are seeded
     # the result beats the kinematic replay of the clip, both judged in MuJoCo (summary.json); measured:
     # R_err 0.96 vs 21.4 deg, T_err 0.51 vs 0.85 cm, whole-clip objective 0.011 vs 0.080
     assert summary["metrics"] == m

@@ -93,7 +93,16 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     assert (ck / "stage2_sim03.npz").is_file() and not (ck / "stage2_sim04.npz").exists()  # residual sim: stage 3
 
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics) == {"R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "object_motion", "success", "unstable"}
+    assert set(metrics) == {
+        "R_err_deg",
+        "T_err_cm",
+        "MPJPE_mm",
+        "CD_mm",
+        "object_motion",
+        "success",
+        "unstable",
+        "robust",
+    }
     assert set(metrics["success"]) == {"10deg_10cm", "15deg_15cm", "20deg_20cm", "strict"}
     assert metrics == res.metrics
     summary = json.loads((out / "summary.json").read_text())
@@ -121,7 +130,7 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     from quasisim.bench.transfer import _judged
 
     m_pb, k_pb = _judged(short_demo, out, "pybullet")
-    assert set(m_pb) == set(metrics) and m_pb != k_pb
+    assert set(m_pb) == set(metrics) - {"robust"} and m_pb != k_pb  # judged open loop: no perturbed replays
     assert json.loads((out / "metrics_pybullet.json").read_text()) == {"metrics": m_pb, "kinematic_metrics": k_pb}
 
 
