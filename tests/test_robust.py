@@ -36,12 +36,12 @@ def clip(tmp_path_factory):
 
 def test_the_shipped_settings_load_and_bad_ones_name_the_field(tmp_path) -> None:
     cfg = RobustConfig.from_yaml()
-    assert cfg.n >= 1 and (cfg.mass, cfg.friction, cfg.object_pos, cfg.pd_gains) == (0.15, 0.20, 0.003, 0.10)
+    assert cfg.n == 0 and (cfg.mass, cfg.friction, cfg.object_pos, cfg.pd_gains) == (0.15, 0.20, 0.003, 0.10)
     assert RobustConfig.from_yaml(None, {"n": 3}).n == 3
     with pytest.raises(InputError, match=r"friction.*\[0, 1\)"):
         RobustConfig.from_yaml(None, {"friction": 1.5})
     bad = tmp_path / "robust.yaml"
-    bad.write_text(ROBUST_PATH.read_text().replace("n: 8", "n: -1"))
+    bad.write_text(ROBUST_PATH.read_text().replace("n: 0 ", "n: -1 "))
     with pytest.raises(InputError, match=rf"{bad}.*n.*>= 0"):
         RobustConfig.from_yaml(bad)
 

@@ -29,7 +29,7 @@ class RobustConfig:
     """Perturbed replays (``configs/robust.yaml``): ``n`` replays seeded with ``(seed, i)``; relative ranges
     ``mass`` (mass and inertia), ``friction``, ``pd_gains`` (kp and kv); ``object_pos`` (m, along x and y)."""
 
-    n: int = 8
+    n: int = 0
     seed: int = 0
     mass: float = 0.15
     friction: float = 0.20
