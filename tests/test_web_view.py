@@ -27,7 +27,7 @@ from click.testing import CliRunner
 from helpers import CHROMIUM, UNDER_CI
 from quasisim.cli import main
 
-WAIT = 60.0  # s, the longest any one wait may take (a loaded CI machine renders WebGL in software slowly)
+WAIT = 180.0  # s, the longest any one wait may take (a loaded CI machine renders WebGL in software slowly)
 
 
 def _need_viser() -> None:
