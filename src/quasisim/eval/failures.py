@@ -117,16 +117,12 @@ def classify(demo: Demo, run_dir: Path, method: str, mesh: Any, surface: np.ndar
 
 
 def finished_runs(root: Path) -> list[Path]:
-    """Folders under ``root`` (itself included; hidden folders and checkpoints skipped) that hold a finished
-    run judged in MuJoCo's exported scene: ``manifest.json``, ``rollout.npz``, ``scene.xml``, ``trajectory.npz``."""
-    need = ("manifest.json", "rollout.npz", "scene.xml", "trajectory.npz", "controls.npz")
-    found = [p.parent for p in sorted(root.rglob("manifest.json"))]
+    """The finished runs under ``root`` (:func:`quasisim.data.dataset_export.find_runs`) that were judged in
+    MuJoCo's exported scene: with ``rollout.npz``, ``scene.xml``, ``trajectory.npz`` and ``controls.npz``."""
+    from quasisim.data.dataset_export import find_runs
 
-    def ok(d: Path) -> bool:
-        hidden = any(part.startswith(".") or part == "checkpoints" for part in d.relative_to(root).parts)
-        return not hidden and all((d / n).is_file() for n in need)
-
-    return [d for d in found if ok(d)]
+    need = ("rollout.npz", "scene.xml", "trajectory.npz", "controls.npz")
+    return [d for d in find_runs(root) if all((d / n).is_file() for n in need)]
 
 
 def run_method(run_dir: Path) -> str:
