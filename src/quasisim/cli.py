@@ -95,9 +95,9 @@ _ROBUST = click.option(
 
 def _robust_config(n: int | None) -> Any:
     """The robust-success settings (``configs/robust.yaml``), with ``n`` replays where given."""
-    from quasisim.eval.robust import RobustConfig
+    from quasisim.eval.robust import replays
 
-    return RobustConfig.from_yaml(None, None if n is None else {"n": n})
+    return replays(n)
 
 
 def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:

@@ -54,6 +54,11 @@ class RobustConfig:
         return build(cls, {**data, "path": str(path)}, path)
 
 
+def replays(n: int | None) -> RobustConfig:
+    """The shipped settings (``configs/robust.yaml``) with ``n`` replays where given (``--robust N``)."""
+    return RobustConfig.from_yaml(None, None if n is None else {"n": n})
+
+
 def perturbed_scene(scene: Scene, cfg: RobustConfig, i: int) -> Scene:
     """Replay ``i``'s copy of ``scene``: every factor drawn uniformly within its range from a generator
     seeded with ``(cfg.seed, i)`` (the same copy on every machine and in every run)."""
