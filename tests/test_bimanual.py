@@ -193,7 +193,7 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     cfg = TransferConfig.from_yaml(overrides={**TINY, **more})
     spec = TransferSpec(
         curriculum=str(tmp_path / "tiny.yaml"), stages=("1", "2", "3", "mpc", "sample", "select"), render=False,
-        progress=False,
+        progress=False, robust=2,
     )  # fmt: skip
     out = tmp_path / "ours"
     res = run_transfer(two_hand_clip, out, spec, cfg)
@@ -212,12 +212,13 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     assert np.all(np.isfinite(summary["stage3"]["held_out_after"])) and summary["stage3"]["networks"] == [
         "local", "global", "control"
     ]  # fmt: skip
-    from quasisim.eval.robust import RobustConfig
+    from quasisim.eval.robust import replays
 
     m = res.metrics
+    assert m["robust"]["n"] == 2
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"]]).all()
     again = evaluate_controls(
-        load_demo(two_hand_clip), c, "mujoco", None, render=False, robust=RobustConfig.from_yaml()
+        load_demo(two_hand_clip), c, "mujoco", None, render=False, robust=replays(2)
     )
     assert again.metrics == m  # robust success too: the perturbed replays are seeded
     # the result beats the kinematic replay of the clip, both judged in MuJoCo (summary.json); measured:
