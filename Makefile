@@ -8,7 +8,7 @@ export QUASISIM_ROBOT_PATH ?= $(SHARED)/robots
 export QUASISIM_DATA ?= $(SHARED)/data
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo demo-ours test test-fast lint bench-baseline clean
+.PHONY: setup demo demo-ours test test-all test-fast lint bench-baseline clean
 
 setup: $(VENV)/.installed
 
@@ -40,12 +40,18 @@ demo-ours: setup
 # and what they check (behaviour, resumes, errors against closed forms and MuJoCo) does not depend on it; the
 # benchmarks (`quasisim bench ...`) measure the programs as users compile them.
 TEST_XLA := --xla_backend_optimization_level=0
+# `test` (CI) leaves out the extended tests (research paths outside the default method, ~10 min more);
+# `test-all` runs every test.
 test: setup
+	@sh scripts/test_deps.sh
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25 -m "not extended"
+
+test-all: setup
 	@sh scripts/test_deps.sh
 	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25
 
 test-fast: setup
-	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow"
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow and not extended"
 
 lint: setup
 	$(VENV)/bin/ruff check src tests examples scripts

@@ -170,12 +170,19 @@ def _cli(*args: str):
     return CliRunner().invoke(main, list(args))
 
 
+OURS = ("1", "2", "sample", "select")
+
+
 @pytest.mark.slow
-def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
-    """Every stage (1 and 2 with both hands in the quasi-physical simulator, 3 fitting it to MuJoCo with its
-    networks, MPC, sampling and the selection in MuJoCo) on the synthetic two-hand clip, with tiny budgets:
-    the controls drive both hands, stage 1's human points pair with robot points of their own hand, and the
-    result, judged in MuJoCo, beats the kinematic replay of the clip there."""
+@pytest.mark.parametrize(
+    "stages", [OURS, pytest.param(("1", "2", "3", "mpc", "sample", "select"), marks=pytest.mark.extended)]
+)
+def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path, stages: tuple[str, ...]) -> None:
+    """The default method (stages 1 and 2 with both hands in the quasi-physical simulator, sampling and the
+    selection in MuJoCo) and, as an extended test, every stage (with 3 fitting the simulator to MuJoCo with
+    its networks, and MPC) on the synthetic two-hand clip, with tiny budgets: the controls drive both hands,
+    stage 1's human points pair with robot points of their own hand, and the result, judged in MuJoCo, beats
+    the kinematic replay of the clip there."""
     import json
 
     from quasisim.data.controls import load_controls
@@ -192,7 +199,7 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
             "stage3.residual_steps": 2}  # fmt: skip
     cfg = TransferConfig.from_yaml(overrides={**TINY, **more})
     spec = TransferSpec(
-        curriculum=str(tmp_path / "tiny.yaml"), stages=("1", "2", "3", "mpc", "sample", "select"), render=False,
+        curriculum=str(tmp_path / "tiny.yaml"), stages=stages, render=False,
         progress=False, robust=2,
     )  # fmt: skip
     out = tmp_path / "ours"
@@ -200,26 +207,25 @@ def test_ours_two_hands_end_to_end(two_hand_clip, tmp_path) -> None:
     c = load_controls(out / "controls.npz")
     J = 22
     assert c.sides == ("right", "left") and c.q_targets.shape == (12, 2 * (6 + J))
-    assert c.extras["sim_qpos"].shape == c.extras["plan_q"].shape == (12, 2 * (6 + J))
-    # the quasi-physical rollout put each hand where its own PD targets are (bases within 2 cm)
-    plan, sim = c.extras["plan_q"], c.extras["sim_qpos"]
-    for sl in (slice(0, 3), slice(6 + J, 9 + J)):
-        assert np.abs(sim[:, sl] - plan[:, sl]).max() < 0.02
+    if "mpc" in stages:  # the quasi-physical rollout put each hand where its own PD targets are (bases within 2 cm)
+        assert c.extras["sim_qpos"].shape == c.extras["plan_q"].shape == (12, 2 * (6 + J))
+        plan, sim = c.extras["plan_q"], c.extras["sim_qpos"]
+        for sl in (slice(0, 3), slice(6 + J, 9 + J)):
+            assert np.abs(sim[:, sl] - plan[:, sl]).max() < 0.02
     hp = np.load(out / "checkpoints" / "stage1_human.npz")
     assert set(np.unique(hp["point_hand"]).tolist()) == {0, 1}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["hand"] == "shadow + shadow-left" and len(summary["simulators"]) == 2  # the rigid ones
-    assert np.all(np.isfinite(summary["stage3"]["held_out_after"])) and summary["stage3"]["networks"] == [
-        "local", "global", "control"
-    ]  # fmt: skip
+    if "3" in stages:
+        assert np.all(np.isfinite(summary["stage3"]["held_out_after"])) and summary["stage3"]["networks"] == [
+            "local", "global", "control"
+        ]  # fmt: skip
     from quasisim.eval.robust import replays
 
     m = res.metrics
     assert m["robust"]["n"] == 2
     assert np.isfinite([m["R_err_deg"], m["T_err_cm"], m["MPJPE_mm"]]).all()
-    again = evaluate_controls(
-        load_demo(two_hand_clip), c, "mujoco", None, render=False, robust=replays(2)
-    )
+    again = evaluate_controls(load_demo(two_hand_clip), c, "mujoco", None, render=False, robust=replays(2))
     assert again.metrics == m  # robust success too: the perturbed replays are seeded
     # the result beats the kinematic replay of the clip, both judged in MuJoCo (summary.json); measured:
     # R_err 0.96 vs 21.4 deg, T_err 0.51 vs 0.85 cm, whole-clip objective 0.011 vs 0.080

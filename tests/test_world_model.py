@@ -93,6 +93,7 @@ def test_windows_are_the_recorded_states(recorded: tuple[Path, Path, str]) -> No
 
 
 @pytest.mark.slow
+@pytest.mark.extended
 def test_fit_trains_a_correction_that_predicts_the_target_better(
     recorded: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
