@@ -19,7 +19,7 @@ def _folder(root: Path, results: dict[str, tuple[float, float, bool, float]], wi
     for clip, (r, t, strict, loss) in results.items():
         d = root / clip
         (d / "default+sample+select").mkdir(parents=True)
-        row = {"metrics": _metrics(r, t, strict)}
+        row = {"metrics": _metrics(r, t, strict), "seconds": {"retarget": 1.0, "stage2": 10.0 * r, "sample": 5.0}}
         if with_kinematic:
             row["kinematic_metrics"] = _metrics(2 * r, 2 * t, False)
         (d / "clip.json").write_text(
@@ -45,15 +45,30 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
     assert r.exit_code == 0, r.output
     md = (out / "compare.md").read_text()
     assert "2 clips held by every folder" in md and "| c3 |" not in md  # c3 is in one folder only
-    assert "| old | 7.0 | 1.50 | 14.0 | 100 / 100 / 100 / 50 | 1 of 2 | 0.3000 / 0.3000 | - |" in md
-    assert "| new | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 0.2500 / 0.2500 | 1 of 2 |" in md
+    assert "| old | 7.0 | 1.50 | 14.0 | 100 / 100 / 100 / 50 | 1 of 2 | 0.3000 / 0.3000 | - | 76 |" in md
+    assert "| new | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 0.2500 / 0.2500 | 1 of 2 | 61 |" in md
     assert "| c1 | 10.0 / 2.00 | 5.0 / 1.00 S | 0.5000 | 0.2000 |" in md
     assert len(json.loads((out / "compare.json").read_text())) == 4
 
     r = CliRunner().invoke(main, ["bench", "compare", f"old={a}", f"x={tmp_path / 'nope'}", "--out", str(out)])
     assert r.exit_code != 0 and "nope" in r.output and "not a folder" in r.output
     r = CliRunner().invoke(main, ["bench", "compare", str(a), "--run", "sample-target", "--out", str(out)])
-    assert r.exit_code != 0 and "no finished run 'sample-target'" in r.output
+    assert r.exit_code != 0 and "no finished run" in r.output and "run 'sample-target'" in r.output
+    # one run name per folder: the same folder's run beside another's
+    renamed = tmp_path / "renamed"
+    for f in a.glob("*/clip.json"):
+        d = json.loads(f.read_text())
+        d["runs"] = {"none+sample+select": d["runs"]["default+sample+select"]}
+        (renamed / f.parent.name).mkdir(parents=True)
+        (renamed / f.parent.name / "clip.json").write_text(json.dumps(d))
+    args = ["bench", "compare", f"old={a}", f"none={renamed}", "--out", str(tmp_path / "o3")]
+    r = CliRunner().invoke(main, [*args, "--run", "default+sample+select,none+sample+select"])
+    assert r.exit_code == 0, r.output
+    md = (tmp_path / "o3" / "compare.md").read_text()
+    assert "default+sample+select / none+sample+select: old vs none, 3 clips" in md
+    assert "| none | 7.7 | 4.00 | 15.3 | 100 / 100 / 100 / 33 | 1 of 3 | - | 0 of 3 | 83 |" in md
+    r = CliRunner().invoke(main, [*args, "--run", "a,b,c"])
+    assert r.exit_code != 0 and "names 3 runs for 2 folders" in r.output
 
 
 def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Path) -> None:
@@ -69,8 +84,8 @@ def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Pa
     assert r.exit_code == 0, r.output
     md = (out / "compare.md").read_text()
     assert "shadow vs allegro, 2 clips" in md and "stiffest loss" not in md
-    assert "| shadow kinematic | 14.0 | 3.00 | 28.0 | 100 / 100 / 100 / 0 | 0 of 2 | 0 of 2 |" in md
-    assert "| allegro | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 1 of 2 |" in md
+    assert "| shadow kinematic | 14.0 | 3.00 | 28.0 | 100 / 100 / 100 / 0 | 0 of 2 | 0 of 2 | - |" in md
+    assert "| allegro | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 1 of 2 | 61 |" in md
     assert "| clip | shadow | shadow kinematic | allegro | allegro kinematic |" in md
     assert "| c1 | 10.0 / 2.00 | 20.0 / 4.00 | 5.0 / 1.00 S | 10.0 / 2.00 |" in md
 

@@ -760,7 +760,10 @@ def bench_transfer(
 
 @bench.command("compare")
 @click.argument("folders", nargs=-1, required=True)
-@click.option("--run", "run", default="default+sample+select", show_default=True, help="The run to compare.")
+@click.option(
+    "--run", "run", default="default+sample+select", show_default=True,
+    help="The run to compare: one name for every folder, or comma-separated, one per folder.",
+)  # fmt: skip
 @click.option(
     "--kinematic", is_flag=True, help="Each folder's kinematic replay beside its run (e.g. one folder per hand)."
 )
@@ -779,7 +782,7 @@ def bench_compare(folders: tuple[str, ...], run: str, kinematic: bool, out: Path
             raise QuasisimError(f"bench compare: {p} is not a folder (expected LABEL=PATH of a `bench transfer` --out)")
         pairs.append((label or p.name, p))
     _outputs_free(out)
-    compare_folders(pairs, run, out, kinematic)
+    compare_folders(pairs, [r.strip() for r in run.split(",")], out, kinematic)
 
 
 @bench.command("batch")

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.batch import CLIP_FILE
+from quasisim.batch import CLIP_FILE, method_seconds
 from quasisim.bench.tables import header, publish
 from quasisim.bench.transfer import stiffest_simulator
 from quasisim.errors import QuasisimError
@@ -33,27 +33,35 @@ def folder_rows(folder: Path, run: str) -> tuple[dict[str, dict[str, Any]], dict
         if run not in runs:
             continue
         clip, row = p.parent.name, runs[run]["row"]
-        rows[clip] = {**row["metrics"], **stiffest_simulator(p.parent / run / "summary.json")}
+        wall = {"wall_s": method_seconds(row["seconds"])} if "seconds" in row else {}
+        rows[clip] = {**row["metrics"], **wall, **stiffest_simulator(p.parent / run / "summary.json")}
         if "kinematic_metrics" in row:
             kin[clip] = row["kinematic_metrics"]
     return rows, kin
 
 
-def compare_folders(folders: list[tuple[str, Path]], run: str, out: Path, kinematic: bool = False) -> str:
-    """Markdown of ``run`` in each ``(label, folder)`` on the clips every folder holds (written to ``out``);
-    with ``kinematic``, each folder's kinematic replay (its hand, its target) beside it as ``LABEL kinematic``."""
+def compare_folders(folders: list[tuple[str, Path]], runs: list[str], out: Path, kinematic: bool = False) -> str:
+    """Markdown of run ``runs[i]`` of each ``(label, folder)`` (one run name for all folders, or one per folder)
+    on the clips every folder holds (written to ``out``); with ``kinematic``, each folder's kinematic replay
+    (its hand, its target) beside it as ``LABEL kinematic``."""
+    if len(runs) not in (1, len(folders)):
+        raise QuasisimError(
+            f"bench compare: --run names {len(runs)} runs for {len(folders)} folders (expected 1 or {len(folders)})"
+        )
+    runs = runs * len(folders) if len(runs) == 1 else runs
     per: dict[str, dict[str, dict[str, Any]]] = {}
-    for label, f in folders:
+    for (label, f), run in zip(folders, runs, strict=True):
         per[label], kin = folder_rows(f, run)
         if kinematic:
             per[f"{label} kinematic"] = kin
     empty = [label for label, rows in per.items() if not rows]
     if empty:
-        where = ", ".join(f"{label} ({f})" for label, f in folders)
+        where = ", ".join(f"{label} ({f}, run {r!r})" for (label, f), r in zip(folders, runs, strict=True))
         raise QuasisimError(
-            f"no finished run {run!r} (or no kinematic replay beside it) for: {', '.join(empty)}; folders: {where} "
+            f"no finished run (or no kinematic replay beside it) for: {', '.join(empty)}; folders: {where} "
             "(folders of `quasisim bench transfer`)"
         )
+    run = " / ".join(dict.fromkeys(runs))
     shared = sorted(set.intersection(*(set(r) for r in per.values())))
     labels = list(per)
     with_loss = any("stiffest_loss" in r for rows in per.values() for r in rows.values())
@@ -91,8 +99,8 @@ def _summary(
     loss_head = " stiffest loss (mean / median) |" if with_loss else ""
     out = [
         "| folder | R_err (deg) | T_err (cm) | MPJPE (mm) | succ 10 / 15 / 20 / strict (%) | lifted |"
-        f"{loss_head} lower R_err and T_err than {labels[0]} |",
-        "|---" * (7 + with_loss) + "|",
+        f"{loss_head} lower R_err and T_err than {labels[0]} | wall s per clip |",
+        "|---" * (8 + with_loss) + "|",
     ]
     base = per[labels[0]]
     for x in labels:
@@ -108,6 +116,6 @@ def _summary(
         vs = "-" if x == labels[0] else f"{better} of {len(clips)}"
         out.append(
             f"| {x} | {_mean(rs, 'R_err_deg', '.1f')} | {_mean(rs, 'T_err_cm', '.2f')} | {_mean(rs, 'MPJPE_mm', '.1f')} | "
-            f"{succ} | {lifted} |" + (f" {loss} |" if with_loss else "") + f" {vs} |"
+            f"{succ} | {lifted} |" + (f" {loss} |" if with_loss else "") + f" {vs} | {_mean(rs, 'wall_s', '.0f')} |"
         )
     return out
