@@ -185,6 +185,26 @@ def test_sdf_matches_exact_on_real_mesh() -> None:
     assert (np.sign(np.asarray(d)[far]) == np.sign(ex[far])).all()
 
 
+def test_flat_padded_grids_query_as_the_grid_and_share_one_shape(box: ObjectAsset) -> None:
+    """``as_flat``: the same distances and normals, bit for bit, inside, on and outside the grid box (the
+    padding is never read), and one array shape for objects of different sizes (one compiled program)."""
+    big = load_object(real_mesh("flashlight.obj"))
+    grids = [box.sdf(spacing=0.003, padding=0.01), big.sdf(spacing=0.003)]
+    assert grids[0].shape != grids[1].shape
+    flats = [g.as_flat() for g in grids]
+    assert flats[0].values.shape == flats[1].values.shape
+    query = jax.jit(sdf_query)
+    for g, f in zip(grids, flats, strict=True):
+        rng = np.random.default_rng(0)
+        p = rng.uniform(g.origin - 0.02, g.upper + 0.02, (3000, 3))  # some outside the box, beyond every face
+        d0, n0 = query(g.as_jax(), jnp.asarray(p, jnp.float32))
+        d1, n1 = query(f, jnp.asarray(p, jnp.float32))
+        np.testing.assert_array_equal(np.asarray(d1), np.asarray(d0))
+        np.testing.assert_array_equal(np.asarray(n1), np.asarray(n0))
+        garbage = f._replace(values=f.values.at[g.values.size :].set(-1.0))  # the padding is never read
+        np.testing.assert_array_equal(np.asarray(query(garbage, jnp.asarray(p, jnp.float32))[0]), np.asarray(d0))
+
+
 def test_sphere_normals_and_distance(sphere: tuple[ObjectAsset, SDFGrid]) -> None:
     _, grid = sphere
     rng = np.random.default_rng(2)

@@ -74,11 +74,16 @@ def _write_cache(path: Path, key: str, **arrays: np.ndarray) -> None:
 
 
 class SDFArrays(NamedTuple):
-    """Grid arrays for JAX (a pytree: close over it or pass it through ``jit``)."""
+    """Grid arrays for JAX (a pytree: close over it or pass it through ``jit``).
+
+    ``values`` is the (nx, ny, nz) grid, or, with ``dims`` (3,) = (nx, ny, nz) given, the grid flattened in
+    C order and padded at its end to any length (:meth:`SDFGrid.as_flat`): grids of every object then have
+    one shape, so one compiled program serves them all."""
 
     origin: jax.Array  # (3,) m
     spacing: jax.Array  # () m
-    values: jax.Array  # (nx, ny, nz) m
+    values: jax.Array  # (nx, ny, nz) m, or (L,) with L >= nx ny nz when dims is given
+    dims: jax.Array | None = None  # (3,) int32 node counts of a flat ``values``
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,6 +113,17 @@ class SDFGrid:
         return SDFArrays(
             jnp.asarray(self.origin, dtype), jnp.asarray(self.spacing, dtype), jnp.asarray(self.values, dtype)
         )
+
+    def as_flat(self, length: int = SDF_MAX_NODES, dtype: Any = jnp.float32) -> SDFArrays:
+        """The grid flattened and padded to ``length`` nodes (at least its own count; the padding is never
+        read): the same distances as :meth:`as_jax` from arrays whose shapes do not depend on the object."""
+        flat = self.values.reshape(-1)
+        padded = np.zeros(max(length, flat.size), np.float32)
+        padded[: flat.size] = flat
+        return SDFArrays(
+            jnp.asarray(self.origin, dtype), jnp.asarray(self.spacing, dtype), jnp.asarray(padded, dtype),
+            jnp.asarray(self.shape, jnp.int32),
+        )  # fmt: skip
 
 
 def bake_sdf(
@@ -180,8 +196,9 @@ def _sdf_query(g: SDFArrays, points: jax.Array) -> tuple[jax.Array, jax.Array]:
     p = points.reshape(-1, 3).astype(dtype)
     vals = g.values.astype(dtype)
     origin, h = g.origin.astype(dtype), g.spacing.astype(dtype)
-    _, ny, nz = vals.shape
-    size = jnp.asarray(vals.shape, dtype)
+    dims = jnp.asarray(vals.shape, jnp.int32) if g.dims is None else g.dims
+    ny, nz = dims[1], dims[2]
+    size = dims.astype(dtype)
     c = jnp.clip(p, origin, origin + h * (size - 1))  # nearest point of the grid box
     u = (c - origin) / h  # continuous node index
     i0 = jax.lax.stop_gradient(jnp.clip(jnp.floor(u), 0, size - 2))

@@ -52,15 +52,16 @@ def build_model(
     ``offset`` (3,) the world position of the simulator origin (e.g. the object's initial position)."""
     if points is None:
         points = hand_set_points((hand,), opts)
-    grid = obj.sdf(spacing=opts.sdf_spacing)
+    sdf = obj.sdf(spacing=opts.sdf_spacing).as_flat()
     surf, normals = obj.surface_points(opts.n_surface, seed=0)
     return Model(
         hand=hand,
         point_body=jnp.asarray(points.body, dtype=jnp.int32),
         point_local=jnp.asarray(points.local, F32),
-        sdf_values=jnp.asarray(grid.values, F32),
-        sdf_origin=jnp.asarray(grid.origin, F32),
-        sdf_spacing=jnp.asarray(grid.spacing, F32),
+        sdf_values=sdf.values,
+        sdf_dims=sdf.dims,
+        sdf_origin=sdf.origin,
+        sdf_spacing=sdf.spacing,
         obj_com=jnp.asarray(obj.com, F32),
         obj_surface=jnp.asarray(surf, F32),
         obj_normals=jnp.asarray(normals, F32),

@@ -109,7 +109,7 @@ def _twist_at(r: Array, nu: Array) -> Array:
 
 def sdf_lookup(model: Model, pts: Array) -> tuple[Array, Array]:
     """Object-frame signed distance (N,) and outward normal (N, 3) by trilinear interpolation."""
-    return sdf_query(SDFArrays(model.sdf_origin, model.sdf_spacing, model.sdf_values), pts)
+    return sdf_query(SDFArrays(model.sdf_origin, model.sdf_spacing, model.sdf_values, model.sdf_dims), pts)
 
 
 def object_origin(model: Model, state: State) -> tuple[Array, Array]:

@@ -46,7 +46,10 @@ class Model:
             :func:`~quasisim.assets.hand.join_hands` (one root per hand, joints and points concatenated).
         point_body: (N,) int32 body index of each hand point.
         point_local: (N, 3) hand points in their body frames.
-        sdf_values: (nx, ny, nz) object signed distances (m), negative inside.
+        sdf_values: (L,) object signed distances (m), negative inside, at the nodes of an (nx, ny, nz) grid
+            (``sdf_dims``) flattened in C order and padded to a length ``L`` that does not depend on the
+            object (:meth:`~quasisim.assets.object.SDFGrid.as_flat`: one compiled program for every object).
+        sdf_dims: (3,) int32 nx, ny, nz.
         sdf_origin: (3,) object-frame position of grid node (0, 0, 0).  sdf_spacing: () grid spacing (m).
         obj_com: (3,) centre of mass in the object frame.
         obj_surface: (M, 3) object surface samples (object frame) used for table contact.
@@ -65,6 +68,7 @@ class Model:
     point_body: Array = None  # type: ignore[assignment]
     point_local: Array = None  # type: ignore[assignment]
     sdf_values: Array = None  # type: ignore[assignment]
+    sdf_dims: Array = None  # type: ignore[assignment]
     sdf_origin: Array = None  # type: ignore[assignment]
     sdf_spacing: Array = None  # type: ignore[assignment]
     obj_com: Array = None  # type: ignore[assignment]
