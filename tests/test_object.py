@@ -17,7 +17,7 @@ import trimesh
 
 import quasisim.assets.object as obj
 from helpers import missing_data
-from quasisim.assets.object import ObjectAsset, SDFGrid, bake_sdf, hull_gap, load_object, sdf_query
+from quasisim.assets.object import ObjectAsset, SDFGrid, bake_sdf, hull_gap, load_object, sdf_bucket, sdf_query
 from quasisim.errors import InputError
 
 DATA = Path(os.environ.get("QUASISIM_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
@@ -187,12 +187,14 @@ def test_sdf_matches_exact_on_real_mesh() -> None:
 
 def test_flat_padded_grids_query_as_the_grid_and_share_one_shape(box: ObjectAsset) -> None:
     """``as_flat``: the same distances and normals, bit for bit, inside, on and outside the grid box (the
-    padding is never read), and one array shape for objects of different sizes (one compiled program)."""
+    padding is never read), and one array shape for grids of different shapes in one bucket (one compiled
+    program)."""
     big = load_object(real_mesh("flashlight.obj"))
-    grids = [box.sdf(spacing=0.003, padding=0.01), big.sdf(spacing=0.003)]
-    assert grids[0].shape != grids[1].shape
+    grids = [box.sdf(spacing=0.003, padding=0.01), box.sdf(spacing=0.0031, padding=0.01), big.sdf(spacing=0.003)]
+    assert grids[0].shape != grids[1].shape and sdf_bucket(grids[0].values.size) == sdf_bucket(grids[1].values.size)
     flats = [g.as_flat() for g in grids]
     assert flats[0].values.shape == flats[1].values.shape
+    assert [sdf_bucket(n) for n in (1, 32768, 32769, 600_000)] == [32768, 32768, 65536, 1 << 20]
     query = jax.jit(sdf_query)
     for g, f in zip(grids, flats, strict=True):
         rng = np.random.default_rng(0)

@@ -47,8 +47,8 @@ class Model:
         point_body: (N,) int32 body index of each hand point.
         point_local: (N, 3) hand points in their body frames.
         sdf_values: (L,) object signed distances (m), negative inside, at the nodes of an (nx, ny, nz) grid
-            (``sdf_dims``) flattened in C order and padded to a length ``L`` that does not depend on the
-            object (:meth:`~quasisim.assets.object.SDFGrid.as_flat`: one compiled program for every object).
+            (``sdf_dims``) flattened in C order and padded to a power of two ``L``
+            (:meth:`~quasisim.assets.object.SDFGrid.as_flat`: one compiled program for the objects of a bucket).
         sdf_dims: (3,) int32 nx, ny, nz.
         sdf_origin: (3,) object-frame position of grid node (0, 0, 0).  sdf_spacing: () grid spacing (m).
         obj_com: (3,) centre of mass in the object frame.
