@@ -128,9 +128,9 @@ class SDFGrid:
 
 def sdf_bucket(n: int, smallest: int = 1 << 15) -> int:
     """The padded length of a flattened grid of ``n`` nodes: the next power of two, at least ``smallest``.
-    The grids of the development clips' objects fall into 4 lengths (one compiled program each) and the
-    padding stays below 2x (one length for every object, 600,000 nodes, measured 10-35 % slower in the
-    simulator's forward and backward pass than the unpadded grid)."""
+    The six GRAB objects' grids (3 mm) fall into three lengths (one compiled program each) and the padding
+    stays below 2x (one length for every object, 600,000 nodes, measured 13-36 % slower in the simulator's
+    forward and backward pass than the unpadded grid, BENCHMARKS.md)."""
     return max(smallest, 1 << max(int(n) - 1, 0).bit_length())
 
 
