@@ -93,13 +93,6 @@ _ROBUST = click.option(
 )  # fmt: skip
 
 
-def _robust_config(n: int | None) -> Any:
-    """The robust-success settings (``configs/robust.yaml``), with ``n`` replays where given."""
-    from quasisim.eval.robust import replays
-
-    return replays(n)
-
-
 def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
     """The human summary that ends ``evaluate`` and ``transfer`` (strict first; metrics.json has the numbers)."""
     from quasisim.eval.summary import summary_lines
@@ -220,7 +213,9 @@ def evaluate(
         _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
         if note:
             click.echo(f"warning: {note}", err=True)
-        robust_cfg = _robust_config(robust)
+        from quasisim.eval.robust import replays
+
+        robust_cfg = replays(robust)
         warn_long_clip(d, *judging_cost(render, robust_cfg), "evaluation" + (" with rendering" if render else ""))
         ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
@@ -649,8 +644,9 @@ def bench_baseline(
     _outputs_free(out)  # resumable: only a folder that can be written is required
     _setup_runtime()
     from quasisim.bench.baseline import run_baseline
+    from quasisim.eval.robust import replays
 
-    run_baseline(data_dir, hand, targets, out, pattern, render, _robust_config(robust))
+    run_baseline(data_dir, hand, targets, out, pattern, render, replays(robust))
 
 
 @bench.command("sim")
