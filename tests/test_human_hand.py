@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from helpers import STIFF
 from quasisim.assets.human_hand import build_human_hand
 from quasisim.data.demo import BONES, load_demo
 from quasisim.method.stage1 import fit_human_hand as human_hand_trajectory
@@ -117,3 +118,59 @@ def test_mjcf_cache_is_content_keyed(synthetic, tmp_path, monkeypatch) -> None:
     c = build_human_hand(J * 1.1)  # another hand size: another file
     assert c.source != path and c.source.parent == path.parent
     assert c.total_mass > a.total_mass
+
+
+def test_hands_of_two_demos_share_one_compiled_simulator(synthetic, tmp_path) -> None:
+    """Two human hands of different sizes (the demo and the demo scaled by 1.2) have point sets of one size,
+    their geometry as array leaves of the model, and lower to the same XLA program (so the persistent
+    cache compiles stage 1 once for every demo); the arrays give each hand its own kinematics and mass
+    matrix, equal to the ones with the hand's geometry compiled in."""
+    import jax
+    import trimesh
+
+    from quasisim.assets.human_hand import HUMAN_POINTS
+    from quasisim.assets.object import load_object
+    from quasisim.sim.articulation import body_jacobians, mass_matrix
+    from quasisim.sim.build import SimOptions, build_model, default_params
+    from quasisim.sim.step import initial_state, rollout
+    from quasisim.sim.types import Control
+    from quasisim.targets.scene import Table
+
+    demo, a = synthetic
+    b = build_human_hand(demo.right_joints * 1.2)
+    assert not np.allclose(a.body_pos, b.body_pos)
+    trimesh.creation.box(extents=(0.04,) * 3).export(tmp_path / "cube.obj")
+    obj = load_object(tmp_path / "cube.obj", density=500.0)
+    opts = SimOptions(dt=0.005, substeps=2, n_candidates=64)
+    table = Table(-0.3, 0.3, -0.3, 0.3, 0.0)
+    models = [build_model(h, obj, table, opts, offset=np.zeros(3)) for h in (a, b)]
+    for h, m in zip((a, b), models, strict=True):
+        assert m.n_points == HUMAN_POINTS and m.hand_geom is not None
+        q = jnp.asarray(np.random.default_rng(0).uniform(-0.3, 0.3, h.n_joints), jnp.float32)
+        R = jnp.asarray(np.eye(3), jnp.float32)
+        shared = body_jacobians(h, jnp.zeros(3), R, q, geom=m.hand_geom)
+        own = body_jacobians(h, jnp.zeros(3), R, q)
+        np.testing.assert_allclose(shared.poses.pos, own.poses.pos, atol=1e-6)
+        np.testing.assert_allclose(shared.jv, own.jv, atol=1e-6)
+        arm = jnp.full(h.n_joints, 1e-3)
+        np.testing.assert_allclose(
+            mass_matrix(h, shared, arm, m.hand_geom), mass_matrix(h, own, arm), rtol=1e-5, atol=1e-9
+        )
+
+    def program(m) -> str:
+        p = default_params(m, 0.1, np.eye(3) * 1e-4, STIFF)
+        s0 = initial_state(
+            m,
+            np.zeros(3),
+            np.array([1.0, 0, 0, 0]),
+            np.zeros(m.n_joints),
+            np.array([0, 0, 0.02]),
+            np.array([1.0, 0, 0, 0]),
+        )
+        c = Control(
+            root_vel=jnp.zeros((3, 1, 3)), root_angvel=jnp.zeros((3, 1, 3)), q_target=jnp.zeros((3, m.n_joints)),
+            qd_target=jnp.zeros((3, m.n_joints)), tau=jnp.zeros((3, m.n_joints)), point_force=jnp.zeros((3, m.n_points, 3)),
+        )  # fmt: skip
+        return jax.jit(rollout).lower(m, p, s0, c).as_text()
+
+    assert program(models[0]) == program(models[1])

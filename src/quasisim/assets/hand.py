@@ -86,11 +86,15 @@ class PointSetConfig:
         spacing: mean distance between neighbouring points on the surface (m).
         offset: points lie in a shell between the surface and ``offset`` outside it (m).
         seed: random seed for the sampling.
+        count: a fixed number of points (None: as many as ``spacing`` gives): the surface is sampled
+            at least ~25 % more densely than ``count`` needs and ``count`` of those points are drawn, so every hand
+            of one topology gets a point set of one size (stage 1's human hands: one compiled program).
     """
 
     spacing: float = 0.006
     offset: float = 0.002
     seed: int = 0
+    count: int | None = None
 
 
 @dataclass(frozen=True)
@@ -99,7 +103,9 @@ class HandConfig:
 
     Attributes (besides the documented YAML fields): ``side``: which hand the model is once ``edits`` are
     applied; ``mirror_axis``: the axis of the model's frames normal to the plane that turns it into the
-    other side (see :meth:`for_side`); ``edits``: model edits applied in order after loading ``model``.
+    other side (see :meth:`for_side`); ``edits``: model edits applied in order after loading ``model``;
+    ``per_demo``: the hand is built from each demo (stage 1's human hand): its geometry goes to compiled
+    programs as arrays (:attr:`quasisim.sim.types.Model.hand_geom`), so that demos share them.
     """
 
     name: str
@@ -115,6 +121,7 @@ class HandConfig:
     exclude_geoms: tuple[str, ...] = ()
     wrist_fit_human: tuple[int, ...] = (0, 5, 9, 13, 17)
     path: str = ""
+    per_demo: bool = False
 
     @classmethod
     def from_yaml(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> HandConfig:

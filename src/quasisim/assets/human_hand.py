@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quasisim.assets.hand import HandConfig, HandModel, KeypointSpec, load_hand
+from quasisim.assets.hand import HandConfig, HandModel, KeypointSpec, PointSetConfig, load_hand
 from quasisim.data.demo import KEYPOINT_NAMES
 from quasisim.files import cache_dir, save_text_atomic
 
@@ -51,6 +51,9 @@ PALM_KEYPOINTS = (1, 5, 9, 13, 17)
 # IK settings (quasisim.method.retarget.RetargetOptions fields) tuned for a tight fit: the human hand can reach every demo pose,
 # so the regularisers are tiny
 RETARGET_SETTINGS: dict[str, int | float] = {"iters": 250, "lr": 0.02, "smooth": 1e-7, "rest": 1e-9}
+# points of every human hand's point set (~1540 at the default 6 mm spacing on GRAB's subject 1): one size for
+# every demo, so that stage 1's programs are compiled once (the hand's geometry is passed to them as arrays)
+HUMAN_POINTS = 1536
 
 
 def palm_frames(joints: np.ndarray) -> np.ndarray:
@@ -169,8 +172,9 @@ def build_human_hand(joints: np.ndarray, name: str = "human") -> HandModel:
     """The dynamic human hand of ``joints`` (T, 21, 3) m as a :class:`HandModel` (see module docstring).
 
     The hand config has 21 keypoints (one per human keypoint, weight 1; metric: the wrist, index and
-    little MCPs and the 5 tips), the default PD gains and point-set settings, and the rigid root fit on
-    human keypoints 0, 5, 9, 13, 17.
+    little MCPs and the 5 tips), the default PD gains, a point set of :data:`HUMAN_POINTS` points, and the
+    rigid root fit on human keypoints 0, 5, 9, 13, 17. It is marked ``per_demo``: every human hand has the
+    same bodies and joints, so the simulator's programs take its geometry as arrays and serve every demo.
     """
     path = human_hand_path(joints)
     config = HandConfig(
@@ -181,6 +185,8 @@ def build_human_hand(joints: np.ndarray, name: str = "human") -> HandModel:
         description=f"human capsule hand with median bone lengths of a demo ({path.name})",
         wrist_fit_human=(0, 5, 9, 13, 17),
         path=str(path),
+        points=PointSetConfig(count=HUMAN_POINTS),
+        per_demo=True,
     )
     config.validate()
     return load_hand(config)

@@ -72,7 +72,9 @@ def touches(mode: str, rigid: list[int], sim: int) -> bool:
 def _depths(model: Model, root_pos: Array, root_rot: Array, q: Array, s: State) -> Array:
     """(N,) signed distances (m) of the hand points at root pose (simulator coordinates) and joints ``q`` to
     the object where state ``s`` holds it."""
-    p = points_world(forward_kinematics(model.hand, root_pos, root_rot, q), model.point_body, model.point_local)
+    p = points_world(
+        forward_kinematics(model.hand, root_pos, root_rot, q, model.hand_geom), model.point_body, model.point_local
+    )
     origin, R = object_origin(model, s)
     return sdf_lookup(model, (p - origin) @ R)[0]
 

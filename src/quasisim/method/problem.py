@@ -89,7 +89,8 @@ class Problem:
     def points_at(self, q: np.ndarray) -> np.ndarray:
         """(N, 3) world positions of the simulator's hand points at the targets' generalized position ``q`` (D,)."""
         qs = np.concatenate(split_q(np.asarray(q), self.hand_joints))
-        poses = fk_full(self.model.hand, jnp.asarray(self.base_rots, jnp.float32), jnp.asarray(qs, jnp.float32))
+        base_rots = jnp.asarray(self.base_rots, jnp.float32)
+        poses = fk_full(self.model.hand, base_rots, jnp.asarray(qs, jnp.float32), self.model.hand_geom)
         return np.asarray(points_world(poses, self.model.point_body, self.model.point_local))
 
     @property

@@ -106,7 +106,7 @@ def _points_over_time(
         model, params, simulate(model, params, traj, base_quat, fps, obj0), jnp.arange(model.n_points)
     )
     q0 = jnp.concatenate([traj.base[0], traj.joints[0]])
-    poses = fk_full(model.hand, base_rot, q0)
+    poses = fk_full(model.hand, base_rot, q0, model.hand_geom)
     return jnp.concatenate([points_world(poses, model.point_body, model.point_local)[None], p], axis=0)
 
 

@@ -109,8 +109,8 @@ def hand_keypoints(model: Model, states: State) -> Array:
     """(F, K, 3) world positions of all robot keypoints along a rollout."""
 
     def one(s: State) -> Array:
-        poses = forward_kinematics(model.hand, s.root_pos, quat_to_mat(s.root_quat), s.q)
-        return model.to_world(keypoints(model.hand, poses))
+        poses = forward_kinematics(model.hand, s.root_pos, quat_to_mat(s.root_quat), s.q, model.hand_geom)
+        return model.to_world(keypoints(model.hand, poses, model.hand_geom))
 
     return jax.vmap(one)(states)
 
@@ -121,7 +121,7 @@ def hand_point_positions(model: Model, params: Params, states: State, index: Arr
     local = model.point_local[index]
 
     def one(s: State) -> Array:
-        poses = forward_kinematics(model.hand, s.root_pos, quat_to_mat(s.root_quat), s.q)
+        poses = forward_kinematics(model.hand, s.root_pos, quat_to_mat(s.root_quat), s.q, model.hand_geom)
         return model.to_world(points_world(poses, body, local) + params.alpha * s.delta[index])
 
     return jax.vmap(one)(states)

@@ -19,8 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from quasisim.assets.hand import HINGE, HandModel
-from quasisim.rotations import axis_angle_to_mat, np_quat_to_mat
-from quasisim.sim.kinematics import BodyPoses, bases_to_roots, forward_kinematics_with_joints
+from quasisim.rotations import axis_angle_to_mat
+from quasisim.sim.kinematics import (
+    BodyPoses,
+    HandGeometry,
+    bases_to_roots,
+    forward_kinematics_with_joints,
+    hand_geometry,
+)
 
 Array = jnp.ndarray
 
@@ -53,15 +59,17 @@ def body_jacobians(
     q: Array,
     base: Array | None = None,
     base_rot: Array | None = None,
+    geom: HandGeometry | None = None,
 ) -> BodyJacobians:
     """Poses and geometric Jacobians of every body origin.
 
     With ``base`` (6,) and ``base_rot`` (3, 3), ``root_pos``/``root_rot`` are ignored and the first six
     coordinates are the floating base (3 world slides, 3 intrinsic hinges about ``base_rot``'s axes).
+    ``geom``: the hand's geometry as arrays (None: ``model``'s own, as constants).
     """
     if base is not None:
         root_pos, root_rot = bases_to_roots(base, base_rot)
-    poses, frames = forward_kinematics_with_joints(model, root_pos, root_rot, q)
+    poses, frames = forward_kinematics_with_joints(model, root_pos, root_rot, q, geom)
     mask = jnp.asarray(ancestor_mask(model), dtype=poses.pos.dtype)  # (B, J)
     hinge = jnp.asarray(model.joint_type == HINGE)
     rel = poses.pos[:, None, :] - frames.anchor[None, :, :]  # (B, J, 3)
@@ -84,18 +92,14 @@ def body_jacobians(
     return BodyJacobians(poses, jv, jw)
 
 
-def _inertia_body_frame(model: HandModel) -> np.ndarray:
-    Rq = np_quat_to_mat(model.body_iquat)
-    return np.einsum("bij,bj,bkj->bik", Rq, model.body_inertia, Rq)
-
-
-def mass_matrix(model: HandModel, bj: BodyJacobians, armature: Array) -> Array:
+def mass_matrix(model: HandModel, bj: BodyJacobians, armature: Array, geom: HandGeometry | None = None) -> Array:
     """Joint-space mass matrix (n, n) from body Jacobians; ``armature`` (n,) is added on the diagonal."""
+    g = hand_geometry(model, geom)
     R = bj.poses.rot
-    r = jnp.einsum("bij,bj->bi", R, jnp.asarray(model.body_ipos, R.dtype))  # origin -> com, world
+    r = jnp.einsum("bij,bj->bi", R, jnp.asarray(g.body_ipos, R.dtype))  # origin -> com, world
     jv_com = bj.jv + jnp.cross(jnp.swapaxes(bj.jw, 1, 2), r[:, None, :]).swapaxes(1, 2)
-    I_w = R @ jnp.asarray(_inertia_body_frame(model), R.dtype) @ jnp.swapaxes(R, 1, 2)
-    m = jnp.asarray(model.body_mass, R.dtype)
+    I_w = R @ jnp.asarray(g.body_inertia, R.dtype) @ jnp.swapaxes(R, 1, 2)
+    m = jnp.asarray(g.body_mass, R.dtype)
     n = jv_com.shape[-1]
     jv_flat = jv_com.reshape(-1, n)
     jw_I = jnp.sum(I_w[:, :, :, None] * bj.jw[:, None, :, :], axis=2).reshape(-1, n)
@@ -103,12 +107,13 @@ def mass_matrix(model: HandModel, bj: BodyJacobians, armature: Array) -> Array:
     return M + jnp.diag(armature)
 
 
-def gravity_bias(model: HandModel, bj: BodyJacobians, gravity: Array) -> Array:
+def gravity_bias(model: HandModel, bj: BodyJacobians, gravity: Array, geom: HandGeometry | None = None) -> Array:
     """g(q) (n,): generalized force that holds the bodies against ``gravity`` (3,) m/s^2."""
+    g = hand_geometry(model, geom)
     R = bj.poses.rot
-    r = jnp.einsum("bij,bj->bi", R, jnp.asarray(model.body_ipos, R.dtype))
+    r = jnp.einsum("bij,bj->bi", R, jnp.asarray(g.body_ipos, R.dtype))
     jv_com = bj.jv + jnp.cross(jnp.swapaxes(bj.jw, 1, 2), r[:, None, :]).swapaxes(1, 2)
-    m = jnp.asarray(model.body_mass, R.dtype)
+    m = jnp.asarray(g.body_mass, R.dtype)
     return -jnp.einsum("b,bik,i->k", m, jv_com, gravity)
 
 

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from quasisim.assets.hand import HandModel
+from quasisim.sim.kinematics import geometry_arrays
 from quasisim.sim.pointset import HandPoints, sample_hand_points
 from quasisim.sim.types import NETWORKS, Model, Params
 
@@ -49,7 +50,8 @@ def build_model(
     hand: HandModel, obj: Any, table: Any, opts: SimOptions, offset: np.ndarray, points: HandPoints | None = None
 ) -> Model:
     """``obj`` is an :class:`~quasisim.assets.object.ObjectAsset`; ``table`` a :class:`~quasisim.targets.scene.Table`;
-    ``offset`` (3,) the world position of the simulator origin (e.g. the object's initial position)."""
+    ``offset`` (3,) the world position of the simulator origin (e.g. the object's initial position). A hand
+    built per demo (``hand.config.per_demo``) gets its geometry as array leaves (``Model.hand_geom``)."""
     if points is None:
         points = hand_set_points((hand,), opts)
     sdf = obj.sdf(spacing=opts.sdf_spacing).as_flat()
@@ -76,6 +78,7 @@ def build_model(
             F32,
         ),
         offset=jnp.asarray(offset, F32),
+        hand_geom=geometry_arrays(hand) if hand.config.per_demo else None,
         dt=float(opts.dt),
         substeps=int(opts.substeps),
         n_candidates=int(min(opts.n_candidates, points.n)),
@@ -93,6 +96,7 @@ def hand_set_points(hands: tuple[HandModel, ...], opts: SimOptions) -> HandPoint
             opts.point_spacing if opts.point_spacing is not None else cfg.spacing,
             opts.point_offset if opts.point_offset is not None else cfg.offset,
             cfg.seed,
+            cfg.count,
         )
         parts.append(dataclasses.replace(pts, body=pts.body + b0))
         b0 += hand.n_bodies

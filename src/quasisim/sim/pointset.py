@@ -56,13 +56,28 @@ def geom_mesh(g: Geom) -> trimesh.Trimesh:
     return m
 
 
-def sample_hand_points(hand: HandModel, spacing: float, offset: float, seed: int = 0) -> HandPoints:
+def sample_hand_points(
+    hand: HandModel, spacing: float, offset: float, seed: int = 0, count: int | None = None
+) -> HandPoints:
     """Sample points every ~``spacing`` m on each collision geom and push them out by U(0, ``offset``).
 
     Points that fall inside another collision geom of the same body are dropped (overlapping boxes).
+    With ``count``, the spacing is chosen for at least ~1.25 ``count`` points (denser where overlapping
+    geoms drop points) and ``count`` of them are drawn (in body order), whatever the hand's size.
     """
     with quiet_trimesh():
-        return _sample(hand, spacing, offset, seed)
+        if count is None:
+            return _sample(hand, spacing, offset, seed)
+        spacing = float(np.sqrt(sum(geom_mesh(g).area for g in hand.collision_geoms()) / (1.25 * count)))
+        for _ in range(4):  # overlapping geoms drop points: sample more densely until there are enough
+            pts = _sample(hand, spacing, offset, seed)
+            if pts.n >= count:
+                break
+            spacing *= float(np.sqrt(pts.n / (1.25 * count)))
+        else:
+            raise ValueError(f"hand {hand.name}: {pts.n} points sampled, fewer than the point set's count {count}")
+        keep = np.sort(np.random.default_rng(seed).choice(pts.n, count, replace=False))
+        return HandPoints(pts.body[keep], pts.local[keep], pts.normal[keep])
 
 
 def _sample(hand: HandModel, spacing: float, offset: float, seed: int) -> HandPoints:

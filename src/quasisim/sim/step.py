@@ -33,6 +33,7 @@ from quasisim.assets.object import SDFArrays, sdf_query
 from quasisim.rotations import quat_mul, quat_to_mat, skew
 from quasisim.sim.articulation import BodyJacobians, body_jacobians, gravity_bias, mass_matrix
 from quasisim.sim.contact import ContactForces, NormalContact, friction, normal_contact, table_sdf
+from quasisim.sim.kinematics import hand_geometry
 from quasisim.sim.residual import ResidualInput, control_residual, residual_forces
 from quasisim.sim.types import Control, Model, Params, State
 
@@ -120,7 +121,7 @@ def object_origin(model: Model, state: State) -> tuple[Array, Array]:
 
 def hand_points(model: Model, params: Params, state: State, pts: Points) -> tuple[Array, Array, BodyJacobians]:
     """World positions (K, 3) of ``pts``, their offsets from their body origins (K, 3), body Jacobians."""
-    bj = body_jacobians(model.hand, state.root_pos, quat_to_mat(state.root_quat), state.q)
+    bj = body_jacobians(model.hand, state.root_pos, quat_to_mat(state.root_quat), state.q, geom=model.hand_geom)
     pos, rot = bj.poses
     r = jnp.einsum("nij,nj->ni", rot[pts.body], pts.local)
     return pos[pts.body] + r + params.alpha * state.delta, r, bj
@@ -232,7 +233,8 @@ def joint_step(
     D_h = one_m_a * _project(J6, _sandwich_segments(r, c.C.D, pts.body, B))
 
     q, qd = state.q, state.qd
-    lo, hi = jnp.asarray(hand.joint_range[:, 0]), jnp.asarray(hand.joint_range[:, 1])
+    jr = hand_geometry(hand, model.hand_geom).joint_range
+    lo, hi = jnp.asarray(jr[:, 0]), jnp.asarray(jr[:, 1])
     limited = jnp.asarray(hand.joint_limited)
     below, above = limited & (q < lo), limited & (q > hi)
     f_lim = params.limit_k * (jnp.where(below, lo - q, 0.0) + jnp.where(above, hi - q, 0.0))
@@ -242,12 +244,12 @@ def joint_step(
     tau_j = (
         ctrl.tau
         + tau_pd
-        - gravity_bias(hand, bj, params.gravity)
+        - gravity_bias(hand, bj, params.gravity, model.hand_geom)
         - params.joint_damping * qd
         - params.joint_stiffness * q
         + f_lim
     )
-    M = mass_matrix(hand, bj, params.armature)
+    M = mass_matrix(hand, bj, params.armature, model.hand_geom)
     D = D_h + jnp.diag(params.joint_damping + params.joint_kv)
     A_h = M + dt * D + dt * dt * (K_h + jnp.diag(k_j + params.joint_kp))
     return jnp.linalg.solve(A_h, (M + dt * D) @ qd + dt * (tau_c + tau_j))

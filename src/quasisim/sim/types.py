@@ -57,6 +57,9 @@ class Model:
         table: (5,) xmin, xmax, ymin, ymax, top of the table box (m), in simulator coordinates.
         offset: (3,) world position of the simulator's origin (positions in State are relative to it, which
             keeps float32 resolution at micrometres; use :meth:`to_world` / :meth:`to_sim`).
+        hand_geom: the hand's geometry as array leaves (:class:`~quasisim.sim.kinematics.HandGeometry`) for a
+            hand built per demo (stage 1's human hand: one compiled program for every demo), or None (the
+            hand's own geometry, compiled in as constants).
         dt: substep (s).  substeps: substeps per frame.
         n_candidates: hand points examined for contact in each frame (the closest to the object at the
             frame's start; a broad phase that bounds the per-substep cost).
@@ -76,6 +79,7 @@ class Model:
     obj_normals: Array = None  # type: ignore[assignment]
     table: Array = None  # type: ignore[assignment]
     offset: Array = None  # type: ignore[assignment]
+    hand_geom: Any = None
     dt: float = static(default=0.001)
     substeps: int = static(default=50)
     n_candidates: int = static(default=128)
