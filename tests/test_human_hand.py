@@ -174,3 +174,24 @@ def test_hands_of_two_demos_share_one_compiled_simulator(synthetic, tmp_path) ->
         return jax.jit(rollout).lower(m, p, s0, c).as_text()
 
     assert program(models[0]) == program(models[1])
+
+
+def test_human_point_seed_draws_another_point_set_and_keys_stage_1(synthetic) -> None:
+    """``stage1.human_point_seed`` draws another human point set of the same size (over every bone) and is
+    part of what determines stage 1 and the runs after it, not a run without stage 1 (sample-target)."""
+    from quasisim.assets.human_hand import HUMAN_POINTS
+    from quasisim.method.config import TransferConfig
+    from quasisim.sim.pointset import sample_hand_points
+
+    demo, _ = synthetic
+    hands = [build_human_hand(demo.right_joints, point_seed=s) for s in (0, 1)]
+    pts = [
+        sample_hand_points(h, h.config.points.spacing, 0.0, h.config.points.seed, h.config.points.count) for h in hands
+    ]
+    assert [p.n for p in pts] == [HUMAN_POINTS, HUMAN_POINTS]
+    assert set(np.unique(pts[1].body)) == set(range(hands[1].n_bodies))
+    assert not np.array_equal(pts[0].local, pts[1].local)
+    c0, c1 = TransferConfig.from_yaml(), TransferConfig.from_yaml(overrides={"stage1.human_point_seed": 1})
+    assert c0.stage1.human_point_seed == 0 and c1.stage1.human_point_seed == 1
+    assert c0.identity("fast", ("1", "2", "sample")) != c1.identity("fast", ("1", "2", "sample"))
+    assert c0.identity("fast", ("sample",)) == c1.identity("fast", ("sample",))

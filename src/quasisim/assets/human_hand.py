@@ -168,11 +168,12 @@ def human_hand_path(joints: np.ndarray) -> Path:
     return path
 
 
-def build_human_hand(joints: np.ndarray, name: str = "human") -> HandModel:
+def build_human_hand(joints: np.ndarray, name: str = "human", point_seed: int = 0) -> HandModel:
     """The dynamic human hand of ``joints`` (T, 21, 3) m as a :class:`HandModel` (see module docstring).
 
     The hand config has 21 keypoints (one per human keypoint, weight 1; metric: the wrist, index and
-    little MCPs and the 5 tips), the default PD gains, a point set of :data:`HUMAN_POINTS` points, and the
+    little MCPs and the 5 tips), the default PD gains, a point set of :data:`HUMAN_POINTS` points (drawn
+    with ``point_seed``), and the
     rigid root fit on human keypoints 0, 5, 9, 13, 17. It is marked ``per_demo``: every human hand has the
     same bodies and joints, so the simulator's programs take its geometry as arrays and serve every demo.
     """
@@ -185,7 +186,7 @@ def build_human_hand(joints: np.ndarray, name: str = "human") -> HandModel:
         description=f"human capsule hand with median bone lengths of a demo ({path.name})",
         wrist_fit_human=(0, 5, 9, 13, 17),
         path=str(path),
-        points=PointSetConfig(count=HUMAN_POINTS),
+        points=PointSetConfig(count=HUMAN_POINTS, seed=point_seed),
         per_demo=True,
     )
     config.validate()

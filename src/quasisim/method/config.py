@@ -42,11 +42,25 @@ class Budget:
 
 
 @dataclass(frozen=True)
+class Stage1Options:
+    """Stage 1's settings.
+
+    Attributes:
+        human_point_seed: seed of the draw of the human hand's point set (the points the robot's point set
+            follows). Any seed is as good as another; runs that differ only in it measure how much a result
+            depends on such arbitrary choices (BENCHMARKS.md, run-to-run spread).
+    """
+
+    human_point_seed: int
+
+
+@dataclass(frozen=True)
 class TransferConfig:
     """Objective weights, named budgets, closed-loop MPC and sampling settings (``configs/transfer.yaml``)."""
 
     weights: Weights
     budgets: dict[str, Budget]
+    stage1: Stage1Options
     stage2: HandoffOptions
     mpc: MPCOptions
     soften_samples: int

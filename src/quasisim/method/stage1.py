@@ -51,12 +51,15 @@ def fit_human_hand(human: HandModel, demo: Demo, side: str = "right") -> Retarge
     return retarget(human, demo, RetargetOptions(**RETARGET_SETTINGS), side=side)
 
 
-def human_problem(demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int) -> tuple[Problem, np.ndarray, float]:
-    """Stage 1a for each of the demo's hands: the dynamic human hands (built from each side's own keypoints)
-    fitted to the demo, as a problem (one hand set for two hands); their PD targets (T, D) and mean metric
-    keypoint error (mm)."""
+def human_problem(
+    demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, point_seed: int = 0
+) -> tuple[Problem, np.ndarray, float]:
+    """Stage 1a for each of the demo's hands: the dynamic human hands (built from each side's own keypoints,
+    point sets drawn with ``point_seed``) fitted to the demo, as a problem (one hand set for two hands); their
+    PD targets (T, D) and mean metric keypoint error (mm)."""
     hands = tuple(
-        build_human_hand(demo.joints_of(s), name="human" if s == "right" else f"human-{s}") for s in demo.sides
+        build_human_hand(demo.joints_of(s), name="human" if s == "right" else f"human-{s}", point_seed=point_seed)
+        for s in demo.sides
     )
     fits = tuple(fit_human_hand(h, demo, s) for h, s in zip(hands, demo.sides, strict=True))
     prob, q = fitted_problem(demo, hands, fits, substeps, n_candidates, obj)
@@ -65,13 +68,13 @@ def human_problem(demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int
 
 def human_point_set(
     demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, contact: dict[str, float], weights: Weights,
-    sb: StepBudget, progress: Progress, label: str,
+    sb: StepBudget, progress: Progress, label: str, point_seed: int = 0,
 ) -> dict[str, Any]:  # fmt: skip
-    """Stages 1a and 1b. Returns ``points``: the human point set per frame (T, P, 3) m, ``point_hand``
+    """Stages 1a and 1b (the human point set drawn with ``point_seed``). Returns ``points``: the human point set per frame (T, P, 3) m, ``point_hand``
     (P,) the hand of each point (0 right, 1 left), ``losses``, the human hands' kinematic fit error and the
     wall time."""
     t0 = time.perf_counter()
-    prob, q, fit_error_mm = human_problem(demo, obj, substeps, n_candidates)
+    prob, q, fit_error_mm = human_problem(demo, obj, substeps, n_candidates, point_seed)
     params = prob.params(contact)
     human = prob.model.hand
     ref = Reference.from_demo(demo, human.kp_human, np.arange(len(human.kp_human)))

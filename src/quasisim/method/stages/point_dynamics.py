@@ -24,7 +24,16 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     hp = ck.get(
         "stage1_human",
         lambda: stage1.human_point_set(
-            prob.demo, prob.obj, bud.substeps, bud.n_candidates, contact, cfg.weights, bud.human, progress, label
+            prob.demo,
+            prob.obj,
+            bud.substeps,
+            bud.n_candidates,
+            contact,
+            cfg.weights,
+            bud.human,
+            progress,
+            label,
+            cfg.stage1.human_point_seed,
         ),
         {"points": (prob.demo.n_frames, None, 3), "losses": (None,), "wall_s": ()},
     )
@@ -50,6 +59,6 @@ def run(ctx: Context, out: Outcome) -> Outcome:
 
 
 STAGE = Stage(
-    name="1", word="stage1", config=(), s_per_frame=2.9, run=run, budget_parts=("human", "robot_points"),
+    name="1", word="stage1", config=("stage1",), s_per_frame=2.9, run=run, budget_parts=("human", "robot_points"),
     plans=True, uses_simulator=True,
 )  # fmt: skip
