@@ -181,13 +181,11 @@ def test_human_point_seed_draws_another_point_set_and_keys_stage_1(synthetic) ->
     part of what determines stage 1 and the runs after it, not a run without stage 1 (sample-target)."""
     from quasisim.assets.human_hand import HUMAN_POINTS
     from quasisim.method.config import TransferConfig
-    from quasisim.sim.pointset import sample_hand_points
+    from quasisim.sim.build import SimOptions, hand_set_points
 
     demo, _ = synthetic
     hands = [build_human_hand(demo.right_joints, point_seed=s) for s in (0, 1)]
-    pts = [
-        sample_hand_points(h, h.config.points.spacing, 0.0, h.config.points.seed, h.config.points.count) for h in hands
-    ]
+    pts = [hand_set_points((h,), SimOptions(dt=0.005, substeps=2, n_candidates=64)) for h in hands]
     assert [p.n for p in pts] == [HUMAN_POINTS, HUMAN_POINTS]
     assert set(np.unique(pts[1].body)) == set(range(hands[1].n_bodies))
     assert not np.array_equal(pts[0].local, pts[1].local)

@@ -173,8 +173,7 @@ def build_human_hand(joints: np.ndarray, name: str = "human", point_seed: int = 
 
     The hand config has 21 keypoints (one per human keypoint, weight 1; metric: the wrist, index and
     little MCPs and the 5 tips), the default PD gains, a point set of :data:`HUMAN_POINTS` points (drawn
-    with ``point_seed``), and the
-    rigid root fit on human keypoints 0, 5, 9, 13, 17. It is marked ``per_demo``: every human hand has the
+    with ``point_seed``), and the rigid root fit on human keypoints 0, 5, 9, 13, 17. It is marked ``per_demo``: every human hand has the
     same bodies and joints, so the simulator's programs take its geometry as arrays and serve every demo.
     """
     path = human_hand_path(joints)

@@ -52,7 +52,7 @@ def fit_human_hand(human: HandModel, demo: Demo, side: str = "right") -> Retarge
 
 
 def human_problem(
-    demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, point_seed: int = 0
+    demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, point_seed: int
 ) -> tuple[Problem, np.ndarray, float]:
     """Stage 1a for each of the demo's hands: the dynamic human hands (built from each side's own keypoints,
     point sets drawn with ``point_seed``) fitted to the demo, as a problem (one hand set for two hands); their
@@ -68,11 +68,11 @@ def human_problem(
 
 def human_point_set(
     demo: Demo, obj: ObjectAsset, substeps: int, n_candidates: int, contact: dict[str, float], weights: Weights,
-    sb: StepBudget, progress: Progress, label: str, point_seed: int = 0,
+    sb: StepBudget, progress: Progress, label: str, point_seed: int,
 ) -> dict[str, Any]:  # fmt: skip
-    """Stages 1a and 1b (the human point set drawn with ``point_seed``). Returns ``points``: the human point set per frame (T, P, 3) m, ``point_hand``
-    (P,) the hand of each point (0 right, 1 left), ``losses``, the human hands' kinematic fit error and the
-    wall time."""
+    """Stages 1a and 1b (the human point set drawn with ``point_seed``). Returns ``points``: the human point
+    set per frame (T, P, 3) m, ``point_hand`` (P,) the hand of each point (0 right, 1 left), ``losses``, the
+    human hands' kinematic fit error and the wall time."""
     t0 = time.perf_counter()
     prob, q, fit_error_mm = human_problem(demo, obj, substeps, n_candidates, point_seed)
     params = prob.params(contact)
