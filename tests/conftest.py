@@ -51,6 +51,14 @@ def _free_compiled_programs():
     free_compiled_programs(force=True)
 
 
+@pytest.fixture(autouse=True)
+def _free_compiled_programs_when_needed():
+    """Within a module too, once its programs hold half the limit's mappings (a module of end-to-end tests
+    that compile many programs, e.g. the soft simulators' step beside the stiffest one, crashed there)."""
+    yield
+    free_compiled_programs()
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     if not (DATA / "manifest.json").is_file():

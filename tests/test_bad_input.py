@@ -480,6 +480,9 @@ OPTION_CASES = [
     Case("transfer-set-syntax", _nothing, TR + "--set budgets", ("--set", "KEY=VALUE")),
     Case("transfer-set-key", _nothing, TR + "--set budgets.fast.x=1", ("budgets.fast.x",)),
     Case("transfer-set-type", _nothing, TR + "--set budgets.fast.substeps=many", ("budgets.fast.substeps", "integer")),
+    Case(
+        "transfer-set-soft-step", _nothing, TR + "--set budgets.fast.soft_step_scale=0.5", ("soft_step_scale", ">= 1")
+    ),
     Case("transfer-set-negative-weight", _nothing, TR + "--set weights.obj_pos=-1", ("weights.obj_pos", ">= 0")),
     Case("transfer-set-nan", _nothing, TR + "--set weights.hand=.nan", ("weights.hand", "finite")),
     Case("transfer-set-inf-lr", _nothing, TR + "--set budgets.fast.sim.control_lr=.inf", ("control_lr", "finite")),
@@ -516,6 +519,8 @@ OPTION_CASES = [
     Case("batch-curriculum", _nothing, "batch {d} --out {d}/bout --curriculum soft", ("soft", "default")),
     Case("bench-sim-substeps", _nothing, "bench sim --substeps -1", ("--substeps", "x>=1")),
     Case("bench-sim-dt-study", _nothing, "bench sim --dt-study a,b", ("--dt-study", "'a,b'")),
+    Case("bench-sim-study-sims", _nothing, "bench sim --study-sims 10", ("--study-sims", "[10]", "valid: [1, 2")),
+    Case("bench-sim-study-sims-zero", _nothing, "bench sim --study-sims 0", ("--study-sims", "positive integers")),
 ]
 
 # ---- convert landmarks: the base demo written as a user's files -------------------------------------------

@@ -61,6 +61,9 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
     assert sorted(row["clip"] for row in res["rows"]) == good
     assert list(res["failures"]) == ["broken"] and "broken.npz" in res["failures"]["broken"]
     assert not (out / ".work" / good[0]).exists()  # scratch removed once the clip is persisted
+    # each worker that could pin itself (a parallel test may hold the cores) runs on one core of its own
+    pinned = [set(c) for c in res["cores_per_worker"].values() if c is not None]
+    assert all(len(c) == 1 for c in pinned) and len(set().union(*pinned)) == len(pinned)
     for c in good:
         d = json.loads((out / c / "clip.json").read_text())
         assert d["runs"][""]["row"]["metrics"] == json.loads((out / c / "metrics.json").read_text())
@@ -107,6 +110,17 @@ def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
 
     r = CliRunner().invoke(main, ["batch", str(tmp_path), "--out", str(tmp_path / "o"), "--stages", "9"])
     assert r.exit_code == 2 and "valid stages" in r.output
+
+
+def test_bench_batch_layouts_parse_and_refuse_bad_ones(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import _layout, main
+
+    assert _layout("2x1") == (2, 1, True) and _layout("2x1-unpinned") == (2, 1, False)
+    for bad in ("2x1-pinned", "2", "0x1", "axb"):
+        r = CliRunner().invoke(main, ["bench", "batch", str(tmp_path), "--layouts", bad, "--out", str(tmp_path / "o")])
+        assert r.exit_code != 0 and "WORKERSxTHREADS[-unpinned]" in r.output, (bad, r.output)
 
 
 def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:

@@ -167,20 +167,28 @@ def test_transfer_config_validation(tmp_path) -> None:
         parse_stages("1,4")
 
 
-def test_a_diverged_start_neither_wins_the_restart_guard_nor_stops_stage_2() -> None:
-    """A start whose loss is not finite loses to any finite one; a simulator whose first evaluation diverged
-    (no loss recorded, measured on a real clip) is reported and the run goes on with its start."""
+def test_restart_guard_skips_diverged_and_repeated_starts_and_stage_2_goes_on() -> None:
+    """A start whose loss is not finite loses to any finite one, equal starts are evaluated once; a simulator
+    whose first evaluation diverged (no loss recorded, measured on a real clip) is reported and the run goes
+    on with its start."""
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.stage import RunRecord
     from quasisim.method.stage2 import restart_guard
     from quasisim.method.stages.contact_curriculum import _record_simulator
     from quasisim.optim.adam import Progress
 
-    def vg(t, *_):
-        return (t, None), None
+    calls = []
 
-    best, losses = restart_guard(vg, {"previous": jnp.nan, "kinematic": 0.3, "stage_start": 0.5}, None, None, {})
+    def value(t, *_):
+        calls.append(t)
+        return t, None
+
+    best, losses = restart_guard(value, {"previous": jnp.nan, "kinematic": 0.3, "stage_start": 0.5}, None, None, {})
     assert best == "kinematic" and losses["previous"] == float("inf")
+    # a start equal to an earlier one (the stage's start is often the kinematic retarget) is evaluated once
+    calls.clear()
+    best, losses = restart_guard(value, {"previous": 0.4, "kinematic": 0.3, "stage_start": 0.3}, None, None, {})
+    assert best == "kinematic" and losses["stage_start"] == 0.3 and calls == [0.4, 0.3]
     record, cur = RunRecord(), load_curriculum("default")
     record.seconds["stage2"] = 0.0
     d = {"losses": np.zeros(0), "wall_s": np.array(1.0), "start_losses": np.array("{}")}

@@ -1,9 +1,17 @@
-"""Process-wide settings: the compiled-program release that keeps long runs below the mapping limit."""
+"""Process-wide settings: the compiled-program release that keeps long runs below the mapping limit, and the
+pinning of batch workers to cores of their own."""
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
+import pytest
 
 from quasisim import runtime
 
@@ -27,3 +35,51 @@ def test_map_counts_reads_this_process() -> None:
     if counts is not None:  # Linux
         n, limit = counts
         assert 0 < n < limit
+
+
+# A child that pins itself with the lock folder argv[1], starts JAX's CPU backend, prints its pinned cores,
+# its affinity and the threads of XLA's CPU pool, then holds its cores until its stdin closes.
+_PIN_CHILD = """
+import json, os, sys
+from pathlib import Path
+from quasisim.runtime import pin_to_free_cores
+cores = pin_to_free_cores(1, Path(sys.argv[1]))
+import jax.numpy as jnp
+jnp.ones(4).sum().block_until_ready()
+pool = sum(Path(f"/proc/self/task/{t}/comm").read_text().startswith("tf_XLAEigen") for t in os.listdir("/proc/self/task"))
+print(json.dumps([cores, sorted(os.sched_getaffinity(0)), pool]), flush=True)
+sys.stdin.read()
+"""
+
+
+def _pinned_child(lock_dir: Path) -> tuple[subprocess.Popen, list]:
+    """A running :data:`_PIN_CHILD` and what it printed."""
+    p = subprocess.Popen([sys.executable, "-c", _PIN_CHILD, str(lock_dir)], stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert p.stdout is not None
+    return p, json.loads(p.stdout.readline())  # [cores or None, affinity, XLA pool threads]
+
+
+@pytest.mark.skipif(
+    not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2 or not Path("/proc/self/task").is_dir(),
+    reason="needs Linux and at least 2 allowed cores",
+)
+def test_pinned_workers_get_cores_of_their_own_and_an_xla_pool_of_that_size(tmp_path: Path) -> None:
+    n = len(os.sched_getaffinity(0))
+    children = [_pinned_child(tmp_path) for _ in range(n)]
+    try:
+        got = [c[1] for c in children]
+        assert sorted(c[0][0] for c in got) == sorted(os.sched_getaffinity(0))  # every core once
+        assert all([c[0][0]] == c[1] for c in got)  # each child runs where it says it is pinned
+        assert all(c[2] <= 1 for c in got)  # XLA sized its pool by the one core (unpinned: one per core)
+        extra, (cores, affinity, _) = _pinned_child(tmp_path)  # every core is held: not pinned
+        assert cores is None and affinity == sorted(os.sched_getaffinity(0))
+        extra.communicate("")
+        first, _ = children.pop(0)
+        first.communicate("")  # its lock is released when it exits
+        again, (cores, affinity, _) = _pinned_child(tmp_path)
+        assert cores == got[0][0] and affinity == cores
+        again.communicate("")
+    finally:
+        for p, _ in children:
+            p.communicate("")

@@ -15,6 +15,7 @@ from quasisim.errors import InputError, QuasisimError
 
 TINY = {
     "budgets.fast.substeps": 5,
+    "budgets.fast.soft_step_scale": 2.0,  # the soft simulators at 2 substeps per frame
     "budgets.fast.n_candidates": 32,
     "budgets.fast.human.control_steps": 1,
     "budgets.fast.robot_points.control_steps": 1,
@@ -158,6 +159,16 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
     assert r.exit_code == 2 and "nope.npz" in r.output
 
 
+def test_soft_simulators_take_substeps_over_the_step_scale() -> None:
+    from quasisim.method.config import TransferConfig
+
+    def soft(substeps: int, scale: float) -> int:
+        over = {"budgets.fast.substeps": substeps, "budgets.fast.soft_step_scale": scale}
+        return TransferConfig.from_yaml(overrides=over).budget("fast").soft
+
+    assert (soft(20, 1.0), soft(20, 2.0), soft(20, 3.0), soft(5, 2.0), soft(1, 4.0)) == (20, 10, 7, 2, 1)
+
+
 @pytest.mark.slow
 def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path) -> None:
     """A few Adam steps on the controls in the stiffest analytical simulator lower the tracking objective
@@ -187,6 +198,16 @@ def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path)
     traj, sysid, log_s, log_c = stage2.one_simulator(vg, traj0, SysID.init(), params, w, sb, Progress(False), "t")
     assert log_s.best < log_s.losses[0] and log_c.best < 0.98 * log_c.losses[0], (log_s.losses, log_c.losses)
     assert float(vg(traj, sysid, params, w)[0][0]) == pytest.approx(log_c.best, rel=1e-6)
+    # the restart guard's forward pass alone gives the same loss
+    value = prob.objective(prob.reference()).value
+    assert float(value(traj, sysid, params, w)[0]) == pytest.approx(log_c.best, rel=1e-5)
+    # a soft simulator's objective steps fewer times per frame: as if the problem were built with that step
+    coarse = make_problem(demo, (Placement(hand, rt.base_rot),), 2, 32)
+    direct = float(coarse.objective(coarse.reference()).value(traj, sysid, params, w)[0])
+    assert float(prob.objective(prob.reference()).with_substeps(2).value(traj, sysid, params, w)[0]) == pytest.approx(
+        direct, rel=1e-6
+    )
+    assert direct != pytest.approx(log_c.best, rel=1e-6)  # and the step matters
 
 
 def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> None:

@@ -77,6 +77,7 @@ class Settings:
     max_retries: int = 2
     keep_scratch: bool = False  # keep each clip's checkpoints (later runs of the same clip start from them)
     record_transitions: bool = False  # each run keeps what its sampling stage rolled out (RUN/transitions/)
+    pin_cores: bool = True  # each worker on `threads` cores of its own (runtime.pin_to_free_cores)
 
     def resolved(self) -> Settings:
         cores = os.cpu_count() or 1
@@ -188,8 +189,9 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
     files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.pipeline import run_transfer
-    from quasisim.runtime import configure, free_compiled_programs
+    from quasisim.runtime import configure, free_compiled_programs, pin_to_free_cores
 
+    cores = pin_to_free_cores(s.threads) if s.pin_cores else None  # before JAX's CPU backend starts
     configure()
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
     fault = _fault_hook(job.clip, scratch)
@@ -224,7 +226,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
         prefix = f"{r.name}/" if r.name else ""
         out_files |= {prefix + k: v for k, v in _read_tree(run_dir).items()}
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid()}
+    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores}
 
 
 # ---- the driver's side -------------------------------------------------------------------------------
@@ -232,7 +234,8 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
 
 @dataclass
 class BatchResult:
-    """Rows (one per clip and run), failures ({clip: error}) and timing of a batch."""
+    """Rows (one per clip and run), failures ({clip: error}), timing of a batch, and per worker process
+    ({pid: ...}) its peak memory and the cores it was pinned to (None: not pinned)."""
 
     rows: list[dict[str, Any]]
     failures: dict[str, str]
@@ -240,6 +243,7 @@ class BatchResult:
     n_run: int
     workers: int
     peak_rss_mb: dict[str, float]
+    cores: dict[str, list[int] | None] = field(default_factory=dict)
 
 
 def finished_runs(out: Path, job: Job, s: Settings) -> dict[str, dict[str, Any]]:
@@ -307,6 +311,7 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
             todo.append(dataclasses.replace(j, runs=missing))
     failures: dict[str, str] = {}
     peak: dict[str, float] = {}
+    cores: dict[str, list[int] | None] = {}
     t0 = time.perf_counter()
     for job, result in _dispatch(spread_objects(todo), s, scratch) if todo else ():
         if isinstance(result, str):
@@ -317,9 +322,10 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
                 shutil.rmtree(scratch / job.clip, ignore_errors=True)
             rows += result["rows"]
             peak[str(result["pid"])] = result["peak_rss_mb"]
+            cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
         if on_clip is not None:
             on_clip(rows, failures)
-    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak)
+    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores)
 
 
 def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
@@ -442,11 +448,11 @@ def run_batch_command(
 
 
 def throughput(res: BatchResult) -> dict[str, Any]:
-    """Clips per hour of the clips run now, and the workers' peak memory."""
+    """Clips per hour of the clips run now, and the workers' peak memory and cores."""
     return {
         "clips_run": res.n_run, "wall_s": res.wall_s,
         "clips_per_hour": 3600.0 * res.n_run / res.wall_s if res.n_run and res.wall_s > 0 else None,
-        "peak_rss_mb_per_worker": res.peak_rss_mb,
+        "peak_rss_mb_per_worker": res.peak_rss_mb, "cores_per_worker": res.cores,
     }  # fmt: skip
 
 

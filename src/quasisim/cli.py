@@ -669,23 +669,35 @@ def bench_baseline(
     show_default=True,
     help="Substeps per frame compared with 100 (dt 0.5 ms at 20 fps).",
 )
+@click.option(
+    "--study-sims", default="", help="Simulators of the default curriculum (1-based) of the step-size study "
+    "(default: the stiffest analytical one).",
+)  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print JSON only.")
 @_friendly
 def bench_sim(
-    data_dir: Path | None, clip: str, study_clips: str, hand: str, substeps: int | None, dt_study: str, as_json: bool
-) -> None:
+    data_dir: Path | None, clip: str, study_clips: str, hand: str, substeps: int | None, dt_study: str,
+    study_sims: str, as_json: bool,
+) -> None:  # fmt: skip
     """Simulator speed (forward, forward+backward, memory), MuJoCo on the same scene, step-size study."""
     import os
 
     _setup_runtime()
     from quasisim.bench.sim import run_sim_bench
+    from quasisim.method.curriculum import load_curriculum
 
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     if not (data / f"{clip}.npz").is_file():
         raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
     study = _positive_ints(dt_study, "--dt-study", "50,20,10")
+    sims = _positive_ints(study_sims, "--study-sims", "1,5,9") if study_sims.strip() else ()
+    analytical = [i + 1 for i, st in enumerate(load_curriculum("default").stages) if not st.residual]
+    if bad := sorted(set(sims) - set(analytical)):
+        raise QuasisimError(
+            f"--study-sims: {bad} are not analytical simulators of the default curriculum (valid: {analytical})"
+        )
     clips_ = tuple(c for c in study_clips.split(",") if c.strip())
-    run_sim_bench(data, clip, clips_, hand, substeps, study, as_json)
+    run_sim_bench(data, clip, clips_, hand, substeps, study, as_json, sims)
 
 
 @bench.command("transfer")
@@ -789,7 +801,10 @@ def bench_compare(folders: tuple[str, ...], run: str, kinematic: bool, out: Path
 @click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
 @click.option("--method", type=click.Choice(METHODS), default="sample-target", show_default=True)
 @click.option("--stages", default=",".join(_SPEC.stages), show_default=True, help="As in transfer (method ours).")
-@click.option("--layouts", default="1x1,2x1,1x2", show_default=True, help="WORKERSxTHREADS per layout, in order.")
+@click.option(
+    "--layouts", default="1x1,2x1,1x2", show_default=True,
+    help="WORKERSxTHREADS per layout, in order; -unpinned: workers not pinned to cores of their own (2x1-unpinned).",
+)  # fmt: skip
 @click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/batch"), show_default=True)
 @_friendly
@@ -803,13 +818,24 @@ def bench_batch(
     from quasisim.bench.batch import run_batch_bench
 
     try:
-        lay = tuple(tuple(int(x) for x in s.split("x")) for s in layouts.split(",") if s.strip())
-        assert lay and all(len(x) == 2 and min(x) >= 1 for x in lay)
+        lay = tuple(_layout(x.strip()) for x in layouts.split(",") if x.strip())
+        assert lay and all(min(x[:2]) >= 1 for x in lay)
     except (ValueError, AssertionError):
-        raise QuasisimError(f"--layouts expects WORKERSxTHREADS,... (e.g. 1x1,2x1), got {layouts!r}") from None
+        raise QuasisimError(
+            f"--layouts expects WORKERSxTHREADS[-unpinned],... (e.g. 1x1,2x1,2x1-unpinned), got {layouts!r}"
+        ) from None
     spec = TransferSpec(method=method, stages=parse_stages(stages), render=False, progress=False).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))  # type: ignore[arg-type]
+
+
+def _layout(text: str) -> tuple[int, int, bool]:
+    """``2x1`` -> (2, 1, pinned); ``2x1-unpinned`` -> (2, 1, not pinned)."""
+    shape, _, flag = text.partition("-")
+    if flag not in ("", "unpinned"):
+        raise ValueError(text)
+    w, t = (int(x) for x in shape.split("x"))
+    return w, t, flag == ""
 
 
 @bench.command("profile")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gc
 import os
+import tempfile
 from pathlib import Path
 
 import jax
@@ -58,3 +59,52 @@ def free_compiled_programs(force: bool = False) -> bool:
     jax.clear_caches()
     gc.collect()
     return True
+
+
+# XLA's CPU client sizes its thread pool by the cores the process may run on, when the backend starts (not by
+# --xla_cpu_multi_thread_eigen): two unpinned batch workers on two cores run 2 x (main thread + 2 pool
+# threads). A worker pinned to its own cores before JAX starts gets a pool of that size.
+_CORE_LOCK: list[int] = []  # the lock file this process holds for the life of the process
+
+
+def pin_to_free_cores(n: int, lock_dir: Path | None = None) -> tuple[int, ...] | None:
+    """Restrict this process to ``n`` cores that no other process pinned by this function holds (a lock
+    file per group of ``n`` cores under ``lock_dir``, default the temp folder, released when the process
+    exits), and return them; None when none is free, when ``n`` does not divide the allowed cores, or where
+    the OS has no CPU affinity. Call before JAX's CPU backend starts (its pool takes the affinity then);
+    a process that already holds a group keeps it."""
+    if not hasattr(os, "sched_setaffinity") or n < 1:
+        return None
+    import fcntl
+
+    allowed = sorted(os.sched_getaffinity(0))
+    if _CORE_LOCK:
+        return tuple(allowed)
+    if len(allowed) % n or len(allowed) == n:
+        return None  # one group only: nothing to keep apart
+    d = lock_dir or Path(tempfile.gettempdir()) / f"quasisim-cores-{os.getuid()}"
+    d.mkdir(parents=True, exist_ok=True)
+    for g in range(len(allowed) // n):
+        cores = tuple(allowed[g * n : (g + 1) * n])
+        fd = os.open(d / f"cores-{'-'.join(map(str, cores))}.lock", os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _CORE_LOCK.append(fd)
+        for tid in _threads():  # the threads running now (Ray's among them); later ones inherit it
+            try:
+                os.sched_setaffinity(tid, cores)
+            except ProcessLookupError:  # it ended meanwhile
+                pass
+        return cores
+    return None
+
+
+def _threads() -> list[int]:
+    """This process's thread ids (Linux), else [0]: the calling thread."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return [0]

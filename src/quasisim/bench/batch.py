@@ -19,24 +19,31 @@ from quasisim.method.spec import TransferSpec
 
 
 def run_batch_bench(
-    data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec, layouts: tuple[tuple[int, int], ...],
-    out: Path, overrides: dict[str, Any],
+    data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec,
+    layouts: tuple[tuple[int, int, bool], ...], out: Path, overrides: dict[str, Any],
 ) -> str:  # fmt: skip
-    """Each (workers, threads per worker) of ``layouts`` runs every clip from scratch into ``out/w<W>t<T>``,
-    with caches of its own (SDF grids, convex decompositions, compiled programs) that start empty: a layout
-    run after another would otherwise find the first one's caches full and look faster."""
+    """Each (workers, threads per worker, workers pinned to cores) of ``layouts`` runs every clip from scratch
+    into ``out/w<W>t<T>`` (``...u`` unpinned), with caches of its own (SDF grids, convex decompositions,
+    compiled programs) that start empty: a layout run after another would otherwise find the first one's
+    caches full and look faster."""
     paths = clips(data_dir, pattern, names)
     jobs = [Job(p, (Run("", spec),)) for p in paths]
     rows: list[dict[str, Any]] = []
-    for w, t in layouts:
-        d = out / f"w{w}t{t}"
+    first = out / layout_folder(*layouts[0])
+    for w, t, pin in layouts:
+        d = out / layout_folder(w, t, pin)
         shutil.rmtree(d, ignore_errors=True)
         with _cache_at(d / ".cache"):
-            res = run_batch(jobs, d, Settings(workers=w, threads=t, overrides=overrides))
+            res = run_batch(jobs, d, Settings(workers=w, threads=t, overrides=overrides, pin_cores=pin))
         tp = throughput(res)
-        rows.append({"workers": w, "threads": t, "failures": res.failures, **tp,
-                     "same_controls": _same_controls(out / f"w{layouts[0][0]}t{layouts[0][1]}", d, paths)})  # fmt: skip
+        rows.append({"workers": w, "threads": t, "pinned": pin, "failures": res.failures, **tp,
+                     "same_controls": _same_controls(first, d, paths)})  # fmt: skip
     return publish(out, "batch", rows, _markdown(rows, spec, len(paths)))
+
+
+def layout_folder(workers: int, threads: int, pinned: bool) -> str:
+    """The subfolder of a layout's batch: ``w2t1`` (pinned) or ``w2t1u``."""
+    return f"w{workers}t{threads}{'' if pinned else 'u'}"
 
 
 @contextmanager
@@ -71,13 +78,13 @@ def _markdown(rows: list[dict[str, Any]], spec: TransferSpec, n: int) -> list[st
         header(
             f"Batch throughput ({spec.method}, {spec.hand}, {spec.target}, {n} clips, each layout from scratch, its caches empty)"
         ),
-        "| workers | threads per worker | clips | failed | wall s | clips/hour | speed-up vs first row | peak RSS per worker (MB) | same controls as first row |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| workers | threads per worker | pinned | clips | failed | wall s | clips/hour | speed-up vs first row | peak RSS per worker (MB) | same controls as first row |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         mem = ", ".join(f"{v:.0f}" for v in r["peak_rss_mb_per_worker"].values())
         lines.append(
-            f"| {r['workers']} | {r['threads']} | {r['clips_run']} | {len(r['failures'])} | {r['wall_s']:.0f} | "
+            f"| {r['workers']} | {r['threads']} | {'yes' if r['pinned'] else 'no'} | {r['clips_run']} | {len(r['failures'])} | {r['wall_s']:.0f} | "
             f"{r['clips_per_hour']:.1f} | {r['clips_per_hour'] / base:.2f}x | {mem} | {'yes' if r['same_controls'] else 'NO'} |"
         )
     return lines

@@ -84,43 +84,53 @@ def speed(r: Replay) -> dict[str, Any]:
     return res
 
 
-def dt_study(data_dir: Path, clip: str, hand_name: str, substeps: tuple[int, ...]) -> list[dict[str, Any]]:
+def dt_study(
+    data_dir: Path, clip: str, hand_name: str, substeps: tuple[int, ...], sims: tuple[int, ...] = ()
+) -> list[dict[str, Any]]:
     """Object-trajectory deviation of each step size from the 100-substep (0.5 ms at 20 fps) reference,
-    with the reference's own sensitivity (200 substeps)."""
-    traj: dict[int, np.ndarray] = {}
+    with the reference's own sensitivity (200 substeps), in the default curriculum's simulators ``sims``
+    (1-based; default: the stiffest analytical one)."""
+    cur = load_curriculum("default")
+    sims = sims or (cur.stiffest + 1,)
+    traj: dict[tuple[int, int], np.ndarray] = {}
     for k in sorted({200, 100, *substeps}, reverse=True):
         r = kinematic_replay(data_dir / f"{clip}.npz", hand_name, k)
         m = r.prob.model
-        traj[k] = np.asarray(jax.jit(lambda p, m=m, r=r: object_pose(m, rollout(m, p, r.s0, r.ctrl))[0])(r.params))
-    fps, ref = r.prob.demo.fps, traj[100]
+        fwd = jax.jit(lambda p, m=m, r=r: object_pose(m, rollout(m, p, r.s0, r.ctrl))[0])
+        for i in sims:
+            traj[i, k] = np.asarray(fwd(r.prob.params(cur.contact(i - 1))))
+    fps = r.prob.demo.fps
     rows = []
-    for k in sorted(k for k in traj if k != 100):
-        d = np.linalg.norm(traj[k] - ref, axis=-1) * 1e3
-        rows.append(
-            {"clip": clip, "substeps": k, "dt_ms": 1000.0 / (fps * k), "mean_dev_mm": float(d.mean()),
-             "median_dev_mm": float(np.median(d)), "max_dev_mm": float(d.max()),
-             "object_travel_mm": float(np.linalg.norm(ref - ref[0], axis=-1).max() * 1e3)}
-        )  # fmt: skip
+    for i in sims:
+        ref = traj[i, 100]
+        for k in sorted(k for j, k in traj if j == i and k != 100):
+            d = np.linalg.norm(traj[i, k] - ref, axis=-1) * 1e3
+            rows.append(
+                {"clip": clip, "sim": i, "substeps": k, "dt_ms": 1000.0 / (fps * k), "mean_dev_mm": float(d.mean()),
+                 "median_dev_mm": float(np.median(d)), "max_dev_mm": float(d.max()),
+                 "object_travel_mm": float(np.linalg.norm(ref - ref[0], axis=-1).max() * 1e3)}
+            )  # fmt: skip
     return rows
 
 
 def run_sim_bench(
     data_dir: Path, clip: str, study_clips: tuple[str, ...], hand_name: str, substeps: int | None,
-    substeps_study: tuple[int, ...], as_json: bool,
+    substeps_study: tuple[int, ...], as_json: bool, study_sims: tuple[int, ...] = (),
 ) -> dict[str, Any]:  # fmt: skip
     """Speed on ``clip`` (``substeps`` per frame; default: the ``fast`` budget's) and the step-size study on
-    ``study_clips``; prints markdown (or JSON) and returns the figures."""
+    ``study_clips`` in the curriculum's simulators ``study_sims`` (default: the stiffest); prints markdown (or
+    JSON) and returns the figures."""
     n = substeps or TransferConfig.from_yaml().budget("fast").substeps
     res = speed(kinematic_replay(data_dir / f"{clip}.npz", hand_name, n))
-    study = [row for c in study_clips for row in dt_study(data_dir, c, hand_name, substeps_study)]
+    study = [row for c in study_clips for row in dt_study(data_dir, c, hand_name, substeps_study, study_sims)]
     res["dt_study_vs_dt_0.5ms"] = study
     if as_json:
         print(json.dumps(res, indent=2))
         return res
     lines = [header("Quasi-physical simulator speed and step size"), "```json", json.dumps({k: v for k, v in res.items() if k != "dt_study_vs_dt_0.5ms"}, indent=2), "```", "",
-             "| clip | substeps/frame | dt (ms) | mean dev (mm) | median (mm) | max (mm) | object travel (mm) |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| clip | curriculum sim | substeps/frame | dt (ms) | mean dev (mm) | median (mm) | max (mm) | object travel (mm) |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     lines += [
-        f"| {r['clip']} | {r['substeps']} | {r['dt_ms']:.2f} | {r['mean_dev_mm']:.2f} | {r['median_dev_mm']:.2f} | {r['max_dev_mm']:.2f} | {r['object_travel_mm']:.0f} |"
+        f"| {r['clip']} | {r['sim']} | {r['substeps']} | {r['dt_ms']:.2f} | {r['mean_dev_mm']:.2f} | {r['median_dev_mm']:.2f} | {r['max_dev_mm']:.2f} | {r['object_travel_mm']:.0f} |"
         for r in study
     ]
     print("\n".join(lines))

@@ -32,6 +32,10 @@ class Budget:
         substeps: simulator substeps per frame (dt = 1 / (fps substeps)).
         n_candidates: hand points examined for contact per frame (broad phase).
         human, robot_points, sim: steps of stage 1b, stage 1d and of each stage-2 simulator.
+        soft_step_scale: how many times longer the step of the simulators softer than the curriculum's
+            stiffest analytical one is (stage 1's relaxed simulator and stage 2's all but the last; softer
+            contact allows a larger step, BENCHMARKS.md): they take :attr:`soft` substeps per frame. The
+            stiffest simulator and what uses it after stage 2 (stage 3, MPC) step with ``substeps``.
     """
 
     substeps: int
@@ -39,6 +43,13 @@ class Budget:
     human: StepBudget
     robot_points: StepBudget
     sim: StepBudget
+    soft_step_scale: float = 1.0
+
+    @property
+    def soft(self) -> int:
+        """Substeps per frame of the simulators softer than the stiffest: ``substeps / soft_step_scale``,
+        rounded, at least 1."""
+        return max(1, round(self.substeps / self.soft_step_scale))
 
 
 @dataclass(frozen=True)
@@ -78,6 +89,10 @@ class TransferConfig:
         for name, b in cfg.budgets.items():
             if b.substeps < 1 or b.n_candidates < 1:
                 raise InputError(path, f"budgets.{name}", "positive substeps and n_candidates", str(b))
+            if not 1.0 <= b.soft_step_scale < float("inf"):
+                raise InputError(
+                    path, f"budgets.{name}.soft_step_scale", "a finite number >= 1", str(b.soft_step_scale)
+                )
             for part in ("human", "robot_points", "sim"):
                 sb: StepBudget = getattr(b, part)
                 if min(sb.control_steps, sb.sysid_steps, sb.patience) < 0 or sb.control_lr < 0 or sb.sysid_lr < 0:

@@ -11,26 +11,38 @@ import json
 import time
 from typing import Any
 
+import jax
 import numpy as np
 
 from quasisim.method.checkpoints import trajectory_arrays
 from quasisim.method.stage1 import pick_grad
 from quasisim.optim.adam import Progress, StepBudget, StepLog, minimise
+from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.types import Params
 
 
 def restart_guard(
-    vg: Any, candidates: dict[str, Trajectory], sysid: SysID, params: Params, w: dict[str, Any]
+    value: Any, candidates: dict[str, Trajectory], sysid: SysID, params: Params, w: dict[str, Any]
 ) -> tuple[str, dict[str, float]]:
-    """The candidate start with the lowest loss in the simulator ``params`` and every candidate's loss.
+    """The candidate start with the lowest loss in the simulator ``params`` and every candidate's loss;
+    ``value(traj, sysid, params, w) -> (loss, terms)`` is the objective's forward pass.
 
     A trajectory found in a softer simulator can score worse in the next one than the stage's start or the
     kinematic retarget (grasps held from a distance collapse when contact requires touching)."""
-    losses = {k: float(vg(t, sysid, params, w)[0][0]) for k, t in candidates.items()}
+    losses: dict[str, float] = {}
+    for k, t in candidates.items():
+        twin = next((j for j, u in candidates.items() if j in losses and _same(t, u)), None)  # often the same start
+        losses[k] = losses[twin] if twin is not None else float(value(t, sysid, params, w)[0])
     losses = {k: v if np.isfinite(v) else float("inf") for k, v in losses.items()}  # a diverged start never wins
     return min(losses, key=losses.__getitem__), losses
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two pytrees hold equal arrays (the stage's start is often the kinematic retarget itself)."""
+    la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+    return len(la) == len(lb) and all(np.array_equal(x, y) for x, y in zip(la, lb, strict=True))
 
 
 def one_simulator(
@@ -52,15 +64,16 @@ def one_simulator(
 
 
 def run_simulator(
-    vg: Any, traj: Trajectory, sysid: SysID, params: Params, w: dict[str, Any], sb: StepBudget, progress: Progress,
-    label: str, restart_from: dict[str, Trajectory] | None,
+    objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, w: dict[str, Any], sb: StepBudget,
+    progress: Progress, label: str, restart_from: dict[str, Trajectory] | None,
 ) -> dict[str, Any]:  # fmt: skip
     """One simulator of stage 2 as checkpoint arrays: the restart guard (when ``restart_from`` names
-    alternatives to ``traj``), identification, control optimisation, losses and wall time."""
+    alternatives to ``traj``; forward passes only), identification, control optimisation, losses and wall time."""
     t0 = time.perf_counter()
     start_losses: dict[str, float] = {}
+    vg = objective.value_and_grad
     if restart_from:
-        best, start_losses = restart_guard(vg, {"previous": traj, **restart_from}, sysid, params, w)
+        best, start_losses = restart_guard(objective.value, {"previous": traj, **restart_from}, sysid, params, w)
         if best != "previous":
             progress.write(
                 f"{label}: continuing from the {best.replace('_', ' ')} trajectory instead of the previous simulator's "

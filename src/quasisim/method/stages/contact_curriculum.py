@@ -12,6 +12,7 @@ from quasisim.method.curriculum import Curriculum, SimStage
 from quasisim.method.stage import Context, Outcome, Plan, RunRecord, Stage
 from quasisim.method.stages._common import traj_expect
 from quasisim.optim.adam import Progress
+from quasisim.optim.objective import TrackingObjective
 from quasisim.optim.trajectory import Trajectory
 from quasisim.sim.types import Params
 
@@ -19,19 +20,23 @@ from quasisim.sim.types import Params
 def run(ctx: Context, out: Outcome) -> Outcome:
     """The plan after the curriculum's stiffest rigid simulator (one checkpoint per simulator)."""
     prob, cur, ck = ctx.prob, ctx.cur, ctx.ck
-    vg = out.objective.value_and_grad
-    w2, sb = ctx.cfg.weights.arrays(points=0.0), ctx.cfg.budget(ctx.spec.budget).sim
+    bud = ctx.cfg.budget(ctx.spec.budget)
+    w2, sb = ctx.cfg.weights.arrays(points=0.0), bud.sim
     start, kin_traj, plan = out.plan.traj, prob.trajectory(ctx.kinematic_q), out.plan
     ctx.record.seconds["stage2"] = 0.0
     for n, i in enumerate(cur.rigid):
         p = prob.params(cur.contact(i))
         label = f"stage 2 sim {i + 1} ({n + 1}/{len(cur.rigid)})"
 
-        def simulator(p: Params = p, label: str = label, n: int = n, prev: Plan = plan) -> dict[str, Any]:
+        objective = out.objective if i == cur.stiffest else out.objective.with_substeps(bud.soft)
+
+        def simulator(
+            p: Params = p, label: str = label, n: int = n, prev: Plan = plan, objective: TrackingObjective = objective
+        ) -> dict[str, Any]:
             alt = {"stage_start": start, "kinematic": kin_traj} if n > 0 else None
             if alt is not None and handoff.touches(ctx.cfg.stage2.mode, cur.rigid, cur.rigid[n]):
                 alt.update(_touching(ctx, cur.rigid[n - 1], cur.rigid[n], prev))
-            return stage2.run_simulator(vg, prev.traj, prev.sysid, p, w2, sb, ctx.progress, label, alt)
+            return stage2.run_simulator(objective, prev.traj, prev.sysid, p, w2, sb, ctx.progress, label, alt)
 
         expect = traj_expect(prob, losses=(None,), n_sysid=(), start_losses="str")
         d = ck.get(f"stage2_sim{i + 1:02d}", simulator, expect)

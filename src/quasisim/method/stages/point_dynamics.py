@@ -26,7 +26,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
         lambda: stage1.human_point_set(
             prob.demo,
             prob.obj,
-            bud.substeps,
+            bud.soft,
             bud.n_candidates,
             contact,
             cfg.weights,
@@ -45,7 +45,14 @@ def run(ctx: Context, out: Outcome) -> Outcome:
 
     def robot() -> dict[str, Any]:
         traj, log = stage1.robot_point_set(
-            objective.value_and_grad, plan.traj, plan.sysid, p1, cfg.weights, bud.robot_points, progress, label
+            objective.with_substeps(bud.soft).value_and_grad,
+            plan.traj,
+            plan.sysid,
+            p1,
+            cfg.weights,
+            bud.robot_points,
+            progress,
+            label,
         )
         return trajectory_arrays(traj, plan.sysid, log, log.wall_s)
 
