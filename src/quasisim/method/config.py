@@ -43,7 +43,7 @@ class Budget:
     human: StepBudget
     robot_points: StepBudget
     sim: StepBudget
-    soft_step_scale: float = 1.0
+    soft_step_scale: float = 1.0  # the YAML sets it per budget
 
     @property
     def soft(self) -> int:
