@@ -40,7 +40,7 @@ def restart_guard(
 
 
 def _same(a: Any, b: Any) -> bool:
-    """Whether two pytrees hold equal arrays (the stage's start is often the kinematic retarget itself)."""
+    """Whether two pytrees hold equal arrays (a simulator's result is often its start unchanged)."""
     la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
     return len(la) == len(lb) and all(np.array_equal(x, y) for x, y in zip(la, lb, strict=True))
 

@@ -234,7 +234,8 @@ class TrackingObjective:
     @property
     def value(self) -> Callable[..., Any]:
         """``(traj, sysid, params, weights) -> (loss, terms)``, compiled: the forward pass alone (about a
-        quarter of :attr:`value_and_grad`'s time; equal to its value up to rounding)."""
+        quarter of :attr:`value_and_grad`'s time). The two are compiled apart, and over a contact-rich
+        rollout their values can differ by far more than rounding (BENCHMARKS.md, "a cheaper restart guard")."""
         return functools.partial(objective_value, self)
 
 
