@@ -118,10 +118,10 @@ class TransferConfig:
         of ``spec``, e.g. stage 3's ``networks``, are read from it when it is given)."""
         from quasisim.method import registry
 
-        out: dict[str, Any] = {
-            "budget_settings": dataclasses.asdict(self.budget(budget)),
-            "weights": dataclasses.asdict(self.weights),
-        }
+        bud = dataclasses.asdict(self.budget(budget))
+        if bud["soft_step_scale"] == 1.0:  # its neutral value: runs made before the setting existed keep their identity
+            del bud["soft_step_scale"]
+        out: dict[str, Any] = {"budget_settings": bud, "weights": dataclasses.asdict(self.weights)}
         for st in registry.stages(stages):
             for key in st.config:
                 if hasattr(self, key):
