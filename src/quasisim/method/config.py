@@ -43,7 +43,7 @@ class Budget:
     human: StepBudget
     robot_points: StepBudget
     sim: StepBudget
-    soft_step_scale: float = 1.0  # the YAML sets it per budget
+    soft_step_scale: float = 1.0  # the YAML sets it per budget; 1: the step of the stiffest (as before it existed)
 
     @property
     def soft(self) -> int:
@@ -118,9 +118,10 @@ class TransferConfig:
         of ``spec``, e.g. stage 3's ``networks``, are read from it when it is given)."""
         from quasisim.method import registry
 
-        bud = dataclasses.asdict(self.budget(budget))
-        if bud["soft_step_scale"] == 1.0:  # its neutral value: runs made before the setting existed keep their identity
-            del bud["soft_step_scale"]
+        # budget fields added later carry a default that leaves results as before: at that default a run keeps
+        # the identity it had before the field existed (e.g. soft_step_scale 1)
+        added = {f.name: f.default for f in dataclasses.fields(Budget) if f.default is not dataclasses.MISSING}
+        bud = {k: v for k, v in dataclasses.asdict(self.budget(budget)).items() if k not in added or v != added[k]}
         out: dict[str, Any] = {"budget_settings": bud, "weights": dataclasses.asdict(self.weights)}
         for st in registry.stages(stages):
             for key in st.config:
