@@ -18,6 +18,7 @@ from quasisim.method.sampling import (
     knot_basis,
     run_sampling,
     sample_windows,
+    strict_hinge,
     window_costs,
 )
 
@@ -82,6 +83,11 @@ def _replay(scene, q):
         ("temperature", float("inf"), "temperature"),
         ("seed", None, "seed"),
         ("mode", "cem", "valid options: mppi, predictive"),
+        ("backtrack", -1, "backtrack"),
+        ("backtrack_budget", 1.5, "backtrack_budget"),
+        ("backtrack_samples", 0, "backtrack_samples"),
+        ("strict_weight", float("nan"), "strict_weight"),
+        ("strict_margin", -0.1, "strict_margin"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -154,6 +160,26 @@ def test_window_costs_terms_and_mask() -> None:
     np.testing.assert_allclose(c, [base, base + 2.0 * (0.01 + 0.04) / 12], rtol=2e-6)
 
 
+def test_strict_hinge_closed_form() -> None:
+    """Frames at 1 cm, 3 cm and 36 deg off the reference are 0.5, 1.5 and 1.2 of the strict limits (2 cm,
+    30 deg); past a margin of 0.75: 0, 0.75 and 0.45, averaged over the unmasked frames; the window cost adds
+    it times the weight."""
+    H = 4
+    ref_pos, ref_quat = np.zeros((H, 3)), np.tile([1.0, 0, 0, 0], (H, 1))
+    pos = np.array([[[0.01, 0, 0], [0.03, 0, 0], [0, 0, 0], [5.0, 0, 0]]])
+    a = np.radians(36.0) / 2
+    quat = np.tile([1.0, 0, 0, 0], (1, H, 1))
+    quat[0, 2] = [np.cos(a), 0, 0, np.sin(a)]
+    mask = np.array([1.0, 1.0, 1.0, 0.0])  # frame 3 past the clip's end
+    np.testing.assert_allclose(strict_hinge(pos, quat, ref_pos, ref_quat, mask, 0.75), [(0.75 + 0.45) / 3])
+    np.testing.assert_allclose(strict_hinge(pos, quat, ref_pos, ref_quat, mask, 2.0), [0.0])
+    pred = Prediction(np.zeros((1, H, 8)), pos, quat, np.zeros((1, H, 2, 3)), 0)
+    wins, kp = np.zeros((1, H + 1, 8)), np.zeros((H, 2, 3))
+    plain = window_costs(wins, pred, ref_pos, ref_quat, kp, mask, W)
+    hinged = window_costs(wins, pred, ref_pos, ref_quat, kp, mask, W, strict=(0.1, 0.75))
+    np.testing.assert_allclose(hinged - plain, [0.1 * 0.4], rtol=1e-6)
+
+
 # ---- the control loop in MuJoCo ------------------------------------------------------------------------
 
 
@@ -217,6 +243,35 @@ def test_deterministic_for_a_seed(real) -> None:
     np.testing.assert_array_equal(a.window_loss, b.window_loss)
     np.testing.assert_array_equal(a.rollout.object_pos, b.rollout.object_pos)
     assert not np.array_equal(a.q_targets, c.q_targets)
+
+
+def test_backing_up_restores_the_target_exactly(real) -> None:
+    """The plan's replay loses the cube (the real fixture), so frames leave the strict limits and the loop
+    backs up. With zero noise every re-planned frame is the plan again: the run equals the plain replay,
+    back-ups and all (the target's saved states restore it exactly). With noise the backed-up run is still
+    a replay of the targets it applied, and it rolled out more windows than the run without back-ups."""
+    demo, plan, scene = real
+    zero = run_sampling(demo, scene, plan, dataclasses.replace(ZERO, backtrack=3), W, progress=False)
+    assert zero.backups >= 1
+    np.testing.assert_array_equal(zero.q_targets, plan)
+    np.testing.assert_allclose(zero.rollout.object_pos, _replay(scene, plan).object_pos, atol=1e-9)
+
+    plain = run_sampling(demo, scene, plan, OPTS, W, progress=False)
+    back = run_sampling(
+        demo, scene, plan, dataclasses.replace(OPTS, backtrack=3, backtrack_budget=2), W, progress=False
+    )
+    assert plain.backups == 0 and 1 <= back.backups <= 2
+    assert back.n_physics_steps > plain.n_physics_steps
+    again = _replay(scene, back.q_targets)
+    np.testing.assert_allclose(again.qpos, back.rollout.qpos, atol=1e-9)
+    np.testing.assert_allclose(again.object_pos, back.rollout.object_pos, atol=1e-9)
+    assert back.prediction_error.max() <= 1e-9
+    from quasisim.method.sampling import Transitions
+
+    with pytest.raises(QuasisimError, match="backtrack"):
+        run_sampling(
+            demo, scene, plan, dataclasses.replace(OPTS, backtrack=3), W, progress=False, transitions=Transitions()
+        )
 
 
 def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:

@@ -741,11 +741,16 @@ def bench_sim(
     help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
     "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
 )  # fmt: skip
+@click.option(
+    "--robust", type=click.IntRange(0, 1000), default=None,
+    help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
+    "finished before keep their judging: use a new OUT.",
+)  # fmt: skip
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
-    record: bool,
+    record: bool, robust: int | None,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -763,7 +768,7 @@ def bench_transfer(
     overrides = _parse_sets(sets)
     TransferConfig.from_yaml(overrides=overrides)  # a bad key fails here, before any clip runs
     s = Settings(ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record)
-    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s)
+    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust)
 
 
 @bench.command("compare")

@@ -88,14 +88,15 @@ def stiffest_simulator(summary: Path) -> dict[str, Any]:
 def run_transfer_bench(
     data_dir: Path, clip_names: tuple[str, ...], pattern: str, runs: tuple[str, ...], stages: tuple[str, ...],
     budget: str, target: str, hand_name: str, out: Path, report_only: bool = False, judge: str | None = None,
-    settings: Settings | None = None,
+    settings: Settings | None = None, robust: int | None = None,
 ) -> str:  # fmt: skip
     """Each run of ``runs`` on each clip into ``out/<clip>/<run>`` with :func:`quasisim.batch.run_batch`
     (resumable; ``report_only``: nothing is run, the finished runs are tabulated), beside the kinematic
     replay in the same target; with ``judge`` (another simulator) every run's controls and the kinematic
     retarget are judged open loop there instead (cached as ``metrics_<judge>.json`` beside each run).
+    ``robust``: perturbed replays per run for robust success (None: ``configs/robust.yaml``'s ``n``).
     Prints and writes the markdown tables."""
-    base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=False)
+    base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=False, robust=robust)
     paths = clips(data_dir, pattern, clip_names)
     js = jobs(paths, {r: run_spec(r, stages, base) for r in runs})
     s = (settings or Settings(keep_scratch=True)).resolved()

@@ -118,18 +118,25 @@ class TransferConfig:
         of ``spec``, e.g. stage 3's ``networks``, are read from it when it is given)."""
         from quasisim.method import registry
 
-        # budget fields added later carry a default that leaves results as before: at that default a run keeps
-        # the identity it had before the field existed (e.g. soft_step_scale 1)
-        added = {f.name: f.default for f in dataclasses.fields(Budget) if f.default is not dataclasses.MISSING}
-        bud = {k: v for k, v in dataclasses.asdict(self.budget(budget)).items() if k not in added or v != added[k]}
-        out: dict[str, Any] = {"budget_settings": bud, "weights": dataclasses.asdict(self.weights)}
+        out: dict[str, Any] = {
+            "budget_settings": _settings(self.budget(budget)),
+            "weights": dataclasses.asdict(self.weights),
+        }
         for st in registry.stages(stages):
             for key in st.config:
                 if hasattr(self, key):
-                    out[key] = dataclasses.asdict(getattr(self, key))
+                    out[key] = _settings(getattr(self, key))
                 elif spec is not None:
                     out[key] = list(getattr(spec, key))
         return out
+
+
+def _settings(obj: Any) -> dict[str, Any]:
+    """A settings dataclass as the identity of a run sees it. Fields added later carry a default that leaves
+    results as before (e.g. budgets' soft_step_scale 1, sampling's backtrack 0): at that default they are left
+    out, so a run keeps the identity it had before the field existed."""
+    added = {f.name: f.default for f in dataclasses.fields(obj) if f.default is not dataclasses.MISSING}
+    return {k: v for k, v in dataclasses.asdict(obj).items() if k not in added or v != added[k]}
 
 
 # settings that must be at least 1 (every other number of the config must be >= 0)

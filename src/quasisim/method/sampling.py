@@ -25,9 +25,17 @@ At every control frame ``t`` of a clip with ``T`` frames:
    With ``alternatives`` (other nominal plans, e.g. the kinematic retarget beside the curriculum's plan),
    ``samples`` more windows are drawn around each alternative's window (its frame 0 replaced by the
    targets the step starts from), so a step can switch to another plan;
+   With ``strict_weight`` > 0 the cost also holds a hinge on the strict limits (2 cm, 30 deg at every frame,
+   :mod:`quasisim.eval.metrics`): ``strict_weight`` x the mean over the window's frames of
+   ``max(0, e_pos / 2 cm - strict_margin) + max(0, e_rot / 30 deg - strict_margin)``, so that among
+   candidates of similar mean error the one that keeps every frame inside the limits wins;
 5. ``predictive``: keep the cheapest window as the plan; ``mppi``: the plan becomes the
    ``softmax(-cost / temperature)``-weighted mean of the windows. Apply the plan's first frame
    (``t -> t+1``) in the target, record the frame, shift the window by one and repeat.
+6. Backing up (``backtrack`` > 0): when the frame just applied leaves the strict limits, the target is put
+   back to its saved state ``backtrack`` frames earlier (at least frame 1) and those frames are planned
+   again with ``backtrack_samples`` times the samples, around the plan chosen so far; at most
+   ``backtrack_budget`` times per clip, once per failing frame.
 
 The run starts from ``plan[0]``; the hand's initial velocity is that of the applied targets
 (``(q[1] - q[0]) fps``, per candidate at ``t = 0``), so the recorded run equals a plain replay of the applied
@@ -48,10 +56,16 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       temperature: 0.003       # mppi only: softmax temperature, in cost units
       seed: 0
       threads: 2               # MuJoCo rollout threads
+      strict_weight: 0.0       # hinge on the strict limits in the window cost (0: none)
+      strict_margin: 0.75      # ... from this fraction of the limits
+      backtrack: 0             # frames to back up when a frame leaves the strict limits (0: never)
+      backtrack_samples: 4     # samples multiplier while re-planning those frames
+      backtrack_budget: 6      # back-ups per clip at most
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -65,6 +79,7 @@ from tqdm import tqdm
 
 from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
+from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
 from quasisim.files import save_npz_atomic
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
@@ -86,6 +101,9 @@ class SamplingOptions:
         temperature: MPPI softmax temperature (cost units).  seed: noise seed.  threads: rollout threads.
         kinematic_alternative: in stage ``sample`` after other stages, also sample ``samples`` windows around
             the kinematic retarget at every frame (no effect when the plan is the kinematic retarget).
+        strict_weight, strict_margin: the hinge on the strict limits in the window cost (step 4; weight 0: none).
+        backtrack, backtrack_samples, backtrack_budget: backing up when a frame leaves the strict limits
+            (step 6; 0 frames: never).
     """
 
     samples: int
@@ -100,6 +118,11 @@ class SamplingOptions:
     seed: int
     threads: int
     kinematic_alternative: bool
+    strict_weight: float = 0.0
+    strict_margin: float = 0.75
+    backtrack: int = 0
+    backtrack_samples: int = 4
+    backtrack_budget: int = 6
 
     def __post_init__(self) -> None:
         self.validate()
@@ -110,6 +133,18 @@ class SamplingOptions:
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
+        for name in ("backtrack", "backtrack_budget"):
+            v = getattr(self, name)
+            if not _is_int(v) or v < 0:
+                raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
+        if not _is_int(self.backtrack_samples) or self.backtrack_samples < 1:
+            raise QuasisimError(
+                f"sampling option 'backtrack_samples' must be a positive integer, got {self.backtrack_samples!r}"
+            )
+        for name in ("strict_weight", "strict_margin"):
+            v = getattr(self, name)
+            if not (_is_number(v) and v >= 0):
+                raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
         if not _is_int(self.seed):
             raise QuasisimError(f"sampling option 'seed' must be an integer, got {self.seed!r}")
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints"):
@@ -150,6 +185,7 @@ class SampleResult:
         prediction_error: (T - 1,) after each applied frame, the largest difference between the chosen
             candidate's predicted and the measured hand qpos / object position (m, rad); 0 when the target
             is deterministic and its state is copied exactly; NaN in ``mppi`` mode (no candidate applied).
+        backups: times the loop backed up to re-plan frames that left the strict limits (step 6).
     """
 
     q_targets: np.ndarray
@@ -158,6 +194,7 @@ class SampleResult:
     wall_s: float
     n_physics_steps: int
     prediction_error: np.ndarray
+    backups: int = 0
 
 
 # ---- sampling and scoring -------------------------------------------------------------
@@ -221,9 +258,11 @@ def window_costs(
     frame_w: np.ndarray,
     weights: Weights,
     base_cols: np.ndarray | None = None,
+    strict: tuple[float, float] = (0.0, 0.75),
 ) -> np.ndarray:
     """(N,) the MPC window objective of every candidate, measured in the target
-    (:func:`quasisim.optim.objective.window_costs`, the objective of the gradient-based MPC).
+    (:func:`quasisim.optim.objective.window_costs`, the objective of the gradient-based MPC), plus the hinge
+    on the strict limits (:func:`strict_hinge`) with ``strict`` = (weight, margin).
 
     Args:
         wins: (N, H + 1, D) candidate windows.  pred: their rollouts at frames 1..H of the window.
@@ -240,7 +279,29 @@ def window_costs(
         pred.obj_pos, pred.obj_quat, pred.keypoints, wins, ref_pos, ref_quat, ref_kp, frame_w, weights.arrays(),
         n_base=n_base,
     )  # fmt: skip
-    return np.asarray(costs, np.float64)
+    costs = np.asarray(costs, np.float64)
+    if strict[0] > 0:
+        costs = costs + strict[0] * strict_hinge(pred.obj_pos, pred.obj_quat, ref_pos, ref_quat, frame_w, strict[1])
+    return costs
+
+
+def strict_fractions(
+    pos: np.ndarray, quat: np.ndarray, ref_pos: np.ndarray, ref_quat: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Translation and rotation errors of object poses (..., 3), (..., 4) against references, as fractions
+    of the strict limits (2 cm, 30 deg; above 1: over), measured as the metrics measure them."""
+    rot_deg, trans_cm = object_errors(ref_pos, ref_quat, pos, quat)
+    return trans_cm / STRICT_CM, rot_deg / STRICT_DEG
+
+
+def strict_hinge(
+    pos: np.ndarray, quat: np.ndarray, ref_pos: np.ndarray, ref_quat: np.ndarray, frame_w: np.ndarray, margin: float
+) -> np.ndarray:
+    """(N,) mean over a window's frames of ``max(0, e_pos / 2 cm - margin) + max(0, e_rot / 30 deg - margin)``
+    for predicted object poses ``pos`` (N, H, 3), ``quat`` (N, H, 4) against references (H, 3), (H, 4)."""
+    trans, rot = strict_fractions(pos, quat, ref_pos, ref_quat)
+    h = np.maximum(trans - margin, 0.0) + np.maximum(rot - margin, 0.0)
+    return np.sum(h * frame_w, axis=-1) / max(float(np.sum(frame_w)), 1.0)
 
 
 def next_plan_window(wins: np.ndarray, costs: np.ndarray, opts: SamplingOptions) -> tuple[np.ndarray, int | None]:
@@ -328,6 +389,11 @@ def run_sampling(
     ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring. ``transitions``: where
     every rolled-out window is kept (the result is the same with or without it)."""
     plan = _check_plan(demo, scene, plan)
+    if transitions is not None and opts.backtrack > 0:
+        raise QuasisimError(
+            "sampling: recording transitions with backtrack > 0 is not supported (a back-up rolls frames out "
+            "again); set sampling.backtrack=0 to record"
+        )
     alts = tuple(padded(_check_plan(demo, scene, a), opts.horizon) for a in alternatives)
     with make_target(target, scene, threads=opts.threads) as tgt:
         return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts, transitions)
@@ -340,6 +406,7 @@ def _control_loop(
     T, H, fps = len(plan), opts.horizon, float(demo.fps)
     ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
     sample = scene_sampler(opts, scene)
+    wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
     base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
     base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
     work = padded(plan, H)  # the plan, shifted as we go
@@ -348,19 +415,28 @@ def _control_loop(
     losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0
     target.reset(plan[0], None)
     frames: list[Observation] = []
+    saved: dict[int, object] = {}  # frame -> the target's state after it (for backing up)
+    widened = np.zeros(T, bool)  # frames planned again with more samples after a back-up
+    backed_from: set[int] = set()
     t0 = time.perf_counter()
-    for t in tqdm(range(T - 1), desc="sampling", unit="frame", disable=not progress, leave=False):
-        wins = sample(rng, work[t : t + H + 1])
+    bar = tqdm(total=T - 1, desc="sampling", unit="frame", disable=not progress, leave=False)
+    t = 0
+    while t < T - 1:
+        step_opts = wide if widened[t] else opts
+        wins = sample(rng, work[t : t + H + 1], opts=step_opts)
         for alt in alts:  # windows around another plan, from the targets this step starts from
             nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
-            wins = np.concatenate([wins, sample(rng, nominal)])
+            wins = np.concatenate([wins, sample(rng, nominal, opts=step_opts)])
         qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
         # the state the windows start from: the frame just observed (before the first step, the reset state)
         start = (frames[-1] if frames else target.observe()) if transitions is not None else None
         pred = target.rollout_windows(wins, qd0)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-        costs = window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols)
+        costs = window_costs(
+            wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols,
+            (opts.strict_weight, opts.strict_margin),
+        )  # fmt: skip
         win, best = next_plan_window(wins, costs, opts)
         if transitions is not None and start is not None:  # (start is set whenever transitions is)
             transitions.add(start, wins, qd0, pred, costs, best)
@@ -376,7 +452,31 @@ def _control_loop(
         if best is not None:  # what the chosen candidate predicted against what the target did
             q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
+        t += 1
+        saved[t] = target.save_state()
+        back = _back_up_to(t, frames[-1], ref_pos[t], ref_quat[t], opts, backed_from)
+        if back is not None:
+            backed_from.add(t)
+            target.restore_state(saved[back])
+            del frames[back + 1 :]
+            widened[back:t] = True
+            bar.update(back - t)
+            t = back
+        bar.update(1)
+    bar.close()
     wall = time.perf_counter() - t0
     if transitions is not None:
         transitions.finish(applied, frames)
-    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err)
+    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+
+
+def _back_up_to(
+    t: int, obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray, opts: SamplingOptions, backed_from: set[int]
+) -> int | None:
+    """The frame to go back to when frame ``t`` (observed ``obs``) leaves the strict limits (step 6), or None."""
+    if opts.backtrack == 0 or len(backed_from) >= opts.backtrack_budget or t in backed_from or t < 2:
+        return None
+    trans, rot = strict_fractions(obs["obj_pos"], obs["obj_quat"], ref_pos, ref_quat)
+    if max(float(trans), float(rot)) <= 1.0:
+        return None
+    return max(1, t - opts.backtrack)

@@ -29,7 +29,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
         )
         return {
             "q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s),
-            "n_physics_steps": np.array(r.n_physics_steps),
+            "n_physics_steps": np.array(r.n_physics_steps), "backups": np.array(r.backups),
         }  # fmt: skip
 
     d = ctx.ck.get("sample", sample, q_expect(prob))
@@ -37,7 +37,8 @@ def run(ctx: Context, out: Outcome) -> Outcome:
         _save_transitions(ctx, kept)
     ctx.record.seconds["sample"] = float(d["wall_s"])
     ctx.record.curves["sampling window loss per frame"] = [float(x) for x in d["window_loss"]]
-    ctx.progress.write(f"sampling in {spec.target} done in {ctx.record.seconds['sample']:.0f} s")
+    backups = f", {int(d['backups'])} back-ups" if "backups" in d and int(d["backups"]) else ""
+    ctx.progress.write(f"sampling in {spec.target} done in {ctx.record.seconds['sample']:.0f} s{backups}")
     seen = {**out.seen, "sampling nominal": nominal}
     return out.replace(q=np.asarray(d["q_targets"], np.float64), planned=True, seen=seen)
 
