@@ -268,10 +268,23 @@ def test_backing_up_restores_the_target_exactly(real) -> None:
     assert back.prediction_error.max() <= 1e-9
     from quasisim.method.sampling import Transitions
 
-    with pytest.raises(QuasisimError, match="backtrack"):
-        run_sampling(
-            demo, scene, plan, dataclasses.replace(OPTS, backtrack=3), W, progress=False, transitions=Transitions()
-        )
+    kept = Transitions()  # recording: every step as it ran, the same window count each, the applied one kept
+    rec = run_sampling(
+        demo,
+        scene,
+        plan,
+        dataclasses.replace(OPTS, backtrack=3, backtrack_budget=2),
+        W,
+        progress=False,
+        transitions=kept,
+    )
+    np.testing.assert_array_equal(rec.q_targets, back.q_targets)
+    assert len(kept.steps) > demo.n_frames - 1
+    assert {r["windows"].shape for r in kept.steps} == {(OPTS.samples, OPTS.horizon + 1, plan.shape[1])}
+    # the applied window's first frame is where the next step starts, except where the loop backed up
+    pairs = list(zip(kept.steps, kept.steps[1:], strict=False))
+    cont = [np.abs(n["start_obj_pos"] - r["obj_pos"][int(r["chosen"]), 0]).max() <= 1e-9 for r, n in pairs]
+    assert rec.backups >= 1 and sum(cont) == len(pairs) - rec.backups
 
 
 def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:

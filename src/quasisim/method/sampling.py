@@ -58,7 +58,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       threads: 2               # MuJoCo rollout threads
       strict_weight: 0.0       # hinge on the strict limits in the window cost (0: none)
       strict_margin: 0.75      # ... from this fraction of the limits
-      backtrack: 0             # frames to back up when a frame leaves the strict limits (0: never)
+      backtrack: 5             # frames to back up when a frame leaves the strict limits (0: never)
       backtrack_samples: 4     # samples multiplier while re-planning those frames
       backtrack_budget: 6      # back-ups per clip at most
 """
@@ -340,7 +340,7 @@ class Transitions:
         """One step: the target's state ``start`` before the windows ``wins`` (N, H + 1, D) were rolled out
         (with the hands' velocities ``qd0`` (N, D) per candidate where given), their rollouts and costs."""
         qvel0 = np.broadcast_to(start["qvel"], wins[:, 0].shape) if qd0 is None else qd0
-        row = {f"start_{k}": np.asarray(start[k]) for k in STATE_KEYS if k != "qvel"}
+        row = {f"start_{k}": np.asarray(start[k]) for k in (*STATE_KEYS, "keypoints") if k != "qvel"}
         row |= {
             "start_qvel": np.array(qvel0),
             "windows": wins,
@@ -389,11 +389,6 @@ def run_sampling(
     ``smooth``. Deterministic for a fixed ``opts.seed``. See the module docstring. ``transitions``: where
     every rolled-out window is kept (the result is the same with or without it)."""
     plan = _check_plan(demo, scene, plan)
-    if transitions is not None and opts.backtrack > 0:
-        raise QuasisimError(
-            "sampling: recording transitions with backtrack > 0 is not supported (a back-up rolls frames out "
-            "again); set sampling.backtrack=0 to record"
-        )
     alts = tuple(padded(_check_plan(demo, scene, a), opts.horizon) for a in alternatives)
     with make_target(target, scene, threads=opts.threads) as tgt:
         return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts, transitions)
@@ -439,7 +434,11 @@ def _control_loop(
         )  # fmt: skip
         win, best = next_plan_window(wins, costs, opts)
         if transitions is not None and start is not None:  # (start is set whenever transitions is)
-            transitions.add(start, wins, qd0, pred, costs, best)
+            keep = _recorded(step_opts.samples, opts.samples, 1 + len(alts), best)
+            chosen = None if best is None else int(np.flatnonzero(keep == best)[0])
+            kept = {k: getattr(pred, k) for k in (*STATE_KEYS, "keypoints")}
+            sub = dataclasses.replace(pred, **{k: v[keep] for k, v in kept.items() if v is not None})
+            transitions.add(start, wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
         if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
@@ -468,6 +467,16 @@ def _control_loop(
     if transitions is not None:
         transitions.finish(applied, frames)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+
+
+def _recorded(block: int, n: int, blocks: int, best: int | None) -> np.ndarray:
+    """Indices of the windows a transitions file keeps of one step: the first ``n`` of each of ``blocks``
+    blocks of ``block`` windows (a re-planned step samples more; every step keeps the same count), with the
+    applied window ``best`` in place of the last one kept if it is not among them."""
+    keep = np.concatenate([k * block + np.arange(n) for k in range(blocks)])
+    if best is not None and best not in keep:
+        keep[-1] = best
+    return keep
 
 
 def _back_up_to(

@@ -144,7 +144,9 @@ def load_clip(path: Path, prob: Problem, kind: str, horizon: int = 0, per_step: 
 
     states = {k: series(k, arr[f"start_{k}"][s_i]) for k in STATE_KEYS if k != "qvel"}
     states["qvel"] = series("qvel", arr["start_qvel"][s_i, n_i])
-    kp = series("keypoints", arr["run_keypoints"][:, kp_index][s_i])
+    # where each step started (files made before back-ups recorded it: the applied run's frame of the step)
+    start_kp = arr["start_keypoints"] if "start_keypoints" in arr else arr["run_keypoints"]
+    kp = series("keypoints", start_kp[:, kp_index][s_i])
     return ClipWindows(
         str(prob.demo.name), kind, float(prob.demo.fps), prob, arr["windows"][s_i, n_i], **states, keypoints=kp,
         kp_index=kp_index,
