@@ -19,7 +19,7 @@ from quasisim.method.spec import TransferSpec
 pytest.importorskip("ray", reason="Ray is installed with the 'cluster' extra (make setup installs it)")
 
 SPEC = TransferSpec(method="sample-target", render=False, progress=False)
-FAST = {"sampling.samples": 4, "sampling.horizon": 3}
+FAST = {"sampling.samples": 4, "sampling.horizon": 3, "sampling.backtrack": 0}  # no back-ups: a step per frame
 
 
 @pytest.fixture(scope="module")

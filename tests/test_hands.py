@@ -121,9 +121,10 @@ def test_transfer_runs_with_other_hands(name: str, tmp_path, request: pytest.Fix
 def _beats_the_kinematic_replay(name: str, c, m: dict, km: dict) -> None:
     """Ours against the kinematic replay of the clip, both judged in MuJoCo. Measured (16-frame cube lift):
     Allegro lifts the cube 9.0 cm of the demo's 12 (the replay 0.4): T_err 1.62 vs 3.28 cm, whole-clip
-    objective 0.0369 vs 0.0495, but R_err 6.4 vs 0.8 deg; the short thumb moves the cube in neither (T_err
-    3.27 cm and R_err 0 in both) and tracks the hand closer: MPJPE 9.19 vs 9.68 mm, objective 0.04405 vs
-    0.04458."""
+    objective 0.0369 vs 0.0495, but R_err 6.4 vs 0.8 deg; without the sampling stage's back-ups the short
+    thumb moves the cube in neither (T_err 3.27 cm and R_err 0 in both) and tracks the hand closer: MPJPE
+    9.19 vs 9.68 mm, objective 0.04405 vs 0.04458; with them (the default since 2026-11-27) it pushes the cube
+    closer to the demo's path: T_err 2.16 vs 3.27 cm, R_err 2.6 vs 0 deg."""
     costs = json.loads(str(c.extras["selection_costs"]))
     selected = str(c.extras["selected"])
     assert selected != "kinematic" and costs[selected] < 0.995 * costs["kinematic"], costs
@@ -131,5 +132,5 @@ def _beats_the_kinematic_replay(name: str, c, m: dict, km: dict) -> None:
     if name == "allegro":
         assert m["T_err_cm"] < 0.75 * km["T_err_cm"] and costs[selected] < 0.85 * costs["kinematic"], (m, km, costs)
         assert m["object_motion"]["lift_cm"] > km["object_motion"]["lift_cm"] + 5.0
-    else:  # a tie in T_err and R_err: the hand's own tracking decides
+    elif m["T_err_cm"] > km["T_err_cm"] - 0.1:  # a tie in T_err and R_err: the hand's own tracking decides
         assert m["R_err_deg"] <= km["R_err_deg"] + 1e-3 and m["MPJPE_mm"] < km["MPJPE_mm"] - 0.2, (m, km)

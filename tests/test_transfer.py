@@ -250,7 +250,8 @@ def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path
     from quasisim.method.spec import TransferSpec
     from quasisim.pipeline import run_transfer
 
-    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3})
+    # no back-ups: one recorded step per frame (recording with back-ups: tests/test_sampling.py)
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3, "sampling.backtrack": 0})
     spec = TransferSpec(method="sample-target", target=target, render=False, progress=False, robust=0)
     run_transfer(short_demo, tmp_path / "plain", spec, cfg)
     run_transfer(short_demo, tmp_path / "rec", spec, cfg, record_transitions=tmp_path / "tr")

@@ -22,7 +22,8 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]
 
     root = tmp_path_factory.mktemp("world")
     demo = write_example("cube_lift", root / "data", n_frames=16)
-    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3})
+    # no back-ups: one recorded step per frame
+    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 5, "sampling.horizon": 3, "sampling.backtrack": 0})
     spec = TransferSpec(method="sample-target", render=False, progress=False)
     run_transfer(demo, root / "runs" / demo.stem / "sample-target", spec, cfg,
                  record_transitions=root / "runs" / demo.stem / "sample-target" / "transitions")  # fmt: skip
