@@ -452,8 +452,11 @@ def _control_loop(
             q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
         t += 1
-        saved[t] = target.save_state()
         back = _back_up_to(t, frames[-1], ref_pos[t], ref_quat[t], opts, backed_from)
+        if opts.backtrack > 0:  # the states a back-up may return to: frames t - 2 backtrack .. t
+            saved[t] = target.save_state()
+            for k in [k for k in saved if k < t - 2 * opts.backtrack or (back is not None and k > back)]:
+                target.release_state(saved.pop(k))
         if back is not None:
             backed_from.add(t)
             target.restore_state(saved[back])
@@ -463,6 +466,8 @@ def _control_loop(
             t = back
         bar.update(1)
     bar.close()
+    for state in saved.values():
+        target.release_state(state)
     wall = time.perf_counter() - t0
     if transitions is not None:
         transitions.finish(applied, frames)
