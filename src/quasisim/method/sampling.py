@@ -129,7 +129,7 @@ class SamplingOptions:
 
     def validate(self) -> None:
         """Raise :class:`QuasisimError` naming the first bad setting."""
-        for name in ("samples", "horizon", "knots", "threads"):
+        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples"):
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
@@ -137,17 +137,9 @@ class SamplingOptions:
             v = getattr(self, name)
             if not _is_int(v) or v < 0:
                 raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
-        if not _is_int(self.backtrack_samples) or self.backtrack_samples < 1:
-            raise QuasisimError(
-                f"sampling option 'backtrack_samples' must be a positive integer, got {self.backtrack_samples!r}"
-            )
-        for name in ("strict_weight", "strict_margin"):
-            v = getattr(self, name)
-            if not (_is_number(v) and v >= 0):
-                raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
         if not _is_int(self.seed):
             raise QuasisimError(f"sampling option 'seed' must be an integer, got {self.seed!r}")
-        for name in ("noise_base_pos", "noise_base_rot", "noise_joints"):
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin"):
             v = getattr(self, name)
             if not (_is_number(v) and v >= 0):
                 raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
