@@ -13,9 +13,12 @@ from quasisim.errors import QuasisimError
 from quasisim.method.config import TransferConfig
 from quasisim.method.sampling import (
     MODES,
+    UNSTABLE_COST,
     Prediction,
     SamplingOptions,
+    copy_scenes,
     knot_basis,
+    robust_scores,
     run_sampling,
     sample_windows,
     strict_hinge,
@@ -88,6 +91,9 @@ def _replay(scene, q):
         ("backtrack_samples", 0, "backtrack_samples"),
         ("strict_weight", float("nan"), "strict_weight"),
         ("strict_margin", -0.1, "strict_margin"),
+        ("robust_copies", -1, "robust_copies"),
+        ("robust_top", 0, "robust_top"),
+        ("robust_seed", 1.0, "robust_seed"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -178,6 +184,31 @@ def test_strict_hinge_closed_form() -> None:
     plain = window_costs(wins, pred, ref_pos, ref_quat, kp, mask, W)
     hinged = window_costs(wins, pred, ref_pos, ref_quat, kp, mask, W, strict=(0.1, 0.75))
     np.testing.assert_allclose(hinged - plain, [0.1 * 0.4], rtol=1e-6)
+
+
+def test_robust_scores_average_the_copies() -> None:
+    """Step 7's score: the top candidates' cost in the target averaged with their costs in the copies (an
+    unstable copy rollout counts UNSTABLE_COST); the rest can never be chosen."""
+    costs = np.array([0.3, 0.1, 0.2, 0.5])
+    top = np.array([1, 2])
+    s = robust_scores(costs, [np.array([0.5, 0.2]), np.array([np.nan, 0.2])], top)
+    np.testing.assert_allclose(s[top], [(0.1 + 0.5 + UNSTABLE_COST) / 3, 0.2])
+    assert np.isinf(s[[0, 3]]).all()
+    np.testing.assert_array_equal(robust_scores(costs, [], top)[top], costs[top])
+
+
+def test_copies_are_perturbed_away_from_the_judged_replays(real) -> None:
+    """The copies are drawn as the robust replays are (the shipped ranges), but from robust_seed, so the
+    planner never sees the scenes its robust success is judged in (configs/robust.yaml seed 0)."""
+    from quasisim.eval.robust import RobustConfig, perturbed_scene
+
+    scene = real[2]
+    copies = copy_scenes(scene, dataclasses.replace(OPTS, robust_copies=3))
+    judged = [perturbed_scene(scene, RobustConfig.from_yaml(), i) for i in range(8)]
+    assert len(copies) == 3 and RobustConfig.from_yaml().seed != OPTS.robust_seed
+    masses = {round(c.obj.mass / scene.obj.mass, 12) for c in copies}
+    assert len(masses) == 3 and all(0.85 <= m <= 1.15 for m in masses)
+    assert masses.isdisjoint({round(j.obj.mass / scene.obj.mass, 12) for j in judged})
 
 
 # ---- the control loop in MuJoCo ------------------------------------------------------------------------
@@ -285,6 +316,32 @@ def test_backing_up_restores_the_target_exactly(real) -> None:
     pairs = list(zip(kept.steps, kept.steps[1:], strict=False))
     cont = [np.abs(n["start_obj_pos"] - r["obj_pos"][int(r["chosen"]), 0]).max() <= 1e-9 for r, n in pairs]
     assert rec.backups >= 1 and sum(cont) == len(pairs) - rec.backups
+
+
+def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Copies that are the target itself (no perturbation) score every candidate as the target does: the run
+    is the run without copies, back-ups included (the copies are put back with the target). Perturbed copies
+    change the choice; the run is still a replay of its own targets in the unperturbed target, and each copy
+    rolled out the top candidates and followed every applied frame."""
+    import quasisim.method.sampling as st
+
+    demo, plan, scene = real
+    opts = dataclasses.replace(OPTS, backtrack=3, backtrack_budget=2)
+    plain = run_sampling(demo, scene, plan, opts, W, progress=False)
+    with monkeypatch.context() as m:
+        m.setattr(st, "copy_scenes", lambda sc, o: [sc] * o.robust_copies)
+        same = run_sampling(demo, scene, plan, dataclasses.replace(opts, robust_copies=2), W, progress=False)
+    np.testing.assert_array_equal(same.q_targets, plain.q_targets)
+    assert same.backups == plain.backups >= 1
+
+    flat = dataclasses.replace(OPTS, robust_copies=2, robust_top=4)
+    base = run_sampling(demo, scene, plan, OPTS, W, progress=False)
+    rob = run_sampling(demo, scene, plan, flat, W, progress=False)
+    assert not np.array_equal(rob.q_targets, base.q_targets)
+    again = _replay(scene, rob.q_targets)
+    np.testing.assert_allclose(again.object_pos, rob.rollout.object_pos, atol=1e-9)
+    per_window = OPTS.horizon * 25 + 1  # physics steps of one window in MuJoCo (test_zero_noise_...)
+    assert rob.n_physics_steps - base.n_physics_steps == (demo.n_frames - 1) * 2 * (4 * per_window + 25)
 
 
 def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:

@@ -36,6 +36,13 @@ At every control frame ``t`` of a clip with ``T`` frames:
    back to its saved state ``backtrack`` frames earlier (at least frame 1) and those frames are planned
    again with ``backtrack_samples`` times the samples, around the plan chosen so far; at most
    ``backtrack_budget`` times per clip, once per failing frame.
+7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
+   (:func:`quasisim.eval.robust.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
+   ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
+   advanced with the same applied frames, open loop, as a robust replay would run them. The ``robust_top``
+   cheapest candidates in the target are also rolled out in every copy from the copy's own state, and the
+   window is chosen by its cost averaged over the target and the copies (a copy's unstable rollout costs
+   :data:`UNSTABLE_COST`). Back-ups put the copies back with the target.
 
 The run starts from ``plan[0]``; the hand's initial velocity is that of the applied targets
 (``(q[1] - q[0]) fps``, per candidate at ``t = 0``), so the recorded run equals a plain replay of the applied
@@ -61,6 +68,9 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       backtrack: 5             # frames to back up when a frame leaves the strict limits (0: never)
       backtrack_samples: 4     # samples multiplier while re-planning those frames
       backtrack_budget: 6      # back-ups per clip at most
+      robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
+      robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
+      robust_seed: 1           # ... seeds the copies' perturbations
 """
 
 from __future__ import annotations
@@ -69,7 +79,8 @@ import dataclasses
 import functools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,6 +98,7 @@ from quasisim.targets import Observation, Prediction, Target, TargetRollout, mak
 from quasisim.targets.scene import Scene
 
 MODES = ("predictive", "mppi")
+UNSTABLE_COST = 1.0e3  # a window cost for a copy's rollout that went unstable (finite costs are ~0.01-1)
 
 
 @dataclass(frozen=True)
@@ -104,6 +116,8 @@ class SamplingOptions:
         strict_weight, strict_margin: the hinge on the strict limits in the window cost (step 4; weight 0: none).
         backtrack, backtrack_samples, backtrack_budget: backing up when a frame leaves the strict limits
             (step 6; 0 frames: never).
+        robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
+            ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
     """
 
     samples: int
@@ -123,22 +137,26 @@ class SamplingOptions:
     backtrack: int = 0
     backtrack_samples: int = 4
     backtrack_budget: int = 6
+    robust_copies: int = 0
+    robust_top: int = 8
+    robust_seed: int = 1
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
         """Raise :class:`QuasisimError` naming the first bad setting."""
-        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples"):
+        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top"):
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
-        for name in ("backtrack", "backtrack_budget"):
+        for name in ("backtrack", "backtrack_budget", "robust_copies"):
             v = getattr(self, name)
             if not _is_int(v) or v < 0:
                 raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
-        if not _is_int(self.seed):
-            raise QuasisimError(f"sampling option 'seed' must be an integer, got {self.seed!r}")
+        for name in ("seed", "robust_seed"):
+            if not _is_int(getattr(self, name)):
+                raise QuasisimError(f"sampling option '{name}' must be an integer, got {getattr(self, name)!r}")
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin"):
             v = getattr(self, name)
             if not (_is_number(v) and v >= 0):
@@ -382,15 +400,37 @@ def run_sampling(
     every rolled-out window is kept (the result is the same with or without it)."""
     plan = _check_plan(demo, scene, plan)
     alts = tuple(padded(_check_plan(demo, scene, a), opts.horizon) for a in alternatives)
-    with make_target(target, scene, threads=opts.threads) as tgt:
-        return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts, transitions)
+    with ExitStack() as stack:
+        tgt = stack.enter_context(make_target(target, scene, threads=opts.threads))
+        copies = [stack.enter_context(make_target(target, s, threads=opts.threads)) for s in copy_scenes(scene, opts)]
+        return _control_loop(demo, scene, plan, opts, weights, tgt, progress, alts, transitions, copies)
+
+
+def copy_scenes(scene: Scene, opts: SamplingOptions) -> list[Scene]:
+    """The scenes of the perturbed copies that score candidates (step 7): ``opts.robust_copies`` draws of
+    :func:`quasisim.eval.robust.perturbed_scene` with the shipped ranges and ``opts.robust_seed``."""
+    from quasisim.eval.robust import RobustConfig, perturbed_scene
+
+    cfg = dataclasses.replace(RobustConfig.from_yaml(), seed=opts.robust_seed)
+    return [perturbed_scene(scene, cfg, i) for i in range(opts.robust_copies)]
+
+
+def robust_scores(costs: np.ndarray, copy_costs: Sequence[np.ndarray], top: np.ndarray) -> np.ndarray:
+    """(N,) the score step 7 chooses by: for the candidates ``top``, their cost in the target ``costs`` (N,)
+    averaged with their costs in the copies (each (len(top),); non-finite: :data:`UNSTABLE_COST`); every
+    other candidate infinity (never chosen, MPPI weight 0)."""
+    scores = np.full(len(costs), np.inf)
+    rows = [costs[top], *(np.where(np.isfinite(c), c, UNSTABLE_COST) for c in copy_costs)]
+    scores[top] = np.mean(rows, axis=0)
+    return scores
 
 
 def _control_loop(
     demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, target: Target, progress: bool,
-    alts: tuple[np.ndarray, ...], transitions: Transitions | None = None,
+    alts: tuple[np.ndarray, ...], transitions: Transitions | None = None, copies: Sequence[Target] = (),
 ) -> SampleResult:  # fmt: skip
     T, H, fps = len(plan), opts.horizon, float(demo.fps)
+    every = [target, *copies]  # the target first; the copies follow the applied frames open loop
     ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
     sample = scene_sampler(opts, scene)
     wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
@@ -400,9 +440,10 @@ def _control_loop(
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
     losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0
-    target.reset(plan[0], None)
+    for tg in every:
+        tg.reset(plan[0], None)
     frames: list[Observation] = []
-    saved: dict[int, object] = {}  # frame -> the target's state after it (for backing up)
+    saved: dict[int, list[object]] = {}  # frame -> the target's and the copies' states after it (for backing up)
     widened = np.zeros(T, bool)  # frames planned again with more samples after a back-up
     backed_from: set[int] = set()
     t0 = time.perf_counter()
@@ -420,11 +461,18 @@ def _control_loop(
         pred = target.rollout_windows(wins, qd0)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-        costs = window_costs(
-            wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], frame_w, weights, base_cols,
-            (opts.strict_weight, opts.strict_margin),
+
+        cost = functools.partial(
+            window_costs, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], frame_w=frame_w,
+            weights=weights, base_cols=base_cols, strict=(opts.strict_weight, opts.strict_margin),
         )  # fmt: skip
-        win, best = next_plan_window(wins, costs, opts)
+        costs = score = cost(wins, pred)
+        if copies:  # step 7: the cheapest candidates scored in the perturbed copies too
+            top = np.argsort(costs, kind="stable")[: opts.robust_top]
+            preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in copies]
+            score = robust_scores(costs, [cost(wins[top], p) for p in preds], top)
+            steps += sum(p.n_steps for p in preds)
+        win, best = next_plan_window(wins, score, opts)
         if transitions is not None and start is not None:  # (start is set whenever transitions is)
             keep = _recorded(step_opts.samples, opts.samples, 1 + len(alts), best)
             chosen = None if best is None else int(np.flatnonzero(keep == best)[0])
@@ -434,36 +482,44 @@ def _control_loop(
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
         if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
-            target.reset(applied[0], (applied[1] - applied[0]) * fps)
+            for tg in every:
+                tg.reset(applied[0], (applied[1] - applied[0]) * fps)
             frames.append(target.observe())
-        target.advance(applied[t], applied[t + 1])
+        for tg in every:
+            tg.advance(applied[t], applied[t + 1])
         frames.append(target.observe())
-        losses[t] = costs.min()
-        steps += pred.n_steps + target.substeps
+        losses[t] = score.min()
+        steps += pred.n_steps + len(every) * target.substeps
         if best is not None:  # what the chosen candidate predicted against what the target did
             q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
         t += 1
         back = _back_up_to(t, frames[-1], ref_pos[t], ref_quat[t], opts, backed_from)
         if opts.backtrack > 0:  # the states a back-up may return to: frames t - 2 backtrack .. t
-            saved[t] = target.save_state()
+            saved[t] = [tg.save_state() for tg in every]
             for k in [k for k in saved if k < t - 2 * opts.backtrack or (back is not None and k > back)]:
-                target.release_state(saved.pop(k))
+                _release(every, saved.pop(k))
         if back is not None:
             backed_from.add(t)
-            target.restore_state(saved[back])
+            for tg, state in zip(every, saved[back], strict=True):
+                tg.restore_state(state)
             del frames[back + 1 :]
             widened[back:t] = True
             bar.update(back - t)
             t = back
         bar.update(1)
     bar.close()
-    for state in saved.values():
-        target.release_state(state)
+    for states in saved.values():
+        _release(every, states)
     wall = time.perf_counter() - t0
     if transitions is not None:
         transitions.finish(applied, frames)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+
+
+def _release(targets: Sequence[Target], states: list[object]) -> None:
+    for tg, state in zip(targets, states, strict=True):
+        tg.release_state(state)
 
 
 def _recorded(block: int, n: int, blocks: int, best: int | None) -> np.ndarray:
