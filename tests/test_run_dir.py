@@ -98,6 +98,37 @@ def test_each_checkpoint_is_named_by_what_determines_it() -> None:
     assert _piece_scope({**plus, "hand": "allegro"}, "kinematic") != _piece_scope(plus, "kinematic")
 
 
+def test_pieces_in_the_target_depend_on_which_target() -> None:
+    """The stages that roll out or judge in the target (sample, select, mpc, 3) are named by the target too,
+    the quasi-physical stages before them are not: a PyBullet run reuses a MuJoCo run's stage-1/2 checkpoints
+    and never its sampling. MuJoCo runs carry no target key (their identity is as before it was added)."""
+    from quasisim.pipeline import piece_scope as _piece_scope
+
+    info = {"demo_content": "d", "hand": "shadow", "budget": "fast", "weights": {"w": 1.0}, "sampling": {"s": 1}}
+    mj = {**info, "stages": ["1", "2", "sample", "select"], "method": "ours"}
+    pb = {**mj, "target": "pybullet"}
+    for name in ("kinematic", "stage1_human", "stage1_robot", "stage2_sim03"):
+        assert _piece_scope(mj, name) == _piece_scope(pb, name), name
+    for name in ("sample", "select"):
+        assert _piece_scope(mj, name) != _piece_scope(pb, name), name
+    assert _piece_scope({**pb, "stages": ["mpc"]}, "mpc") != _piece_scope({**mj, "stages": ["mpc"]}, "mpc")
+
+
+def test_run_identity_names_a_target_other_than_mujoco(tmp_path: Path) -> None:
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import identity
+
+    path = write_example("cube_lift", tmp_path, n_frames=12)
+    demo, cur, cfg = load_demo(path), load_curriculum("default"), TransferConfig.from_yaml()
+    mj = identity(path, demo, TransferSpec(render=False).checked(), cur, cfg)
+    pb = identity(path, demo, TransferSpec(render=False, target="pybullet").checked(), cur, cfg)
+    assert "target" not in mj and pb == {**mj, "target": "pybullet"}
+
+
 def test_run_json_damage_and_legacy_checkpoints(tmp_path: Path, capsys) -> None:
     _fresh(tmp_path).save("piece", **_arrays())
     (tmp_path / "run.json").write_text("")  # empty: said once, the checkpoint's own identity decides

@@ -189,7 +189,7 @@ def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
 def stage_keys() -> set[str]:
     """The run settings that concern single stages (each stage's config keys; the run's stages and method);
     the rest (demo, hand, curriculum, budget, weights) concern every piece."""
-    return {"stages", "method", *(k for st in registry.stages() for k in st.config)}
+    return {"stages", "method", "target", *(k for st in registry.stages() for k in st.config)}
 
 
 def piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
@@ -206,6 +206,8 @@ def piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
         if list(registry.STAGES).index(st.name) < list(registry.STAGES).index(owner.name)
     ]
     own = {k: info[k] for st in (*before, owner) for k in st.config if k in info}
+    if "target" in info and any(st.uses_target for st in (*before, owner)):
+        own["target"] = info["target"]
     own = owner.scope(info, name, own) if owner.scope else own
     return {**shared, "stage": owner.name, "before": [st.name for st in before], **own}
 
@@ -226,5 +228,7 @@ def identity(
         "method": spec.method, **cfg.identity(spec.budget, spec.stages, spec),
         "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
         "curriculum_settings": cur_settings,
+        # the target only where it is not MuJoCo, so that MuJoCo runs keep the identity they had before it
+        **({"target": spec.target} if spec.target != "mujoco" else {}),
     }  # fmt: skip
     return json.loads(json.dumps(info))  # as run.json holds it (lists, not tuples)

@@ -136,7 +136,9 @@ class Stage:
             substeps) scale that estimate; empty: it does not scale.
         plans: whether it produces PD targets (after it the sampling stage also samples around the
             kinematic retarget).  uses_simulator: whether it optimises in the quasi-physical simulator (the
-            controls then record the plan's quasi-physical rollout, ``sim_qpos``).
+            controls then record the plan's quasi-physical rollout, ``sim_qpos``).  uses_target: whether it
+            rolls out or judges in the target, so that its checkpoints (and those of the stages after it)
+            depend on which target the run has.
         run: ``run(context, outcome) -> outcome``.
         scope: narrows the settings that determine one of its checkpoints (``scope(info, checkpoint, own)``
             -> own): stage 2 computes its simulators before the first touching hand-off as without it.
@@ -150,6 +152,7 @@ class Stage:
     budget_parts: tuple[str, ...] = ()
     plans: bool = False
     uses_simulator: bool = False
+    uses_target: bool = False
     scope: Callable[[dict[str, Any], str, dict[str, Any]], dict[str, Any]] | None = None
 
     def owns(self, checkpoint: str) -> bool:

@@ -32,4 +32,13 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     return out.replace(q=np.asarray(d["q_targets"], np.float64), planned=True, seen=seen)
 
 
-STAGE = Stage(name="mpc", word="mpc", config=("mpc",), s_per_frame=1.5, run=run, plans=True, uses_simulator=True)
+STAGE = Stage(
+    name="mpc",
+    word="mpc",
+    config=("mpc",),
+    s_per_frame=1.5,
+    run=run,
+    plans=True,
+    uses_simulator=True,
+    uses_target=True,
+)

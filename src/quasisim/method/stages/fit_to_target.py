@@ -81,5 +81,12 @@ def _record(ctx: Context, d: dict[str, Any], fitted: dict[str, float], nets: tup
 
 
 STAGE = Stage(
-    name="3", word="stage3", config=("stage3", "networks"), s_per_frame=2.0, run=run, plans=True, uses_simulator=True
+    name="3",
+    word="stage3",
+    config=("stage3", "networks"),
+    s_per_frame=2.0,
+    run=run,
+    plans=True,
+    uses_simulator=True,
+    uses_target=True,
 )

@@ -71,4 +71,6 @@ def _save_transitions(ctx: Context, kept: Transitions) -> None:
 
 
 # s_per_frame: 0.27 s per frame measured on 60-frame GRAB clips, 0.13-0.15 on the long examples (bench long)
-STAGE = Stage(name="sample", word="sample", config=("sampling",), s_per_frame=0.19, run=run, plans=True)
+STAGE = Stage(
+    name="sample", word="sample", config=("sampling",), s_per_frame=0.19, run=run, plans=True, uses_target=True
+)

@@ -27,4 +27,4 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     return out.replace(q=candidates[best], selected=best, selection_costs=costs)
 
 
-STAGE = Stage(name="select", word="select", config=(), s_per_frame=0.1, run=run)
+STAGE = Stage(name="select", word="select", config=(), s_per_frame=0.1, run=run, uses_target=True)
