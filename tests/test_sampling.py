@@ -320,8 +320,9 @@ def test_backing_up_restores_the_target_exactly(real) -> None:
 
 def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:
     """Copies that are the target itself (no perturbation) score every candidate as the target does: the run
-    is the run without copies, back-ups included (the copies are put back with the target). Perturbed copies
-    change the choice; the run is still a replay of its own targets in the unperturbed target, and each copy
+    is the run without copies, back-ups included (the copies are put back with the target). Copies whose
+    object starts 5 cm away (off the strict limits from the start) never score a candidate. Perturbed copies
+    change the choice; the run is still a replay of its own targets in the unperturbed target, and the copies
     rolled out the top candidates and followed every applied frame."""
     import quasisim.method.sampling as st
 
@@ -333,6 +334,11 @@ def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:
         same = run_sampling(demo, scene, plan, dataclasses.replace(opts, robust_copies=2), W, progress=False)
     np.testing.assert_array_equal(same.q_targets, plain.q_targets)
     assert same.backups == plain.backups >= 1
+    off = dataclasses.replace(scene, object_pos0=scene.object_pos0 + np.array([0.05, 0.0, 0.0]))
+    with monkeypatch.context() as m:
+        m.setattr(st, "copy_scenes", lambda sc, o: [off] * o.robust_copies)
+        lost = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, robust_copies=2), W, progress=False)
+    np.testing.assert_array_equal(lost.q_targets, run_sampling(demo, scene, plan, OPTS, W, progress=False).q_targets)
 
     flat = dataclasses.replace(OPTS, robust_copies=2, robust_top=4)
     base = run_sampling(demo, scene, plan, OPTS, W, progress=False)
@@ -341,7 +347,8 @@ def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:
     again = _replay(scene, rob.q_targets)
     np.testing.assert_allclose(again.object_pos, rob.rollout.object_pos, atol=1e-9)
     per_window = OPTS.horizon * 25 + 1  # physics steps of one window in MuJoCo (test_zero_noise_...)
-    assert rob.n_physics_steps - base.n_physics_steps == (demo.n_frames - 1) * 2 * (4 * per_window + 25)
+    extra = (rob.n_physics_steps - base.n_physics_steps) / ((demo.n_frames - 1) * 2)  # per copy and step
+    assert 25 < extra <= 4 * per_window + 25  # every applied frame; the windows while the copy is on track
 
 
 def test_alternative_plan_is_taken_when_it_is_better(synth) -> None:

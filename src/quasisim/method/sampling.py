@@ -40,8 +40,9 @@ At every control frame ``t`` of a clip with ``T`` frames:
    (:func:`quasisim.eval.robust.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
    ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
    advanced with the same applied frames, open loop, as a robust replay would run them. The ``robust_top``
-   cheapest candidates in the target are also rolled out in every copy from the copy's own state, and the
-   window is chosen by its cost averaged over the target and the copies (a copy's unstable rollout costs
+   cheapest candidates in the target are also rolled out from its own state in every copy whose object is
+   still within the strict limits (a copy that has lost it no longer tells candidates apart), and the window
+   is chosen by its cost averaged over the target and those copies (a copy's unstable rollout costs
    :data:`UNSTABLE_COST`). Back-ups put the copies back with the target.
 
 The run starts from ``plan[0]``; the hand's initial velocity is that of the applied targets
@@ -467,9 +468,10 @@ def _control_loop(
             weights=weights, base_cols=base_cols, strict=(opts.strict_weight, opts.strict_margin),
         )  # fmt: skip
         costs = score = cost(wins, pred)
-        if copies:  # step 7: the cheapest candidates scored in the perturbed copies too
+        live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
+        if live:  # step 7: the cheapest candidates scored in the perturbed copies still on track too
             top = np.argsort(costs, kind="stable")[: opts.robust_top]
-            preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in copies]
+            preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in live]
             score = robust_scores(costs, [cost(wins[top], p) for p in preds], top)
             steps += sum(p.n_steps for p in preds)
         win, best = next_plan_window(wins, score, opts)
@@ -538,7 +540,10 @@ def _back_up_to(
     """The frame to go back to when frame ``t`` (observed ``obs``) leaves the strict limits (step 6), or None."""
     if opts.backtrack == 0 or len(backed_from) >= opts.backtrack_budget or t in backed_from or t < 2:
         return None
+    return None if _within_limits(obs, ref_pos, ref_quat) else max(1, t - opts.backtrack)
+
+
+def _within_limits(obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray) -> bool:
+    """Whether the object of ``obs`` is within the strict limits of its reference pose (3,), (4,)."""
     trans, rot = strict_fractions(obs["obj_pos"], obs["obj_quat"], ref_pos, ref_quat)
-    if max(float(trans), float(rot)) <= 1.0:
-        return None
-    return max(1, t - opts.backtrack)
+    return max(float(trans), float(rot)) <= 1.0
