@@ -186,6 +186,23 @@ def test_strict_hinge_closed_form() -> None:
     np.testing.assert_allclose(hinged - plain, [0.1 * 0.4], rtol=1e-6)
 
 
+def test_back_up_bookkeeping_survives_chained_back_ups() -> None:
+    """Back-ups from frame 50 to 45, then from 46 to 41, then from 42 to 37: the states older than 40 were
+    released while the loop stood at frame 50, so the third goes back to frame 40, the oldest state kept (it
+    once raised KeyError); without a back-up the states older than t - 2 backtrack are released."""
+    from quasisim.method.sampling import _kept_states
+
+    kept = list(range(40, 51))  # after frame 50: frames 40..50 (backtrack 5)
+    back, drop = _kept_states(kept, 50, 45, 5)
+    assert back == 45 and drop == [46, 47, 48, 49, 50]
+    kept = [k for k in kept if k not in drop] + [46]
+    back, drop = _kept_states(kept, 46, 41, 5)
+    assert back == 41 and drop == [42, 43, 44, 45, 46]
+    back, drop = _kept_states([40, 41, 42], 42, 37, 5)
+    assert back == 40 and drop == [41, 42]
+    assert _kept_states(list(range(30, 42)), 41, None, 5) == (None, [30])
+
+
 def test_robust_scores_average_the_copies() -> None:
     """Step 7's score: the top candidates' cost in the target averaged with their costs in the copies (an
     unstable copy rollout counts UNSTABLE_COST); the rest can never be chosen."""

@@ -497,9 +497,10 @@ def _control_loop(
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
         t += 1
         back = _back_up_to(t, frames[-1], ref_pos[t], ref_quat[t], opts, backed_from)
-        if opts.backtrack > 0:  # the states a back-up may return to: frames t - 2 backtrack .. t
+        if opts.backtrack > 0:  # the states a back-up may return to
             saved[t] = [tg.save_state() for tg in every]
-            for k in [k for k in saved if k < t - 2 * opts.backtrack or (back is not None and k > back)]:
+            back, drop = _kept_states(sorted(saved), t, back, opts.backtrack)
+            for k in drop:
                 _release(every, saved.pop(k))
         if back is not None:
             backed_from.add(t)
@@ -517,6 +518,16 @@ def _control_loop(
     if transitions is not None:
         transitions.finish(applied, frames)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+
+
+def _kept_states(frames: list[int], t: int, back: int | None, backtrack: int) -> tuple[int | None, list[int]]:
+    """The back-up bookkeeping after frame ``t``'s state is saved (``frames``: the frames with a saved state):
+    the frame to go back to (``back``, or the oldest frame kept when chained back-ups reach past it) and the
+    saved frames to release: without a back-up those older than ``t - 2 backtrack``, with one those after it."""
+    if back is None:
+        return None, [k for k in frames if k < t - 2 * backtrack]
+    back = max(back, frames[0])
+    return back, [k for k in frames if k > back]
 
 
 def _release(targets: Sequence[Target], states: list[object]) -> None:
