@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 import sys
 import threading
 import time
@@ -974,6 +975,33 @@ def bench_failures(runs: Path, data_dir: Path | None, out: Path | None) -> None:
 
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     click.echo(write(runs, analyse(runs, data), out or runs))
+
+
+@bench.command("sensitivity")
+@click.argument("runs", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--data", "data_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder of the runs' demos (default: $QUASISIM_DATA).")  # fmt: skip
+@click.option("--scales", default="0,0.01,0.1,1", show_default=True,
+              help="Fractions of the perturbation ranges of configs/robust.yaml.")  # fmt: skip
+@click.option("--n", "n", type=click.IntRange(1, 1000), default=8, show_default=True, help="Replays per run and scale.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None, help="Output folder (default: RUNS).")
+@_friendly
+def bench_sensitivity(runs: Path, data_dir: Path | None, scales: str, n: int, out: Path | None) -> None:
+    """Robust success of every finished run under RUNS (judged in MuJoCo) with the perturbation ranges
+    scaled: does a run fail under a physically sized change or under any change at all? Writes
+    sensitivity.md and sensitivity.json."""
+    import os
+
+    from quasisim.bench.sensitivity import run_sensitivity
+
+    try:
+        values = tuple(float(x) for x in scales.split(",") if x.strip())
+    except ValueError:
+        values = ()
+    if not values or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise QuasisimError(f"--scales: expected comma-separated numbers >= 0 (e.g. 0,0.01,0.1,1), got {scales!r}")
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    click.echo(run_sensitivity(runs, data, values, n, out or runs))
 
 
 @bench.command("fit")
