@@ -40,13 +40,19 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
         tmp_path / "a", {"c1": (10.0, 2.0, False, 0.5), "c2": (4.0, 1.0, True, 0.1), "c3": (9.0, 9.0, False, 0.9)}
     )
     b = _folder(tmp_path / "b", {"c1": (5.0, 1.0, True, 0.2), "c2": (6.0, 0.5, True, 0.3)})
+    for f, (strict, at20) in zip(sorted(b.glob("*/clip.json")), [(0.25, 0.5), (0.75, 1.0)], strict=True):
+        d = json.loads(f.read_text())  # robust success in folder b (fractions of perturbed replays)
+        d["runs"]["default+sample+select"]["row"]["metrics"]["robust"] = {"n": 4, "strict": strict, "20deg_20cm": at20}
+        f.write_text(json.dumps(d))
     out = tmp_path / "out"
     r = CliRunner().invoke(main, ["bench", "compare", f"old={a}", f"new={b}", "--out", str(out)])
     assert r.exit_code == 0, r.output
     md = (out / "compare.md").read_text()
     assert "2 clips held by every folder" in md and "| c3 |" not in md  # c3 is in one folder only
-    assert "| old | 7.0 | 1.50 | 14.0 | 100 / 100 / 100 / 50 | 1 of 2 | 0.3000 / 0.3000 | - | 76 |" in md
-    assert "| new | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 0.2500 / 0.2500 | 1 of 2 | 61 |" in md
+    assert "| old | 7.0 | 1.50 | 14.0 | 100 / 100 / 100 / 50 | - / - | 1 of 2 | 0.3000 / 0.3000 | - | 76 |" in md
+    assert (
+        "| new | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 50 / 75 | 2 of 2 | 0.2500 / 0.2500 | 1 of 2 | 61 |" in md
+    )
     assert "| c1 | 10.0 / 2.00 | 5.0 / 1.00 S | 0.5000 | 0.2000 |" in md
     assert len(json.loads((out / "compare.json").read_text())) == 4
 
@@ -66,7 +72,7 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
     assert r.exit_code == 0, r.output
     md = (tmp_path / "o3" / "compare.md").read_text()
     assert "default+sample+select / none+sample+select: old vs none, 3 clips" in md
-    assert "| none | 7.7 | 4.00 | 15.3 | 100 / 100 / 100 / 33 | 1 of 3 | - | 0 of 3 | 83 |" in md
+    assert "| none | 7.7 | 4.00 | 15.3 | 100 / 100 / 100 / 33 | - / - | 1 of 3 | - | 0 of 3 | 83 |" in md
     r = CliRunner().invoke(main, [*args, "--run", "a,b,c"])
     assert r.exit_code != 0 and "names 3 runs for 2 folders" in r.output
 
@@ -84,8 +90,8 @@ def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Pa
     assert r.exit_code == 0, r.output
     md = (out / "compare.md").read_text()
     assert "shadow vs allegro, 2 clips" in md and "stiffest loss" not in md
-    assert "| shadow kinematic | 14.0 | 3.00 | 28.0 | 100 / 100 / 100 / 0 | 0 of 2 | 0 of 2 | - |" in md
-    assert "| allegro | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 2 of 2 | 1 of 2 | 61 |" in md
+    assert "| shadow kinematic | 14.0 | 3.00 | 28.0 | 100 / 100 / 100 / 0 | - / - | 0 of 2 | 0 of 2 | - |" in md
+    assert "| allegro | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | - / - | 2 of 2 | 1 of 2 | 61 |" in md
     assert "| clip | shadow | shadow kinematic | allegro | allegro kinematic |" in md
     assert "| c1 | 10.0 / 2.00 | 20.0 / 4.00 | 5.0 / 1.00 S | 10.0 / 2.00 |" in md
 

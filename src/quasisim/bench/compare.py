@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.batch import CLIP_FILE, method_seconds
-from quasisim.bench.tables import header, publish
+from quasisim.bench.tables import header, publish, robust_cells
 from quasisim.bench.transfer import stiffest_simulator
 from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
@@ -98,9 +98,9 @@ def _summary(
 ) -> list[str]:
     loss_head = " stiffest loss (mean / median) |" if with_loss else ""
     out = [
-        "| folder | R_err (deg) | T_err (cm) | MPJPE (mm) | succ 10 / 15 / 20 / strict (%) | lifted |"
-        f"{loss_head} lower R_err and T_err than {labels[0]} | wall s per clip |",
-        "|---" * (8 + with_loss) + "|",
+        "| folder | R_err (deg) | T_err (cm) | MPJPE (mm) | succ 10 / 15 / 20 / strict (%) | robust strict / 20 (%) |"
+        f" lifted |{loss_head} lower R_err and T_err than {labels[0]} | wall s per clip |",
+        "|---" * (9 + with_loss) + "|",
     ]
     base = per[labels[0]]
     for x in labels:
@@ -116,6 +116,8 @@ def _summary(
         vs = "-" if x == labels[0] else f"{better} of {len(clips)}"
         out.append(
             f"| {x} | {_mean(rs, 'R_err_deg', '.1f')} | {_mean(rs, 'T_err_cm', '.2f')} | {_mean(rs, 'MPJPE_mm', '.1f')} | "
-            f"{succ} | {lifted} |" + (f" {loss} |" if with_loss else "") + f" {vs} | {_mean(rs, 'wall_s', '.0f')} |"
+            f"{succ} | {robust_cells(rs).replace(' | ', ' / ')} | {lifted} |"
+            + (f" {loss} |" if with_loss else "")
+            + f" {vs} | {_mean(rs, 'wall_s', '.0f')} |"
         )
     return out
