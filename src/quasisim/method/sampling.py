@@ -190,7 +190,7 @@ class SampleResult:
     Attributes:
         q_targets: (T, 6 + J) the PD targets applied in the target.
         rollout: the target's recorded run (a replay of ``q_targets``).
-        window_loss: (T - 1,) lowest candidate window cost per frame.
+        window_loss: (T - 1,) lowest candidate window cost per frame (with copies, step 7: the lowest score).
         wall_s: wall time of the control loop (s).
         n_physics_steps: physics steps simulated, candidates and the applied frames together.
         prediction_error: (T - 1,) after each applied frame, the largest difference between the chosen
