@@ -432,6 +432,12 @@ def test_pybullet_variant_runs(synth) -> None:
         again = tgt.rollout(res.q_targets)
     np.testing.assert_allclose(again.qpos, r.qpos, atol=1e-9)
     np.testing.assert_allclose(again.object_pos, r.object_pos, atol=1e-9)
+    # a perturbed copy (its own PyBullet client) scores the best candidates beside the target and backs up with it
+    opts = dataclasses.replace(opts, robust_copies=1, robust_top=2, backtrack=1)
+    rob = run_sampling(demo, scene, plan, opts, W, target="pybullet", progress=False)
+    assert rob.n_physics_steps > res.n_physics_steps
+    with PybulletTarget(scene) as tgt:
+        np.testing.assert_allclose(tgt.rollout(rob.q_targets).object_pos, rob.rollout.object_pos, atol=1e-9)
 
 
 def test_pybullet_backs_up_exactly(real) -> None:
