@@ -94,6 +94,8 @@ def _replay(scene, q):
         ("robust_copies", -1, "robust_copies"),
         ("robust_top", 0, "robust_top"),
         ("robust_seed", 1.0, "robust_seed"),
+        ("backtrack_copies", 1, "backtrack_copies"),
+        ("kinematic_alternative", "yes", "kinematic_alternative"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -349,8 +351,11 @@ def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:
     with monkeypatch.context() as m:
         m.setattr(st, "copy_scenes", lambda sc, o: [sc] * o.robust_copies)
         same = run_sampling(demo, scene, plan, dataclasses.replace(opts, robust_copies=2), W, progress=False)
+        both = dataclasses.replace(opts, robust_copies=2, backtrack_copies=True)  # copies leave when the target does
+        same_back = run_sampling(demo, scene, plan, both, W, progress=False)
     np.testing.assert_array_equal(same.q_targets, plain.q_targets)
-    assert same.backups == plain.backups >= 1
+    np.testing.assert_array_equal(same_back.q_targets, plain.q_targets)
+    assert same.backups == same_back.backups == plain.backups >= 1
     off = dataclasses.replace(scene, object_pos0=scene.object_pos0 + np.array([0.05, 0.0, 0.0]))
     with monkeypatch.context() as m:
         m.setattr(st, "copy_scenes", lambda sc, o: [off] * o.robust_copies)

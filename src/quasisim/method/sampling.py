@@ -43,7 +43,9 @@ At every control frame ``t`` of a clip with ``T`` frames:
    cheapest candidates in the target are also rolled out from its own state in every copy whose object is
    still within the strict limits (a copy that has lost it no longer tells candidates apart), and the window
    is chosen by its cost averaged over the target and those copies (a copy's unstable rollout costs
-   :data:`UNSTABLE_COST`). Back-ups put the copies back with the target.
+   :data:`UNSTABLE_COST`). Back-ups put the copies back with the target; with ``backtrack_copies`` the loop
+   also backs up (step 6) when a copy that was within the strict limits before the frame just applied is not
+   after it.
 
 The run starts from ``plan[0]``; the hand's initial velocity is that of the applied targets
 (``(q[1] - q[0]) fps``, per candidate at ``t = 0``), so the recorded run equals a plain replay of the applied
@@ -72,6 +74,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
+      backtrack_copies: false  # ... back up also when a copy leaves the strict limits
 """
 
 from __future__ import annotations
@@ -119,6 +122,7 @@ class SamplingOptions:
             (step 6; 0 frames: never).
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
+        backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
     """
 
     samples: int
@@ -141,6 +145,7 @@ class SamplingOptions:
     robust_copies: int = 0
     robust_top: int = 8
     robust_seed: int = 1
+    backtrack_copies: bool = False
 
     def __post_init__(self) -> None:
         self.validate()
@@ -165,10 +170,9 @@ class SamplingOptions:
         sc = self.noise_scales
         if not isinstance(sc, tuple) or not sc or not all(_is_number(s) and s >= 0 for s in sc):
             raise QuasisimError(f"sampling option 'noise_scales' must be a non-empty tuple of numbers >= 0, got {sc!r}")
-        if not isinstance(self.kinematic_alternative, bool):
-            raise QuasisimError(
-                f"sampling option 'kinematic_alternative' must be true or false, got {self.kinematic_alternative!r}"
-            )
+        for name in ("kinematic_alternative", "backtrack_copies"):
+            if not isinstance(getattr(self, name), bool):
+                raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
         if self.mode not in MODES:
             raise choice_error("sampling mode", self.mode, MODES)
         if not (_is_number(self.temperature) and self.temperature > 0):
@@ -496,7 +500,10 @@ def _control_loop(
             q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
             pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
         t += 1
-        back = _back_up_to(t, frames[-1], ref_pos[t], ref_quat[t], opts, backed_from)
+        off = not _within_limits(frames[-1], ref_pos[t], ref_quat[t])
+        if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
+            off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
+        back = _back_up_to(t, off, opts, backed_from)
         if opts.backtrack > 0:  # the states a back-up may return to
             saved[t] = [tg.save_state() for tg in every]
             back, drop = _kept_states(sorted(saved), t, back, opts.backtrack)
@@ -545,13 +552,11 @@ def _recorded(block: int, n: int, blocks: int, best: int | None) -> np.ndarray:
     return keep
 
 
-def _back_up_to(
-    t: int, obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray, opts: SamplingOptions, backed_from: set[int]
-) -> int | None:
-    """The frame to go back to when frame ``t`` (observed ``obs``) leaves the strict limits (step 6), or None."""
-    if opts.backtrack == 0 or len(backed_from) >= opts.backtrack_budget or t in backed_from or t < 2:
+def _back_up_to(t: int, off: bool, opts: SamplingOptions, backed_from: set[int]) -> int | None:
+    """The frame to go back to when frame ``t`` left the strict limits (``off``; step 6), or None."""
+    if not off or opts.backtrack == 0 or len(backed_from) >= opts.backtrack_budget or t in backed_from or t < 2:
         return None
-    return None if _within_limits(obs, ref_pos, ref_quat) else max(1, t - opts.backtrack)
+    return max(1, t - opts.backtrack)
 
 
 def _within_limits(obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray) -> bool:
