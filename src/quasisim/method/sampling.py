@@ -471,13 +471,10 @@ def _control_loop(
             window_costs, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], frame_w=frame_w,
             weights=weights, base_cols=base_cols, strict=(opts.strict_weight, opts.strict_margin),
         )  # fmt: skip
-        costs = score = cost(wins, pred)
+        costs = cost(wins, pred)
         live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
-        if live:  # step 7: the cheapest candidates scored in the perturbed copies still on track too
-            top = np.argsort(costs, kind="stable")[: opts.robust_top]
-            preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in live]
-            score = robust_scores(costs, [cost(wins[top], p) for p in preds], top)
-            steps += sum(p.n_steps for p in preds)
+        score, n_copy_steps = _score_in_copies(live, wins, qd0, costs, cost, opts.robust_top)
+        steps += n_copy_steps
         win, best = next_plan_window(wins, score, opts)
         if transitions is not None and start is not None:  # (start is set whenever transitions is)
             keep = _recorded(step_opts.samples, opts.samples, 1 + len(alts), best)
@@ -525,6 +522,20 @@ def _control_loop(
     if transitions is not None:
         transitions.finish(applied, frames)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+
+
+def _score_in_copies(
+    live: Sequence[Target], wins: np.ndarray, qd0: np.ndarray | None, costs: np.ndarray,
+    cost: Callable[[np.ndarray, Prediction], np.ndarray], top_n: int,
+) -> tuple[np.ndarray, int]:  # fmt: skip
+    """Step 7: the ``top_n`` cheapest candidates (``costs`` in the target) rolled out in the ``live`` copies
+    too and scored by :func:`robust_scores` (``costs`` itself without live copies); and the physics steps
+    the copies took."""
+    if not live:
+        return costs, 0
+    top = np.argsort(costs, kind="stable")[:top_n]
+    preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in live]
+    return robust_scores(costs, [cost(wins[top], p) for p in preds], top), sum(p.n_steps for p in preds)
 
 
 def _kept_states(frames: list[int], t: int, back: int | None, backtrack: int) -> tuple[int | None, list[int]]:
