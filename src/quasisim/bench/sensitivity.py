@@ -34,11 +34,11 @@ def run_rows(run_dir: Path, demo: Any, cfg: RobustConfig, scales: tuple[float, .
     from quasisim.eval.evaluate import hands_of
     from quasisim.eval.failures import run_method
     from quasisim.eval.robust import robust_success
-    from quasisim.targets.build import load_object_for, scene_for
+    from quasisim.targets.build import scene_for
     from quasisim.targets.scene import place_hands
 
     controls = load_controls(run_dir / "controls.npz")
-    scene = scene_for(demo, place_hands(hands_of(controls, run_dir), controls.base_rots), load_object_for(demo))
+    scene = scene_for(demo, place_hands(hands_of(controls, run_dir), controls.base_rots))  # as evaluate_controls
     row: dict[str, Any] = {"clip": demo.name, "method": run_method(run_dir), "run": str(run_dir), "n": cfg.n}
     for s in scales:
         r = robust_success(demo, scene, controls.q_targets, "mujoco", scaled(cfg, s))
