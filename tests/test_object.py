@@ -153,6 +153,26 @@ def test_surface_points(box: ObjectAsset) -> None:
     np.testing.assert_array_equal(pts, again)
 
 
+def test_support_points_are_the_hulls_vertices_then_its_faces(box: ObjectAsset) -> None:
+    """A box's hull has 8 vertices: all of them come first, then points on its faces (all on the surface,
+    normals outward); a finer hull than ``n`` gives ``n`` of its vertices, spread to its extremes."""
+    from quasisim.assets.object import farthest_points
+
+    pts, nrm = box.support_points(64)
+    assert pts.shape == nrm.shape == (64, 3)
+    corners = np.abs(pts[:8])
+    np.testing.assert_allclose(corners, np.broadcast_to(corners[0], (8, 3)), atol=1e-12)
+    assert len({tuple(np.sign(p)) for p in pts[:8]}) == 8
+    np.testing.assert_allclose(np.abs(exact_sdf(box, pts)), 0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1, atol=1e-9)
+    assert (exact_sdf(box, pts + 1e-3 * nrm) > 0).all()
+    ring = np.stack([np.cos(t := np.linspace(0, 2 * np.pi, 400, endpoint=False)), np.sin(t), 0 * t], axis=1)
+    idx = farthest_points(ring, 8)
+    assert len(set(idx)) == 8
+    gaps = np.diff(np.sort(t[idx]))
+    np.testing.assert_allclose(gaps, 2 * np.pi / 8, atol=0.02)  # evenly spread around the ring
+
+
 # ---------------------------------------------------------------- SDF bake and query
 
 

@@ -169,6 +169,34 @@ def test_fit_trains_a_correction_that_predicts_the_target_better(
     assert [(r["batch"], r["windows"]) for r in speed] == [(4, 6)] and speed[0]["windows_per_s"] > 0
 
 
+@pytest.mark.slow
+def test_bench_world_without_a_model_compares_the_nominal_simulator_with_its_variants(
+    recorded: tuple[Path, Path, str], tmp_path: Path
+) -> None:
+    """No --model: zero motion and the nominal simulator on the clips named; --variant adds the nominal
+    simulator built with the table on mesh samples, which predicts other states; unknown variants are refused
+    with the valid ones."""
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    runs, data, name = recorded
+    args = ["bench", "world", str(runs), "--data", str(data), "--clips", name, "--horizons", "2", "--out",
+            str(tmp_path / "b")]  # fmt: skip
+    res = CliRunner().invoke(main, [*args, "--variant", "no such thing"])
+    assert res.exit_code != 0 and "valid: normal force x3" in res.output and "table on mesh samples" in res.output
+    res = CliRunner().invoke(main, [*args, "--variant", "table on mesh samples"])
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "b" / "world.json").read_text())
+    assert {(r["windows"], r["predictor"]) for r in rows} == {
+        ("final 2", "zero motion"), ("final 2", "nominal"), ("final 2", "table on mesh samples"),
+        ("sampled 3", "zero motion"), ("sampled 3", "nominal"), ("sampled 3", "table on mesh samples"),
+    }  # fmt: skip
+    by = {(r["windows"], r["predictor"]): r for r in rows}
+    assert by[("final 2", "nominal")]["pos_cm"] != by[("final 2", "table on mesh samples")]["pos_cm"]
+    assert "No world model" in (tmp_path / "b" / "world.md").read_text()
+
+
 def test_a_file_that_is_not_a_world_model_is_refused_naming_it(tmp_path: Path) -> None:
     from quasisim.method.world_model import WorldModel
 

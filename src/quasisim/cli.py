@@ -898,21 +898,31 @@ def bench_predict(
 
 @bench.command("world")
 @click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
-@click.option("--model", "model_path", type=click.Path(path_type=Path), required=True, help="quasisim fit's file.")
+@click.option(
+    "--model", "model_path", type=click.Path(path_type=Path), default=None,
+    help="quasisim fit's file (without it: the nominal simulator and zero motion on the fixed held-out clips).",
+)  # fmt: skip
 @_TRANSITIONS_DATA
 @click.option("--clips", "clip_names", default="", help="Comma-separated clips (default: the model's held-out ones).")
 @click.option(
     "--decompose", is_flag=True, help="Also the nominal simulator with one group of constants changed at a time."
+)
+@click.option(
+    "--variant",
+    "variants",
+    multiple=True,
+    help="One variant of --decompose (repeatable), e.g. 'table on mesh samples'.",
 )
 @click.option("--horizons", default="6,10", show_default=True, help="Frames of the final trajectories' windows.")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/world"), show_default=True)
 @_friendly
 def bench_world(
     transitions_dir: Path,
-    model_path: Path,
+    model_path: Path | None,
     data_dir: Path,
     clip_names: str,
     decompose: bool,
+    variants: tuple[str, ...],
     horizons: str,
     out: Path,
 ) -> None:
@@ -924,7 +934,14 @@ def bench_world(
 
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     hs = tuple(sorted(set(_positive_ints(horizons, "--horizons", "6,10"))))
-    run_world_bench(transitions_dir, data_dir, model_path, out, names, decompose, hs)
+    from quasisim.bench.world import MODEL_VARIANTS, VARIANTS
+
+    valid = (*VARIANTS, *MODEL_VARIANTS)
+    unknown = [v for v in variants if v not in valid]
+    if unknown:
+        raise click.BadParameter(f"{unknown[0]!r}; valid: {', '.join(valid)}", param_hint="--variant")
+    chosen = valid if decompose else tuple(variants)
+    run_world_bench(transitions_dir, data_dir, model_path, out, names, chosen, hs)
 
 
 @bench.command("windows")

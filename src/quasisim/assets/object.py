@@ -420,6 +420,41 @@ class ObjectAsset:
             pts, idx = np.vstack([pts, more]), np.concatenate([idx, more_idx])
         return np.asarray(pts[:n], np.float64), np.asarray(mesh.face_normals[idx[:n]], np.float64)
 
+    def support_points(self, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` points of the object's convex hull: its vertices (the farthest-point subset of ``n`` when it
+        has more), topped up with evenly spaced points on its faces. A plane (the table) touches the object
+        only on its hull, and a body lying on it rests on hull vertices: a cylinder on the rim points of its
+        lowest side facet. Samples of the mesh's surface cover a curved side too sparsely for that, and the
+        body rocks or rolls between a few of them.
+
+        Returns:
+            points (n, 3) object frame, m; normals (n, 3) outward unit normals (the hull's vertex normals at
+            vertices, its face normals on faces).
+        """
+        with quiet_trimesh():
+            hull = self.to_trimesh().convex_hull
+            verts, vnorm = np.asarray(hull.vertices, np.float64), np.asarray(hull.vertex_normals, np.float64)
+            if len(verts) >= n:
+                keep = farthest_points(verts, n)
+                return verts[keep], vnorm[keep]
+            pts, idx = trimesh.sample.sample_surface_even(hull, n - len(verts), seed=seed)
+            if len(pts) < n - len(verts):  # the even sampler can return fewer; top up with area-weighted samples
+                more, more_idx = trimesh.sample.sample_surface(hull, n - len(verts) - len(pts), seed=seed + 1)
+                pts, idx = np.vstack([pts, more]), np.concatenate([idx, more_idx])
+        return np.vstack([verts, pts]), np.vstack([vnorm, hull.face_normals[idx]]).astype(np.float64)
+
+
+def farthest_points(x: np.ndarray, n: int) -> np.ndarray:
+    """Indices of ``n`` of the points ``x`` (N, 3), each the farthest from those chosen before it, starting
+    with the point farthest from their centroid (greedy farthest-point sampling: an even spread that keeps
+    the extremes)."""
+    chosen = [int(np.argmax(np.linalg.norm(x - x.mean(0), axis=1)))]
+    dist = np.linalg.norm(x - x[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(x - x[chosen[-1]], axis=1))
+    return np.asarray(chosen)
+
 
 def _open_edges(mesh: trimesh.Trimesh) -> int:
     return len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))

@@ -11,6 +11,7 @@ keypoint error after the window's last frame (and after each frame). One JSON pe
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -23,16 +24,17 @@ from tqdm import tqdm
 from quasisim.bench.tables import header, publish
 from quasisim.errors import QuasisimError
 from quasisim.files import file_sha256, save_json_atomic
-from quasisim.method.transitions import ClipWindows, clip_problem, load_clip, read_meta, transition_files
+from quasisim.method.transitions import HELD_OUT, ClipWindows, clip_problem, load_clip, read_meta, transition_files
 from quasisim.method.world_fit import SIMULATOR, stiffest_params
-from quasisim.method.world_model import WorldModel, batch, predict
+from quasisim.method.world_model import WorldModel, WorldModelConfig, batch, predict
 from quasisim.rotations import quat_angle_deg
 from quasisim.runtime import free_compiled_programs
+from quasisim.sim.build import SIMULATOR_REVISION
 from quasisim.sim.types import Params
 
 HORIZONS = (6, 10)  # frames of the final trajectories' windows (the sampled ones have the recorded horizon)
 PREDICTORS = ("zero motion", "nominal", "world model")
-# --decompose: the nominal simulator with one group of constants changed at a time (which error each moves)
+# variants (--decompose: all of them): the nominal simulator with one group of constants changed at a time (which error each moves)
 VARIANTS: dict[str, Callable[[Params], Params]] = {
     "normal force x3": lambda p: p.replace(contact_scale=p.contact_scale * 3.0),
     "normal force x1/3": lambda p: p.replace(contact_scale=p.contact_scale / 3.0),
@@ -42,6 +44,8 @@ VARIANTS: dict[str, Callable[[Params], Params]] = {
     "mass and inertia x2": lambda p: p.replace(obj_mass=p.obj_mass * 2.0, obj_inertia=p.obj_inertia * 2.0),
     "hand gains x2": lambda p: p.replace(joint_kp=p.joint_kp * 2.0, joint_kv=p.joint_kv * 2.0),
 }
+# variants: the nominal simulator built another way (SimOptions), by its settings
+MODEL_VARIANTS = {"table on mesh samples": {"table_points": "surface"}}
 
 
 def window_errors(w: ClipWindows, pred: dict[str, np.ndarray] | None) -> dict[str, list[float]]:
@@ -64,22 +68,33 @@ def window_errors(w: ClipWindows, pred: dict[str, np.ndarray] | None) -> dict[st
 
 
 def clip_rows(
-    path: Path, data_dir: Path, model: WorldModel, decompose: bool = False, horizons: tuple[int, ...] = HORIZONS
-) -> list[dict[str, Any]]:
-    """Every set of windows x predictor of one clip (module docstring); ``decompose``: also the
-    :data:`VARIANTS` of the nominal simulator on the 6-frame final windows and the sampled ones."""
+    path: Path, data_dir: Path, model: WorldModel | None, variants: tuple[str, ...] = (),
+    horizons: tuple[int, ...] = HORIZONS,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """Every set of windows x predictor of one clip (module docstring; without ``model`` zero motion and the
+    nominal simulator); ``variants``: also these of the :data:`VARIANTS` and :data:`MODEL_VARIANTS` of the
+    nominal simulator, on the shortest final windows and the sampled ones."""
     prob = clip_problem(path, data_dir, SIMULATOR["substeps"], SIMULATOR["n_candidates"])
     params = stiffest_params(prob)
+    cfg = model.cfg if model is not None else WorldModelConfig()
+    variant_probs = {
+        name: clip_problem(path, data_dir, SIMULATOR["substeps"], SIMULATOR["n_candidates"], **opts)
+        for name, opts in MODEL_VARIANTS.items()
+        if name in variants
+    }
     rows = []
     for kind, H in [*(("final", h) for h in horizons), ("sampled", 0)]:
-        w = load_clip(path, prob, kind, horizon=H, per_step=model.cfg.per_step, seed=model.cfg.seed + 1)
-        names = [*PREDICTORS, *(VARIANTS if decompose and H != max(horizons) else ())]
+        w = load_clip(path, prob, kind, horizon=H, per_step=cfg.per_step, seed=cfg.seed + 1)
+        predictors = PREDICTORS if model is not None else PREDICTORS[:2]
+        names = [*predictors, *(variants if kind == "sampled" or H == min(horizons) else ())]
         prepared = batch(w)  # the simulator's inputs, shared by every predictor of these windows
         for name in names:
             t0 = time.perf_counter()
             par = VARIANTS[name](params) if name in VARIANTS else params
-            net = model.net if name == "world model" else None
-            pred = None if name == "zero motion" else predict(par, net, w, model.cfg, prepared=prepared)
+            net = model.net if name == "world model" and model is not None else None
+            wv = dataclasses.replace(w, prob=variant_probs[name]) if name in variant_probs else w
+            prep = batch(wv) if name in variant_probs else prepared
+            pred = None if name == "zero motion" else predict(par, net, wv, cfg, prepared=prep)
             e = window_errors(w, pred)
             rows.append({
                 "clip": w.demo, "windows": f"{kind} {w.horizon}", "n": len(w), "predictor": name, **e,
@@ -92,54 +107,63 @@ def clip_rows(
 def run_world_bench(
     folder: Path,
     data_dir: Path,
-    model_path: Path,
+    model_path: Path | None,
     out: Path,
     clip_names: tuple[str, ...] = (),
-    decompose: bool = False,
+    variants: tuple[str, ...] = (),
     horizons: tuple[int, ...] = HORIZONS,
 ) -> str:
-    """The table of the module docstring for ``clip_names`` (default: the model's held-out clips)."""
-    model = WorldModel.load(model_path)
-    names = clip_names or tuple(model.info["held_out"])
+    """The table of the module docstring for ``clip_names`` (default: the model's held-out clips, or
+    :data:`~quasisim.method.transitions.HELD_OUT` without a model)."""
+    model = WorldModel.load(model_path) if model_path is not None else None
+    names = clip_names or (tuple(model.info["held_out"]) if model is not None else HELD_OUT)
     files = {read_meta(f)[0]: f for f in transition_files(folder)}
     missing = [n for n in names if n not in files]
     if missing:
         raise QuasisimError(f"{folder}: no recorded transitions of {', '.join(missing)}")
-    trained = sorted(set(names) & set(model.info["trained_on"]))
+    trained = sorted(set(names) & set(model.info["trained_on"])) if model is not None else []
     per_clip = out / "clips"
     per_clip.mkdir(parents=True, exist_ok=True)
-    key = {"model_sha256": file_sha256(model_path), "transitions_sha256": None, "horizons": list(horizons)}
+    key = {
+        "model_sha256": file_sha256(model_path) if model_path is not None else None,
+        "transitions_sha256": None, "horizons": list(horizons), "simulator_revision": SIMULATOR_REVISION,
+    }  # fmt: skip
     rows: list[dict[str, Any]] = []
     for name in tqdm(names, desc="clips", unit="clip"):
         key["transitions_sha256"] = file_sha256(files[name])
-        cached = _cached(per_clip / f"{name}.json", key, decompose)
+        cached = _cached(per_clip / f"{name}.json", key, variants)
         if cached is None:
             free_compiled_programs()
-            cached = clip_rows(files[name], data_dir, model, decompose, horizons)
+            cached = clip_rows(files[name], data_dir, model, variants, horizons)
             save_json_atomic(per_clip / f"{name}.json", {**key, "rows": cached})
         rows += cached
     return publish(out, "world", rows, _markdown(rows, model, model_path, trained))
 
 
-def _cached(path: Path, key: dict[str, Any], decompose: bool) -> list[dict[str, Any]] | None:
-    """A clip's rows from an earlier run of the same model on the same transitions (and, for ``decompose``,
-    with the variants), else None."""
+def _cached(path: Path, key: dict[str, Any], variants: tuple[str, ...]) -> list[dict[str, Any]] | None:
+    """A clip's rows from an earlier run of the same model on the same transitions (with ``variants``
+    among them), else None."""
     try:
         d = json.loads(path.read_text())
         ok = all(d.get(k) == v for k, v in key.items())
         rows = d["rows"] if ok else None
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
-    if rows is None or (decompose and not any(r["predictor"] in VARIANTS for r in rows)):
+    if rows is None or not set(variants) <= {r["predictor"] for r in rows}:
         return None
     return rows
 
 
-def _markdown(rows: list[dict[str, Any]], model: WorldModel, path: Path, trained: list[str]) -> list[str]:
-    lines = [
-        header(f"World model prediction against MuJoCo ({model.info['hand']})"),
+def _markdown(rows: list[dict[str, Any]], model: WorldModel | None, path: Path | None, trained: list[str]) -> list[str]:
+    about = (
         f"Model `{path.name}`: trained on {len(model.info['trained_on'])} clips ({model.info['n_pairs']} frames); "
-        f"clips here that it was trained on: {', '.join(trained) or 'none'}. Errors after the window's last "
+        f"clips here that it was trained on: {', '.join(trained) or 'none'}."
+        if model is not None and path is not None
+        else "No world model: the nominal simulator and zero motion."
+    )
+    lines = [
+        header(f"World model prediction against MuJoCo ({model.info['hand'] if model is not None else 'nominal'})"),
+        f"{about} Simulator revision {SIMULATOR_REVISION}. Errors after the window's last "
         "frame, mean over windows; zero motion: the object stays where it was.",
         "",
         "| clip | windows | n | predictor | object pos (cm) | object rot (deg) | keypoints (mm) | median pos (cm) | "

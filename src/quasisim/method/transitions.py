@@ -96,15 +96,16 @@ def read_meta(path: Path) -> tuple[str, str, float, np.ndarray]:
         return npz_str(z, "demo", path), npz_str(z, "hands", path), npz_number(z, "fps", path, 1e-3), base
 
 
-def clip_problem(path: Path, data_dir: Path, substeps: int, n_candidates: int) -> Problem:
+def clip_problem(path: Path, data_dir: Path, substeps: int, n_candidates: int, table_points: str = "hull") -> Problem:
     """The quasi-physical simulator of a transitions file's clip (its demo read from ``data_dir``), the hands
-    on the recorded base frames."""
+    on the recorded base frames (``table_points``: :class:`~quasisim.sim.build.SimOptions`)."""
     demo_name, hand, _, base = read_meta(path)
     demo_path = Path(data_dir) / f"{demo_name}.npz"
     if not demo_path.is_file():
         raise InputError(demo_path, None, f"the demo of {path.name} (field 'demo' = {demo_name!r})", "no such file")
     demo = load_demo(demo_path)
-    return make_problem(demo, place_hands(demo_hands(hand, demo.sides), list(base)), substeps, n_candidates)
+    hands = place_hands(demo_hands(hand, demo.sides), list(base))
+    return make_problem(demo, hands, substeps, n_candidates, table_points=table_points)
 
 
 def load_clip(path: Path, prob: Problem, kind: str, horizon: int = 0, per_step: int = 4, seed: int = 0) -> ClipWindows:

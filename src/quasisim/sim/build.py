@@ -16,6 +16,10 @@ from quasisim.sim.pointset import HandPoints, sample_hand_points
 from quasisim.sim.types import NETWORKS, Model, Params
 
 F32 = jnp.float32
+TABLE_POINTS = ("hull", "surface")  # SimOptions.table_points
+# Changes of the simulator that move its results at the same settings (part of every run's identity, so a
+# run never resumes from checkpoints of another): 1 table contact at mesh surface samples; 2 at hull samples.
+SIMULATOR_REVISION = 2
 CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
 
 
@@ -25,7 +29,9 @@ class SimOptions:
 
     Attributes:
         dt: substep (s).  substeps: substeps per frame (``dt * substeps`` should equal 1 / fps).
-        sdf_spacing: SDF grid spacing (m).  n_surface: object surface samples for table contact.
+        sdf_spacing: SDF grid spacing (m).  n_surface: object samples for table contact.
+        table_points: where those samples lie: ``hull`` (the convex hull's surface, default) or ``surface``
+            (the mesh's surface; a curved object lying on the table rocks between sparse samples).
         n_candidates: hand points examined for contact per frame (broad phase).
         point_spacing, point_offset: hand point-set sampling (m); None = the hand config's values.
     """
@@ -34,6 +40,7 @@ class SimOptions:
     substeps: int
     sdf_spacing: float = 0.003
     n_surface: int = 128
+    table_points: str = "hull"
     n_candidates: int = 128
     point_spacing: float | None = None
     point_offset: float | None = None
@@ -55,7 +62,10 @@ def build_model(
     if points is None:
         points = hand_set_points((hand,), opts)
     sdf = obj.sdf(spacing=opts.sdf_spacing).as_flat()
-    surf, normals = obj.surface_points(opts.n_surface, seed=0)
+    if opts.table_points not in TABLE_POINTS:
+        raise ValueError(f"SimOptions.table_points {opts.table_points!r}; valid: {', '.join(TABLE_POINTS)}")
+    sample = obj.support_points if opts.table_points == "hull" else obj.surface_points
+    surf, normals = sample(opts.n_surface, seed=0)
     return Model(
         hand=hand,
         point_body=jnp.asarray(points.body, dtype=jnp.int32),

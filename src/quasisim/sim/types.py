@@ -52,7 +52,8 @@ class Model:
         sdf_dims: (3,) int32 nx, ny, nz.
         sdf_origin: (3,) object-frame position of grid node (0, 0, 0).  sdf_spacing: () grid spacing (m).
         obj_com: (3,) centre of mass in the object frame.
-        obj_surface: (M, 3) object surface samples (object frame) used for table contact.
+        obj_surface: (M, 3) object samples (object frame) used for table contact, on the convex hull's
+            surface by default (``SimOptions.table_points``).
         obj_normals: (M, 3) their outward normals.
         table: (5,) xmin, xmax, ymin, ymax, top of the table box (m), in simulator coordinates.
         offset: (3,) world position of the simulator's origin (positions in State are relative to it, which
