@@ -103,6 +103,23 @@ def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path
         run_batch([job], tmp_path, Settings(overrides={"sampling.samples": 8}))
 
 
+def test_runs_in_the_simulator_name_its_revision(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run with a stage in the quasi-physical simulator records the simulator's revision (a batch resumed
+    with a changed simulator refuses its finished clips); sample-target and the kinematic replay do not."""
+    import quasisim.sim.build
+    from quasisim.batch import identity
+    from quasisim.method.spec import TransferSpec
+
+    ours = Run("default", TransferSpec(stages=("1", "2", "sample", "select")))
+    st = Run("sample-target", TransferSpec(method="sample-target", stages=("sample",)))
+    s = Settings(overrides=FAST)
+    assert identity(ours, s)["simulator_revision"] == quasisim.sim.build.SIMULATOR_REVISION
+    assert "simulator_revision" not in identity(st, s)
+    before = identity(ours, s)
+    monkeypatch.setattr(quasisim.sim.build, "SIMULATOR_REVISION", quasisim.sim.build.SIMULATOR_REVISION + 1)
+    assert identity(ours, s) != before and identity(st, s) == identity(st, s)
+
+
 def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
     from click.testing import CliRunner
 

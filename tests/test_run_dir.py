@@ -127,6 +127,11 @@ def test_run_identity_names_a_target_other_than_mujoco(tmp_path: Path) -> None:
     mj = identity(path, demo, TransferSpec(render=False).checked(), cur, cfg)
     pb = identity(path, demo, TransferSpec(render=False, target="pybullet").checked(), cur, cfg)
     assert "target" not in mj and pb == {**mj, "target": "pybullet"}
+    # a run in the quasi-physical simulator names its revision; sample-target does not depend on it
+    from quasisim.sim.build import SIMULATOR_REVISION
+
+    st = identity(path, demo, TransferSpec(render=False, method="sample-target").checked(), cur, cfg)
+    assert mj["simulator_revision"] == SIMULATOR_REVISION and "simulator_revision" not in st
 
 
 def test_run_json_damage_and_legacy_checkpoints(tmp_path: Path, capsys) -> None:

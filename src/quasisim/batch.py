@@ -87,9 +87,12 @@ class Settings:
 
 def identity(run: Run, s: Settings) -> dict[str, Any]:
     """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
-    match it), as JSON would give it back: the run, its spec and the config settings its stages read."""
+    match it), as JSON would give it back: the run, its spec, the config settings its stages read and, for a
+    run with a stage in the quasi-physical simulator, the simulator's revision."""
+    from quasisim.method.registry import simulator_identity
+
     d = {"name": run.name, **run.spec.identity(), "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
-    return json.loads(json.dumps(d))
+    return json.loads(json.dumps(d | simulator_identity(run.spec.stages)))
 
 
 @functools.cache

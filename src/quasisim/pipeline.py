@@ -43,7 +43,6 @@ from quasisim.optim.adam import Progress
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory, join_q, simulate_jit
 from quasisim.rotations import np_mat_to_euler_xyz, np_quat_to_mat
-from quasisim.sim.build import SIMULATOR_REVISION
 from quasisim.sim.types import Model, Params
 from quasisim.targets.build import demo_hands
 from quasisim.targets.scene import place_hands
@@ -228,7 +227,7 @@ def identity(
         "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
         "method": spec.method, **cfg.identity(spec.budget, spec.stages, spec),
         "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
-        "curriculum_settings": cur_settings, "simulator_revision": SIMULATOR_REVISION,
+        "curriculum_settings": cur_settings, **registry.simulator_identity(spec.stages),
         # the target only where it is not MuJoCo, so that MuJoCo runs keep the identity they had before it
         **({"target": spec.target} if spec.target != "mujoco" else {}),
     }  # fmt: skip

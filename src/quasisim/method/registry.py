@@ -46,6 +46,14 @@ def stages(names: tuple[str, ...] | list[str] | None = None) -> tuple[Stage, ...
     return tuple(stage(n) for n in STAGES if names is None or n in names)
 
 
+def simulator_identity(names: tuple[str, ...] | list[str]) -> dict[str, int]:
+    """``{"simulator_revision": N}`` for a run with stages ``names`` of which one optimises in the
+    quasi-physical simulator, else ``{}`` (runs without it, e.g. sample-target, keep their identity)."""
+    from quasisim.sim.build import SIMULATOR_REVISION
+
+    return {"simulator_revision": SIMULATOR_REVISION} if any(st.uses_simulator for st in stages(names)) else {}
+
+
 def order(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     """``names`` in run order."""
     return tuple(n for n in STAGES if n in names)
