@@ -103,11 +103,14 @@ def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path
         run_batch([job], tmp_path, Settings(overrides={"sampling.samples": 8}))
 
 
-def test_runs_in_the_simulator_name_its_revision(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A run with a stage in the quasi-physical simulator records the simulator's revision (a batch resumed
-    with a changed simulator refuses its finished clips); sample-target and the kinematic replay do not."""
+def test_runs_in_the_simulator_name_its_revision(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run with a stage in the quasi-physical simulator records the simulator's revision: a batch with a
+    changed simulator refuses its finished clips, reading them back (--report-only) does not; sample-target
+    and the kinematic replay do not depend on it."""
     import quasisim.sim.build
-    from quasisim.batch import identity
+    from quasisim.batch import _persist, finished_runs, identity
     from quasisim.method.spec import TransferSpec
 
     ours = Run("default", TransferSpec(stages=("1", "2", "sample", "select")))
@@ -115,9 +118,18 @@ def test_runs_in_the_simulator_name_its_revision(monkeypatch: pytest.MonkeyPatch
     s = Settings(overrides=FAST)
     assert identity(ours, s)["simulator_revision"] == quasisim.sim.build.SIMULATOR_REVISION
     assert "simulator_revision" not in identity(st, s)
-    before = identity(ours, s)
-    monkeypatch.setattr(quasisim.sim.build, "SIMULATOR_REVISION", quasisim.sim.build.SIMULATOR_REVISION + 1)
+    before, rev = identity(ours, s), quasisim.sim.build.SIMULATOR_REVISION
+    monkeypatch.setattr(quasisim.sim.build, "SIMULATOR_REVISION", rev + 1)
     assert identity(ours, s) != before and identity(st, s) == identity(st, s)
+    job = Job(sorted(clips_dir.glob("*.npz"))[0], (ours,))
+    monkeypatch.setattr(quasisim.sim.build, "SIMULATOR_REVISION", rev - 1)
+    _persist(tmp_path, job, s, {"files": {}, "rows": [{"clip": job.clip, "method": "x"}]})  # an older revision's
+    monkeypatch.undo()
+    with pytest.raises(QuasisimError, match="other settings"):
+        finished_runs(tmp_path, job, s)
+    assert finished_runs(tmp_path, job, s, any_revision=True) == {"default": {"clip": job.clip, "method": "x"}}
+    with pytest.raises(QuasisimError, match="other settings"):  # and other settings are still refused
+        finished_runs(tmp_path, job, Settings(overrides={"sampling.samples": 8}), any_revision=True)
 
 
 def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:

@@ -249,15 +249,17 @@ class BatchResult:
     cores: dict[str, list[int] | None] = field(default_factory=dict)
 
 
-def finished_runs(out: Path, job: Job, s: Settings) -> dict[str, dict[str, Any]]:
+def finished_runs(out: Path, job: Job, s: Settings, any_revision: bool = False) -> dict[str, dict[str, Any]]:
     """{run name: result row} of ``job``'s runs already in ``OUT/<clip>/clip.json``; an error when one of
-    them was made with other settings."""
+    them was made with other settings (``any_revision``: made by any revision of the simulator, for reading
+    back finished runs; a batch never extends them)."""
     p = out / job.clip / CLIP_FILE
     if not p.is_file():
         return {}
     done = json.loads(p.read_text())["runs"]
+    drop = (lambda d: {k: v for k, v in d.items() if k != "simulator_revision"}) if any_revision else (lambda d: d)
     for r in job.runs:
-        if r.name in done and done[r.name]["identity"] != identity(r, s):
+        if r.name in done and drop(done[r.name]["identity"]) != drop(identity(r, s)):
             raise QuasisimError(
                 f"{out / job.clip}: run {r.name or job.clip!r} was made with other settings (see {p}); use another "
                 "--out or remove that folder"

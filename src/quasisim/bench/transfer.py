@@ -101,7 +101,7 @@ def run_transfer_bench(
     js = jobs(paths, {r: run_spec(r, stages, base) for r in runs})
     s = (settings or Settings(keep_scratch=True)).resolved()
     if report_only:
-        results = [row for j in js for row in finished_runs(out, j, s).values()]
+        results = [row for j in js for row in finished_runs(out, j, s, any_revision=True).values()]
     else:
         res = run_batch(js, out, s)
         results = res.rows
