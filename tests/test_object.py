@@ -166,6 +166,12 @@ def test_support_points_are_the_hulls_vertices_then_its_faces(box: ObjectAsset) 
     np.testing.assert_allclose(np.abs(exact_sdf(box, pts)), 0, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1, atol=1e-9)
     assert (exact_sdf(box, pts + 1e-3 * nrm) > 0).all()
+    flashlight = load_object(real_mesh("flashlight.obj"))  # a hull of more vertices than asked for: n of them
+    hull = flashlight.to_trimesh().convex_hull
+    assert len(hull.vertices) > 64
+    fpts, _ = flashlight.support_points(64)
+    dist = np.linalg.norm(fpts[:, None] - np.asarray(hull.vertices)[None], axis=-1).min(1)
+    assert fpts.shape == (64, 3) and dist.max() < 1e-12
     ring = np.stack([np.cos(t := np.linspace(0, 2 * np.pi, 400, endpoint=False)), np.sin(t), 0 * t], axis=1)
     idx = farthest_points(ring, 8)
     assert len(set(idx)) == 8

@@ -112,7 +112,9 @@ def test_transfer_outputs_checkpoints_and_resume_after_a_crash(short_demo: Path,
     # hand-off), and its first (identification) step evaluated exactly that trajectory
     s3 = summary["simulators"][1]
     assert set(s3["start_losses"]) == {"previous", "stage_start", "kinematic", "touching"}
-    assert s3["loss_first"] == pytest.approx(min(s3["start_losses"].values()), rel=1e-5)
+    # (the guard's forward-only program and the step's forward + backward one round apart: 1.2e-5 relative
+    # here; the next candidate is 12 % higher)
+    assert s3["loss_first"] == pytest.approx(min(s3["start_losses"].values()), rel=1e-4)
     assert set(summary["seconds"]) >= {"retarget", "stage1", "stage2"}
     html = (out / "report.html").read_text()
     assert "optimisation loss per simulator" in html and "kinematic replay in the same target" in html
