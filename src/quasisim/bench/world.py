@@ -34,7 +34,8 @@ from quasisim.sim.types import Params
 
 HORIZONS = (6, 10)  # frames of the final trajectories' windows (the sampled ones have the recorded horizon)
 PREDICTORS = ("zero motion", "nominal", "world model")
-# variants (--decompose: all of them): the nominal simulator with one group of constants changed at a time (which error each moves)
+# variants (--decompose: all of them): the nominal simulator with one group of constants changed at a time
+# (which error each moves)
 VARIANTS: dict[str, Callable[[Params], Params]] = {
     "normal force x3": lambda p: p.replace(contact_scale=p.contact_scale * 3.0),
     "normal force x1/3": lambda p: p.replace(contact_scale=p.contact_scale / 3.0),

@@ -104,9 +104,9 @@ def make_problem(
     table_points: str = "hull",
 ) -> Problem:  # fmt: skip
     """The scene (table sized from the demo; the demo's object unless ``obj``) and the simulator (``substeps``
-    per frame, origin at the object's first position) for ``demo`` and its robot hands ``placements`` (one per
-    hand of the demo, right then left; ``table_points``: :class:`~quasisim.sim.build.SimOptions`). The quasi-physical simulator of two hands holds both as one
-    hand set (:func:`~quasisim.assets.hand.join_hands`: one kinematic root per hand), whose points are the
+    per frame, origin at the object's first position; ``table_points``: :class:`~quasisim.sim.build.SimOptions`)
+    for ``demo`` and its robot hands ``placements`` (one per hand of the demo, right then left). The
+    quasi-physical simulator of two hands holds both as one hand set (:func:`~quasisim.assets.hand.join_hands`: one kinematic root per hand), whose points are the
     points of each hand sampled on its own (so a hand has the same points alone and in a pair)."""
     scene = scene_for(demo, placements, obj)
     opts = SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates, table_points=table_points)

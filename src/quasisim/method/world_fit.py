@@ -26,8 +26,10 @@ from quasisim.errors import QuasisimError
 from quasisim.files import save_npz_atomic
 from quasisim.method.transitions import HELD_OUT, clip_problem, load_clip, read_meta, transition_files
 from quasisim.method.world_model import Features, WorldModel, WorldModelConfig, init_correction, teacher_forced, train
+from quasisim.sim.build import SIMULATOR_REVISION
 
-SIMULATOR = {"curriculum": "default", "substeps": 20, "n_candidates": 128}  # the fast budget's stiffest simulator
+# the fast budget's stiffest simulator (its revision keys the kept training pairs and is recorded in the file)
+SIMULATOR = {"curriculum": "default", "substeps": 20, "n_candidates": 128, "revision": SIMULATOR_REVISION}
 
 
 def stiffest_params(prob: Any, curriculum: str = SIMULATOR["curriculum"]) -> Any:
