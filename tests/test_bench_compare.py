@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 
@@ -98,3 +99,11 @@ def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Pa
     c = _folder(tmp_path / "old", {"c1": (1.0, 1.0, True, 0.1)}, with_kinematic=False)
     r = CliRunner().invoke(main, ["bench", "compare", str(a), str(c), "--kinematic", "--out", str(tmp_path / "o2")])
     assert r.exit_code != 0 and "old kinematic" in r.output
+
+
+def test_table_header_quotes_the_command_as_a_shell_needs_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A benchmark table's command line can be pasted back: arguments with spaces keep their quotes."""
+    from quasisim.bench.tables import header
+
+    monkeypatch.setattr("sys.argv", ["/x/.venv/bin/quasisim", "bench", "world", "--variant", "table on mesh samples"])
+    assert "- command: `quasisim bench world --variant 'table on mesh samples'`" in header("t")

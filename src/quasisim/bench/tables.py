@@ -6,6 +6,7 @@ import datetime as _dt
 import os
 import platform
 import resource
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -33,10 +34,10 @@ def machine_line() -> str:
 
 def header(title: str) -> str:
     now = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    cmd = (
-        "quasisim " + " ".join(sys.argv[1:])
+    cmd = (  # quoted as a shell would need it, so that the line can be pasted back
+        "quasisim " + shlex.join(sys.argv[1:])
         if sys.argv and "quasisim" in Path(sys.argv[0]).name
-        else " ".join(sys.argv)
+        else shlex.join(sys.argv)
     )
     return f"### {title}\n\n- date: {now}\n- machine: {machine_line()}\n- command: `{cmd}`\n"
 
