@@ -342,9 +342,10 @@ def test_control_transformation(shadow, cube) -> None:
 @pytest.mark.parametrize("table_points", ["hull", "surface"])
 def test_lying_cylinder_stays_at_rest(shadow, tmp_path, table_points: str) -> None:
     """A cylinder (a flashlight's size) lying on a side facet of its 32-gon stays there for 1 s: the table
-    touches it at samples of its convex hull, so the facet carries it evenly. Samples of the mesh leave the
+    touches it at points of its convex hull, the facet's rim vertices among them, so the facet carries it. Samples of the mesh leave the
     curved side sparse, and the body rocks onto a few of them (what the default avoids)."""
     import trimesh
+    from scipy.spatial.transform import Rotation
 
     from quasisim.assets.object import load_object
 
@@ -355,7 +356,7 @@ def test_lying_cylinder_stays_at_rest(shadow, tmp_path, table_points: str) -> No
     n = hull.face_normals[np.abs(hull.face_normals[:, 2]) < 1e-9][0]  # a side facet's outward normal
     a, c = np.array([0.0, 0.0, 1.0]), np.cross([0.0, 0.0, 1.0], n)
     R = np.stack([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]], axis=1) @ np.stack([a, n, c])  # axis -> x, facet down
-    quat = np.roll(__import__("scipy").spatial.transform.Rotation.from_matrix(R).as_quat(), 1)
+    quat = np.roll(Rotation.from_matrix(R).as_quat(), 1)  # w x y z
     apothem = r * np.cos(np.pi / 32)
     table = Table(-0.3, 0.3, -0.3, 0.3, 0.0)
     opts = SimOptions(dt=1e-3, substeps=50, n_candidates=64, point_spacing=0.01, table_points=table_points)
