@@ -413,12 +413,8 @@ class ObjectAsset:
             points (n, 3) object frame, m; normals (n, 3) outward unit face normals.
         """
         mesh = self.to_trimesh()
-        with quiet_trimesh():
-            pts, idx = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
-        if len(pts) < n:  # the even sampler can return fewer; top up with area-weighted samples
-            more, more_idx = trimesh.sample.sample_surface(mesh, n - len(pts), seed=seed + 1)
-            pts, idx = np.vstack([pts, more]), np.concatenate([idx, more_idx])
-        return np.asarray(pts[:n], np.float64), np.asarray(mesh.face_normals[idx[:n]], np.float64)
+        pts, idx = _even_samples(mesh, n, seed)
+        return pts, np.asarray(mesh.face_normals[idx], np.float64)
 
     def support_points(self, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """``n`` points of the object's convex hull: its vertices (the farthest-point subset of ``n`` when it
@@ -437,11 +433,19 @@ class ObjectAsset:
             if len(verts) >= n:
                 keep = farthest_points(verts, n)
                 return verts[keep], vnorm[keep]
-            pts, idx = trimesh.sample.sample_surface_even(hull, n - len(verts), seed=seed)
-            if len(pts) < n - len(verts):  # the even sampler can return fewer; top up with area-weighted samples
-                more, more_idx = trimesh.sample.sample_surface(hull, n - len(verts) - len(pts), seed=seed + 1)
-                pts, idx = np.vstack([pts, more]), np.concatenate([idx, more_idx])
+        pts, idx = _even_samples(hull, n - len(verts), seed)
         return np.vstack([verts, pts]), np.vstack([vnorm, hull.face_normals[idx]]).astype(np.float64)
+
+
+def _even_samples(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` roughly evenly spaced points (n, 3) on ``mesh`` and their faces (n,): trimesh's even sampler,
+    topped up with area-weighted samples where it returns fewer."""
+    with quiet_trimesh():
+        pts, idx = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+        if len(pts) < n:
+            more, more_idx = trimesh.sample.sample_surface(mesh, n - len(pts), seed=seed + 1)
+            pts, idx = np.vstack([pts, more]), np.concatenate([idx, more_idx])
+    return np.asarray(pts[:n], np.float64), np.asarray(idx[:n])
 
 
 def farthest_points(x: np.ndarray, n: int) -> np.ndarray:

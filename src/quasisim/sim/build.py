@@ -17,8 +17,9 @@ from quasisim.sim.types import NETWORKS, Model, Params
 
 F32 = jnp.float32
 TABLE_POINTS = ("hull", "surface")  # SimOptions.table_points
-# Changes of the simulator that move its results at the same settings (part of every run's identity, so a
-# run never resumes from checkpoints of another): 1 table contact at mesh surface samples; 2 at hull samples.
+# Changes of the simulator that move its results at the same settings (part of the identity of every run
+# with a stage in it, so a run never resumes from checkpoints of another): 1 table contact at mesh surface
+# samples; 2 at points of the convex hull.
 SIMULATOR_REVISION = 2
 CONTACT_SCALE = 1.0e-4  # see docs/simulator.md: calibration of the curriculum's stiffness units against MuJoCo
 
@@ -30,7 +31,8 @@ class SimOptions:
     Attributes:
         dt: substep (s).  substeps: substeps per frame (``dt * substeps`` should equal 1 / fps).
         sdf_spacing: SDF grid spacing (m).  n_surface: object samples for table contact.
-        table_points: where those samples lie: ``hull`` (the convex hull's surface, default) or ``surface``
+        table_points: where those samples lie: ``hull`` (the convex hull's vertices, then points on its faces;
+            default) or ``surface``
             (the mesh's surface; a curved object lying on the table rocks between sparse samples).
         n_candidates: hand points examined for contact per frame (broad phase).
         point_spacing, point_offset: hand point-set sampling (m); None = the hand config's values.
