@@ -239,3 +239,68 @@ def test_bench_windows_refuses_bad_batch_sizes(tmp_path: Path) -> None:
     for bad in ("0", "a,b", ""):
         res = CliRunner().invoke(main, ["bench", "windows", str(f), "--data", str(tmp_path), "--batch", bad])
         assert res.exit_code != 0 and "--batch: expected comma-separated positive integers" in res.output, bad
+
+
+def test_random_regret_is_the_mean_over_every_draw_of_k() -> None:
+    """The order-statistics expectation of bench screen's random baseline equals the brute-force mean over
+    all k-subsets; one drawn at random is 1 by definition, all N is 0."""
+    from itertools import combinations
+
+    from quasisim.bench.screen import random_regret
+
+    c = np.array([0.3, 0.1, 0.7, 0.2, 0.9, 0.4])
+    span = c.mean() - c.min()
+    for k in range(1, len(c) + 1):
+        brute = np.mean([(min(c[list(s)]) - c.min()) / span for s in combinations(range(len(c)), k)])
+        assert random_regret(c, k) == pytest.approx(brute, rel=1e-12)
+    assert random_regret(c, 1) == pytest.approx(1.0) and random_regret(c, len(c)) == 0.0
+
+
+def test_selection_of_a_perfect_and_of_a_reversed_predictor() -> None:
+    """A predictor that orders candidates as the target does has rank 1, regret 0 and always finds the best;
+    one that orders them backwards has rank -1 and, taking its single cheapest, the target's worst."""
+    from quasisim.bench.screen import selection
+
+    rng = np.random.default_rng(0)
+    c = rng.random((7, 10))
+    good, bad = selection(c, 2 * c + 1, (1, 3)), selection(c, -c, (1, 3))
+    assert good["spearman"] == pytest.approx(1.0) and good["regret_1"] == 0.0 and good["hit_1"] == 1.0
+    assert bad["spearman"] == pytest.approx(-1.0) and bad["hit_3"] == 0.0
+    worst = np.mean((c.max(1) - c.min(1)) / (c.mean(1) - c.min(1)))
+    assert bad["regret_1"] == pytest.approx(worst) and bad["regret_1"] > 1.0
+    assert good["random_3"] == bad["random_3"] < 1.0
+
+
+def test_bench_screen_scores_every_candidate_and_checks_the_recorded_costs(
+    recorded: tuple[Path, Path, str], tmp_path: Path
+) -> None:
+    """bench screen on the recorded clip: the target's costs computed again equal the recorded ones; every
+    predictor has a row; the kinematic predictor holds the object still (no object rank). A file whose
+    costs were not made with these frames and settings is refused, naming it."""
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+    from quasisim.method.transitions import transition_files
+
+    runs, data, name = recorded
+    args = ["bench", "screen", str(runs), "--data", str(data), "--clips", name, "--top", "1,2,5"]
+    res = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "s")])
+    assert res.exit_code == 0, res.output
+    rows = {r["predictor"]: r for r in json.loads((tmp_path / "s" / "screen.json").read_text())}
+    assert set(rows) == {"kinematic, object still", "nominal", "nominal hands, object still"}
+    for r in rows.values():
+        assert r["cost_check"] <= 1e-4 and r["steps"] == 15 and r["candidates"] == 5
+        assert r["random_1"] == pytest.approx(1.0) and r["regret_5"] == 0.0 and r["hit_5"] == 1.0
+        assert -1.0 <= r["spearman"] <= 1.0 and r["s_per_window"] > 0 and r["target_s_per_window"] > 0
+    assert np.isnan(rows["kinematic, object still"]["object_rank"])
+    assert np.isfinite(rows["nominal"]["object_rank"])
+
+    src = transition_files(runs)[0]
+    bad = tmp_path / "bad" / name / "sample-target" / "transitions" / src.name
+    bad.parent.mkdir(parents=True)
+    with np.load(src) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(bad, **{**arrays, "frame": arrays["frame"] + 1})
+    res = CliRunner().invoke(main, ["bench", "screen", str(tmp_path / "bad"), "--data", str(data), "--clips", name,
+                                    "--out", str(tmp_path / "s2")])  # fmt: skip
+    assert res.exit_code != 0 and str(bad) in res.output and "differ from the recorded ones" in res.output

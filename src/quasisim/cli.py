@@ -944,6 +944,30 @@ def bench_world(
     run_world_bench(transitions_dir, data_dir, model_path, out, names, chosen, hs)
 
 
+@bench.command("screen")
+@click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--model", "model_path", type=click.Path(path_type=Path, exists=True, dir_okay=False), default=None,
+    help="quasisim fit's file: also the world model (without it: the nominal simulator).",
+)  # fmt: skip
+@_TRANSITIONS_DATA
+@click.option("--clips", "clip_names", default="", help="Comma-separated clips (default: the held-out ones).")
+@click.option("--top", default="1,3,6,12", show_default=True, help="Comma-separated k: the predictor's k cheapest.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/screen"), show_default=True)
+@_friendly
+def bench_screen(
+    transitions_dir: Path, model_path: Path | None, data_dir: Path, clip_names: str, top: str, out: Path
+) -> None:
+    """Could the simulator pre-screen the sampling stage's candidates? Every recorded candidate predicted and
+    scored; the target's cost of the best of the simulator's k cheapest against k drawn at random; resumable."""
+    _outputs_free(out)
+    _setup_runtime()
+    from quasisim.bench.screen import run_screen_bench
+
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_screen_bench(transitions_dir, data_dir, model_path, out, names, _positive_ints(top, "--top", "1,3,6,12"))
+
+
 @bench.command("windows")
 @click.argument("transitions_file", type=click.Path(path_type=Path, exists=True, dir_okay=False))
 @_TRANSITIONS_DATA

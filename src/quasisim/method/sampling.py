@@ -349,11 +349,12 @@ class Transitions:
         self.run: dict[str, np.ndarray] = {}
 
     def add(
-        self, start: Observation, wins: np.ndarray, qd0: np.ndarray | None, pred: Prediction, costs: np.ndarray,
-        chosen: int | None,
+        self, frame: int, start: Observation, wins: np.ndarray, qd0: np.ndarray | None, pred: Prediction,
+        costs: np.ndarray, chosen: int | None,
     ) -> None:  # fmt: skip
-        """One step: the target's state ``start`` before the windows ``wins`` (N, H + 1, D) were rolled out
-        (with the hands' velocities ``qd0`` (N, D) per candidate where given), their rollouts and costs."""
+        """One step, planned from frame ``frame``: the target's state ``start`` before the windows ``wins``
+        (N, H + 1, D) were rolled out (with the hands' velocities ``qd0`` (N, D) per candidate where given),
+        their rollouts and costs."""
         qvel0 = np.broadcast_to(start["qvel"], wins[:, 0].shape) if qd0 is None else qd0
         row = {f"start_{k}": np.asarray(start[k]) for k in (*STATE_KEYS, "keypoints") if k != "qvel"}
         row |= {
@@ -361,6 +362,7 @@ class Transitions:
             "windows": wins,
             "costs": costs,
             "chosen": np.array(-1 if chosen is None else chosen),
+            "frame": np.array(frame),
         }
         row |= {k: np.asarray(getattr(pred, k)) for k in (*STATE_KEYS, "keypoints")}
         self.steps.append(row)
@@ -481,7 +483,7 @@ def _control_loop(
             chosen = None if best is None else int(np.flatnonzero(keep == best)[0])
             kept = {k: getattr(pred, k) for k in (*STATE_KEYS, "keypoints")}
             sub = dataclasses.replace(pred, **{k: v[keep] for k, v in kept.items() if v is not None})
-            transitions.add(start, wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
+            transitions.add(t, start, wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
         work[t : t + H + 1] = win
         applied[t + 1] = win[1]
         if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them

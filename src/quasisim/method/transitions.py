@@ -139,6 +139,52 @@ def load_clip(path: Path, prob: Problem, kind: str, horizon: int = 0, per_step: 
         others = np.setdiff1d(np.arange(N), [c])
         picks += [(s, c)] + [(s, int(n)) for n in rng.choice(others, min(per_step - 1, len(others)), replace=False)]
     s_i, n_i = (np.array(x) for x in zip(*picks, strict=True))
+    return _candidates(arr, prob, s_i, n_i)
+
+
+@dataclass(frozen=True)
+class Steps:
+    """The control loop's steps of a transitions file (``S`` steps, ``N`` candidates each).
+
+    Attributes:
+        frames: (S,) the frame each step planned from (the window covers ``frames + 1 .. frames + H``).
+        costs: (S, N) every candidate's window cost, measured in the target.  chosen: (S,) the applied
+            candidate (-1: none, mppi).  n_frames: frames of the clip (the applied trajectory's length).
+    """
+
+    frames: np.ndarray
+    costs: np.ndarray
+    chosen: np.ndarray
+    n_frames: int
+
+
+def load_candidates(path: Path, prob: Problem) -> tuple[ClipWindows, Steps]:
+    """Every candidate window of every step of the transitions file ``path``, step by step (window
+    ``s N + n`` is candidate ``n`` of step ``s``), and the steps' frames, costs and choices."""
+    with open_npz(path, TRANSITIONS_FORMAT, "transitions file") as z:
+        S, N, _h1, _d = npz_array(z, "windows", path, ("S", "N", "H+1", "D")).shape
+        arr = {k: np.asarray(z[k]) for k in z.files}
+    start = np.concatenate([arr[f"start_{k}"].reshape(S, -1) for k in ("qpos", "obj_pos", "obj_quat")], axis=1)
+    frames = arr["frame"].astype(np.int64) if "frame" in arr else step_frames(start)
+    s_i, n_i = np.repeat(np.arange(S), N), np.tile(np.arange(N), S)
+    steps = Steps(frames, arr["costs"].astype(np.float64), arr["chosen"].astype(np.int64), len(arr["applied"]))
+    return _candidates(arr, prob, s_i, n_i), steps
+
+
+def step_frames(start: np.ndarray) -> np.ndarray:
+    """(S,) the frame each step planned from, for files recorded before the frame was kept: ``start`` (S, F)
+    is the target's state each step started from. A step plans the frame after its predecessor's, except
+    after a back-up, which restores the exact state an earlier step started from (and so its frame)."""
+    frames = np.zeros(len(start), np.int64)
+    for s in range(1, len(start)):
+        same = [p for p in range(s) if np.array_equal(start[p], start[s])]
+        frames[s] = frames[same[-1]] if same else frames[s - 1] + 1
+    return frames
+
+
+def _candidates(arr: dict[str, np.ndarray], prob: Problem, s_i: np.ndarray, n_i: np.ndarray) -> ClipWindows:
+    """The sampled windows ``(s_i, n_i)`` (steps, candidates) of a transitions file's arrays ``arr``."""
+    kp_index = arr["kp_metric_index"].astype(np.int64)
 
     def series(key: str, start: np.ndarray) -> np.ndarray:
         return np.concatenate([start[:, None], arr[key][s_i, n_i]], axis=1)
@@ -149,8 +195,8 @@ def load_clip(path: Path, prob: Problem, kind: str, horizon: int = 0, per_step: 
     start_kp = arr["start_keypoints"] if "start_keypoints" in arr else arr["run_keypoints"]
     kp = series("keypoints", start_kp[:, kp_index][s_i])
     return ClipWindows(
-        str(prob.demo.name), kind, float(prob.demo.fps), prob, arr["windows"][s_i, n_i], **states, keypoints=kp,
-        kp_index=kp_index,
+        str(prob.demo.name), "sampled", float(prob.demo.fps), prob, arr["windows"][s_i, n_i], **states,
+        keypoints=kp, kp_index=kp_index,
     )  # fmt: skip
 
 
