@@ -96,6 +96,7 @@ def _replay(scene, q):
         ("robust_seed", 1.0, "robust_seed"),
         ("backtrack_copies", 1, "backtrack_copies"),
         ("kinematic_alternative", "yes", "kinematic_alternative"),
+        ("screen", 0, "screen"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -282,6 +283,58 @@ def test_best_candidate_lowers_the_first_window_cost(real) -> None:
     again = _replay(scene, res.q_targets)
     np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-9)
     np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-9)
+
+
+def test_kinematic_keypoints_are_the_targets_keypoints(real) -> None:
+    """The pre-screen's forward kinematics puts the metric keypoints where MuJoCo reports them, along a
+    replay of the plan (float32: within 1e-5 m)."""
+    from quasisim.method.sampling import kinematic_keypoints
+
+    demo, plan, scene = real
+    rep = _replay(scene, plan)
+    kp = kinematic_keypoints(scene)(rep.qpos)
+    assert kp.shape == (len(plan), int(np.sum(scene.kp_metric)), 3)
+    np.testing.assert_allclose(kp, rep.keypoints[:, scene.kp_metric], atol=1e-5)
+
+
+def test_screened_keeps_the_nominal_and_the_cheapest() -> None:
+    from quasisim.method.sampling import screened
+
+    wins = np.arange(6.0)[:, None, None] * np.ones((6, 3, 2))
+    costs = np.array([9.0, 5.0, 1.0, 4.0, 0.5, 7.0])
+    np.testing.assert_array_equal(screened(wins, 3, costs)[:, 0, 0], [0.0, 4.0, 2.0])
+
+
+def test_pre_screen_rolls_out_as_many_windows_and_chooses_among_the_cheapest(real) -> None:
+    """screen 2: twice the windows are drawn, the same number rolled out (same physics steps); the windows
+    rolled out are the kinematically cheapest of their draw, so their hand-tracking cost is lower than
+    without the pre-screen; the run is still a replay of the targets it applied."""
+    from quasisim.method.sampling import Transitions, kinematic_costs, kinematic_keypoints
+    from quasisim.optim.objective import window_references
+
+    demo, plan, scene = real
+    kept = {screen: Transitions() for screen in (1, 2)}
+    res = {
+        screen: run_sampling(demo, scene, plan, dataclasses.replace(OPTS, screen=screen), W, progress=False,
+                             transitions=kept[screen])
+        for screen in (1, 2)
+    }  # fmt: skip
+    assert res[1].n_physics_steps == res[2].n_physics_steps
+    assert not np.array_equal(res[1].q_targets, res[2].q_targets)
+    again = _replay(scene, res[2].q_targets)
+    np.testing.assert_allclose(again.object_pos, res[2].rollout.object_pos, atol=1e-9)
+    H, km, kp = OPTS.horizon, np.flatnonzero(scene.kp_metric), kinematic_keypoints(scene)
+    ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, km, H)
+
+    def mean_hand_cost(steps: list[dict[str, np.ndarray]]) -> float:
+        out = []
+        for t, r in enumerate(steps):
+            w = slice(t + 1, t + H + 1)
+            cost = lambda wins, pred: window_costs(wins, pred, ref_pos[w], ref_quat[w], ref_kp[w], np.ones(H), W)  # noqa: B023, E731
+            out.append(kinematic_costs(r["windows"], kp, ref_pos[w], ref_quat[w], cost)[1:].mean())
+        return float(np.mean(out))
+
+    assert mean_hand_cost(kept[2].steps) < 0.9 * mean_hand_cost(kept[1].steps)
 
 
 def test_deterministic_for_a_seed(real) -> None:

@@ -12,7 +12,12 @@ At every control frame ``t`` of a clip with ``T`` frames:
    position, ``noise_base_rot`` (rad) on the base angles and ``noise_joints`` on the joints, times a
    per-candidate multiplier cycling through ``noise_scales``. Perturbed joint targets are clipped to the
    hand's joint limits (widened to the nominal's own value where the nominal is outside them, so that a
-   zero perturbation is the nominal);
+   zero perturbation is the nominal). With ``screen`` > 1, ``screen`` times as many windows are drawn and only
+   the nominal and the ``samples - 1`` others cheapest by a kinematic pre-screen go on: the window cost of
+   step 4 with the hands exactly at their PD targets (forward kinematics of the robot's keypoints, the same
+   sites the target reports) and without the object terms (:func:`kinematic_costs`). No physics: it ranks
+   by hand tracking and smoothness, which dominate the window cost (BENCHMARKS.md, "could any simulator
+   pre-screen");
 3. roll every candidate out in the target from that state with the target's one PD schedule
    (:meth:`~quasisim.targets.base.Target.rollout_windows`, :func:`~quasisim.targets.base.pd_schedule`;
    MuJoCo: ``mujoco.rollout`` on a copy of the scene with ``framepos`` sensors on the metric keypoint sites;
@@ -75,6 +80,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
       backtrack_copies: false  # ... back up also when a copy leaves the strict limits
+      screen: 1                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
 """
 
 from __future__ import annotations
@@ -123,6 +129,8 @@ class SamplingOptions:
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
+        screen: draw ``screen`` x the windows and roll out only the kinematic pre-screen's cheapest (step 2;
+            1: no pre-screen).
     """
 
     samples: int
@@ -146,13 +154,14 @@ class SamplingOptions:
     robust_top: int = 8
     robust_seed: int = 1
     backtrack_copies: bool = False
+    screen: int = 1
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
         """Raise :class:`QuasisimError` naming the first bad setting."""
-        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top"):
+        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top", "screen"):
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
@@ -262,6 +271,50 @@ def scene_sampler(opts: SamplingOptions, scene: Scene) -> Callable[[np.random.Ge
     lo, hi = scene.joint_bounds()  # every column of every hand (the base unbounded)
     std = noise_std(opts, tuple(h.n_joints for h in scene.hands))
     return functools.partial(sample_windows, opts=opts, joint_lo=lo, joint_hi=hi, std=std)
+
+
+def kinematic_keypoints(scene: Scene) -> Callable[[np.ndarray], np.ndarray]:
+    """``f(q)``: the metric keypoints (..., K_metric, 3) (m, world) of the scene's hands at ``q`` (..., D) by
+    forward kinematics of the hand models: the sites the target reports (tested against MuJoCo)."""
+    import jax
+    import jax.numpy as jnp
+
+    from quasisim.sim.kinematics import fk_full, keypoints
+
+    metric = np.flatnonzero(scene.kp_metric)
+    parts = list(zip(scene.hands, [jnp.asarray(R) for R in scene.base_rots], scene.dof_slices, strict=True))
+
+    @jax.jit
+    def fk(q: jax.Array) -> jax.Array:
+        one = lambda x: jnp.concatenate([keypoints(h, fk_full(h, R, x[sl])) for h, R, sl in parts])[metric]  # noqa: E731
+        return jax.vmap(one)(q)
+
+    def f(q: np.ndarray) -> np.ndarray:
+        flat = np.asarray(q, np.float32).reshape(-1, q.shape[-1])
+        return np.asarray(fk(flat), np.float64).reshape(*q.shape[:-1], len(metric), 3)
+
+    return f
+
+
+def kinematic_costs(
+    wins: np.ndarray, kp: Callable[[np.ndarray], np.ndarray], ref_pos: np.ndarray, ref_quat: np.ndarray,
+    cost: Callable[[np.ndarray, Prediction], np.ndarray],
+) -> np.ndarray:  # fmt: skip
+    """(N,) the window cost ``cost`` (:func:`window_costs` with its references bound) of candidate windows
+    ``wins`` (N, H + 1, D) with the hands exactly at their PD targets (keypoints by ``kp``,
+    :func:`kinematic_keypoints`) and the object on its references (``ref_pos`` (H, 3), ``ref_quat`` (H, 4)),
+    so that its terms are zero: hand tracking and smoothness only."""
+    N, H = len(wins), wins.shape[1] - 1
+    pred = Prediction(
+        qpos=wins[:, 1:], obj_pos=np.broadcast_to(ref_pos, (N, H, 3)), obj_quat=np.broadcast_to(ref_quat, (N, H, 4)),
+        keypoints=kp(wins[:, 1:]), n_steps=0,
+    )  # fmt: skip
+    return cost(wins, pred)
+
+
+def screened(wins: np.ndarray, n: int, costs: np.ndarray) -> np.ndarray:
+    """The nominal (row 0) and the ``n - 1`` others of ``wins`` with the lowest pre-screen ``costs``."""
+    return wins[np.r_[0, 1 + np.argsort(costs[1:], kind="stable")[: n - 1]]]
 
 
 def window_costs(
@@ -440,6 +493,7 @@ def _control_loop(
     every = [target, *copies]  # the target first; the copies follow the applied frames open loop
     ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
     sample = scene_sampler(opts, scene)
+    kp = kinematic_keypoints(scene) if opts.screen > 1 else None  # step 2's pre-screen
     wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
     base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
     base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
@@ -458,21 +512,23 @@ def _control_loop(
     t = 0
     while t < T - 1:
         step_opts = wide if widened[t] else opts
-        wins = sample(rng, work[t : t + H + 1], opts=step_opts)
-        for alt in alts:  # windows around another plan, from the targets this step starts from
-            nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
-            wins = np.concatenate([wins, sample(rng, nominal, opts=step_opts)])
-        qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
-        # the state the windows start from: the frame just observed (before the first step, the reset state)
-        start = (frames[-1] if frames else target.observe()) if transitions is not None else None
-        pred = target.rollout_windows(wins, qd0)
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-
         cost = functools.partial(
             window_costs, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], frame_w=frame_w,
             weights=weights, base_cols=base_cols, strict=(opts.strict_weight, opts.strict_margin),
         )  # fmt: skip
+        pre = None  # step 2's pre-screen: the cost of windows with the hands at their targets
+        if kp is not None:
+            pre = functools.partial(kinematic_costs, kp=kp, ref_pos=ref_pos[w], ref_quat=ref_quat[w], cost=cost)
+        wins = _draw(sample, rng, work[t : t + H + 1], step_opts, opts.screen, pre)
+        for alt in alts:  # windows around another plan, from the targets this step starts from
+            nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
+            wins = np.concatenate([wins, _draw(sample, rng, nominal, step_opts, opts.screen, pre)])
+        qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
+        # the state the windows start from: the frame just observed (before the first step, the reset state)
+        start = (frames[-1] if frames else target.observe()) if transitions is not None else None
+        pred = target.rollout_windows(wins, qd0)
         costs = cost(wins, pred)
         live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
         score, n_copy_steps = _score_in_copies(live, wins, qd0, costs, cost, opts.robust_top)
@@ -524,6 +580,18 @@ def _control_loop(
     if transitions is not None:
         transitions.finish(applied, frames)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+
+
+def _draw(
+    sample: Callable[..., np.ndarray], rng: np.random.Generator, nominal: np.ndarray, o: SamplingOptions, screen: int,
+    pre: Callable[[np.ndarray], np.ndarray] | None,
+) -> np.ndarray:  # fmt: skip
+    """Step 2: ``o.samples`` windows around ``nominal``; with a pre-screen ``pre`` (windows -> costs), the
+    nominal and the cheapest others of ``screen`` times as many."""
+    if pre is None:
+        return sample(rng, nominal, opts=o)
+    many = sample(rng, nominal, opts=dataclasses.replace(o, samples=o.samples * screen))
+    return screened(many, o.samples, pre(many))
 
 
 def _score_in_copies(
