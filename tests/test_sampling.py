@@ -290,7 +290,7 @@ def test_kinematic_keypoints_are_the_targets_keypoints(real) -> None:
     replay of the plan (float32: within 1e-5 m)."""
     from quasisim.method.sampling import kinematic_keypoints
 
-    demo, plan, scene = real
+    _demo, plan, scene = real
     rep = _replay(scene, plan)
     kp = kinematic_keypoints(scene)(rep.qpos)
     assert kp.shape == (len(plan), int(np.sum(scene.kp_metric)), 3)
