@@ -38,7 +38,7 @@ from quasisim.errors import QuasisimError
 from quasisim.files import file_sha256, save_json_atomic
 from quasisim.method.config import TransferConfig
 from quasisim.method.problem import Problem
-from quasisim.method.sampling import window_costs
+from quasisim.method.sampling import kinematic_keypoints, window_costs
 from quasisim.method.transitions import (
     HELD_OUT,
     ClipWindows,
@@ -49,7 +49,7 @@ from quasisim.method.transitions import (
     transition_files,
 )
 from quasisim.method.world_fit import SIMULATOR, stiffest_params
-from quasisim.method.world_model import WorldModel, WorldModelConfig, batch, predict
+from quasisim.method.world_model import WorldModel, WorldModelConfig, predict
 from quasisim.optim.objective import window_references
 from quasisim.runtime import free_compiled_programs
 from quasisim.sim.build import SIMULATOR_REVISION
@@ -87,16 +87,9 @@ def step_costs(
 
 
 def kinematic_prediction(w: ClipWindows) -> dict[str, np.ndarray]:
-    """The cheapest predictor, no physics: the hands exactly at their PD targets (forward kinematics), the
-    object still at its start pose."""
-    import jax
-
-    from quasisim.optim.objective import hand_keypoints
-
-    model = w.prob.model
-    states = batch(dataclasses.replace(w, qpos=w.q_targets)).states
-    kp = jax.jit(jax.vmap(lambda st: hand_keypoints(model, st)))(states)
-    return {**object_still(w), "keypoints": np.asarray(kp, np.float64)[:, 1:, w.kp_index]}
+    """The cheapest predictor, no physics: the hands exactly at their PD targets (the sampling stage's
+    pre-screen, :func:`~quasisim.method.sampling.kinematic_keypoints`), the object still at its start pose."""
+    return {**object_still(w), "keypoints": kinematic_keypoints(w.prob.scene)(w.q_targets[:, 1:])}
 
 
 def object_still(w: ClipWindows) -> dict[str, np.ndarray]:

@@ -80,7 +80,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
       backtrack_copies: false  # ... back up also when a copy leaves the strict limits
-      screen: 1                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
+      screen: 2                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
 """
 
 from __future__ import annotations
