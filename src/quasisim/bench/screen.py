@@ -25,33 +25,23 @@ simulator's windows cost less than the target's.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from quasisim.bench.tables import header, publish
+from quasisim.bench.world import held_out_files, rows_per_clip
 from quasisim.errors import QuasisimError
-from quasisim.files import file_sha256, save_json_atomic
+from quasisim.files import file_sha256
 from quasisim.method.config import TransferConfig
 from quasisim.method.problem import Problem
 from quasisim.method.sampling import kinematic_keypoints, window_costs
-from quasisim.method.transitions import (
-    HELD_OUT,
-    ClipWindows,
-    Steps,
-    clip_problem,
-    load_candidates,
-    read_meta,
-    transition_files,
-)
+from quasisim.method.transitions import ClipWindows, Steps, clip_problem, load_candidates
 from quasisim.method.world_fit import SIMULATOR, stiffest_params
 from quasisim.method.world_model import WorldModel, WorldModelConfig, predict
 from quasisim.optim.objective import window_references
-from quasisim.runtime import free_compiled_programs
 from quasisim.sim.build import SIMULATOR_REVISION
 from quasisim.targets.base import Prediction
 
@@ -202,32 +192,12 @@ def run_screen_bench(
     """The table of the module docstring for ``clip_names`` (default: the model's held-out clips, or
     :data:`~quasisim.method.transitions.HELD_OUT`); each clip's rows are kept in ``OUT/clips/`` and reused
     for the same model, transitions file and ``top``."""
-    model = WorldModel.load(model_path) if model_path is not None else None
-    names = clip_names or (tuple(model.info["held_out"]) if model is not None else HELD_OUT)
-    files = {read_meta(f)[0]: f for f in transition_files(folder)}
-    missing = [n for n in names if n not in files]
-    if missing:
-        raise QuasisimError(f"{folder}: no recorded transitions of {', '.join(missing)}")
-    per_clip = out / "clips"
-    per_clip.mkdir(parents=True, exist_ok=True)
+    model, names, files = held_out_files(folder, model_path, clip_names)
     key: dict[str, Any] = {
         "model_sha256": file_sha256(model_path) if model_path is not None else None, "top": list(top),
         "simulator_revision": SIMULATOR_REVISION,
     }  # fmt: skip
-    rows: list[dict[str, Any]] = []
-    for name in tqdm(names, desc="clips", unit="clip"):
-        key["transitions_sha256"] = file_sha256(files[name])
-        cache = per_clip / f"{name}.json"
-        try:
-            d = json.loads(cache.read_text())
-            cached = d["rows"] if all(d.get(k) == v for k, v in key.items()) else None
-        except (OSError, ValueError, KeyError, TypeError):
-            cached = None
-        if cached is None:
-            free_compiled_programs()
-            cached = clip_rows(files[name], data_dir, model, top)
-            save_json_atomic(cache, {**key, "rows": cached})
-        rows += cached
+    rows = rows_per_clip(names, files, out, key, lambda path: clip_rows(path, data_dir, model, top))
     return publish(out, "screen", rows, _markdown(rows, top, model_path))
 
 

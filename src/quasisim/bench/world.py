@@ -116,29 +116,52 @@ def run_world_bench(
 ) -> str:
     """The table of the module docstring for ``clip_names`` (default: the model's held-out clips, or
     :data:`~quasisim.method.transitions.HELD_OUT` without a model)."""
+    model, names, files = held_out_files(folder, model_path, clip_names)
+    trained = sorted(set(names) & set(model.info["trained_on"])) if model is not None else []
+    key = {
+        "model_sha256": file_sha256(model_path) if model_path is not None else None,
+        "horizons": list(horizons), "simulator_revision": SIMULATOR_REVISION,
+    }  # fmt: skip
+    rows = rows_per_clip(
+        names, files, out, key, lambda path: clip_rows(path, data_dir, model, variants, horizons), variants
+    )
+    return publish(out, "world", rows, _markdown(rows, model, model_path, trained))
+
+
+def held_out_files(
+    folder: Path, model_path: Path | None, clip_names: tuple[str, ...]
+) -> tuple[WorldModel | None, tuple[str, ...], dict[str, Path]]:
+    """The world model of ``model_path`` (or None), the clips to measure (``clip_names``, default: the
+    model's held-out clips, or :data:`~quasisim.method.transitions.HELD_OUT` without a model) and the
+    transitions file of every clip under ``folder``; an error names the clips without one."""
     model = WorldModel.load(model_path) if model_path is not None else None
     names = clip_names or (tuple(model.info["held_out"]) if model is not None else HELD_OUT)
     files = {read_meta(f)[0]: f for f in transition_files(folder)}
     missing = [n for n in names if n not in files]
     if missing:
         raise QuasisimError(f"{folder}: no recorded transitions of {', '.join(missing)}")
-    trained = sorted(set(names) & set(model.info["trained_on"])) if model is not None else []
+    return model, names, files
+
+
+def rows_per_clip(
+    names: tuple[str, ...], files: dict[str, Path], out: Path, key: dict[str, Any],
+    compute: Callable[[Path], list[dict[str, Any]]], variants: tuple[str, ...] = (),
+) -> list[dict[str, Any]]:  # fmt: skip
+    """Every clip's rows, in order: kept in ``OUT/clips/<clip>.json`` with ``key`` and the transitions file's
+    sha256, and reused from there by a later run with the same (and ``variants`` among its predictors), else
+    ``compute(transitions file)``."""
     per_clip = out / "clips"
     per_clip.mkdir(parents=True, exist_ok=True)
-    key = {
-        "model_sha256": file_sha256(model_path) if model_path is not None else None,
-        "transitions_sha256": None, "horizons": list(horizons), "simulator_revision": SIMULATOR_REVISION,
-    }  # fmt: skip
     rows: list[dict[str, Any]] = []
     for name in tqdm(names, desc="clips", unit="clip"):
-        key["transitions_sha256"] = file_sha256(files[name])
-        cached = _cached(per_clip / f"{name}.json", key, variants)
+        clip_key = {**key, "transitions_sha256": file_sha256(files[name])}
+        cached = _cached(per_clip / f"{name}.json", clip_key, variants)
         if cached is None:
             free_compiled_programs()
-            cached = clip_rows(files[name], data_dir, model, variants, horizons)
-            save_json_atomic(per_clip / f"{name}.json", {**key, "rows": cached})
+            cached = compute(files[name])
+            save_json_atomic(per_clip / f"{name}.json", {**clip_key, "rows": cached})
         rows += cached
-    return publish(out, "world", rows, _markdown(rows, model, model_path, trained))
+    return rows
 
 
 def _cached(path: Path, key: dict[str, Any], variants: tuple[str, ...]) -> list[dict[str, Any]] | None:
