@@ -384,7 +384,10 @@ def _ablation_flags(f: Any) -> Any:
     "--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True, help="Simulator that judges the result."
 )
 @click.option(
-    "--curriculum", default=_SPEC.curriculum, show_default=True, help="default, curriculum2, none or a YAML path."
+    "--curriculum",
+    default=_SPEC.curriculum,
+    show_default=True,
+    help="short (4 analytical simulators), default (the paper's 8), curriculum2, none or a YAML path.",
 )
 @click.option(
     "--stages",
@@ -716,7 +719,7 @@ def bench_sim(
     default="default,none,curriculum2",
     show_default=True,
     help="Comma-separated runs: a curriculum (its stages, --stages), CURRICULUM+3, +mpc, +sample, +select (those "
-    "stages after them, e.g. default+sample+select = transfer's default), mpc-base, mpc-soften, sample-target.",
+    "stages after them, e.g. short+sample+select = transfer's default), mpc-base, mpc-soften, sample-target.",
 )
 @click.option("--stages", default="1,2", show_default=True)
 @click.option("--budget", default="fast", show_default=True)
@@ -775,7 +778,7 @@ def bench_transfer(
 @bench.command("compare")
 @click.argument("folders", nargs=-1, required=True)
 @click.option(
-    "--run", "run", default="default+sample+select", show_default=True,
+    "--run", "run", default="short+sample+select", show_default=True,
     help="The run to compare: one name for every folder, or comma-separated, one per folder.",
 )  # fmt: skip
 @click.option(
