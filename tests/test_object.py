@@ -220,7 +220,7 @@ def test_flat_padded_grids_query_as_the_grid_and_share_one_shape(box: ObjectAsse
     assert grids[0].shape != grids[1].shape and sdf_bucket(grids[0].values.size) == sdf_bucket(grids[1].values.size)
     flats = [g.as_flat() for g in grids]
     assert flats[0].values.shape == flats[1].values.shape
-    assert [sdf_bucket(n) for n in (1, 32768, 32769, 600_000)] == [32768, 32768, 65536, 1 << 20]
+    assert [sdf_bucket(n) for n in (1, 1 << 17, (1 << 17) + 1, 600_000)] == [1 << 17, 1 << 17, 1 << 18, 1 << 20]
     query = jax.jit(sdf_query)
     for g, f in zip(grids, flats, strict=True):
         rng = np.random.default_rng(0)

@@ -36,6 +36,9 @@ from quasisim.files import (
 DEFAULT_DENSITY = 500.0  # kg/m^3
 SIZE_RANGE = (0.005, 2.0)  # m, largest extent of a hand-held object's mesh (in metres)
 SDF_MAX_NODES = 600_000  # the grid is coarsened beyond this (bake ~10 s for a 30k-vertex mesh on 2 cores)
+# grids are padded to at least this many nodes, so that objects up to about the size of a mug share one compiled
+# program (BENCHMARKS.md, "One size class")
+SDF_MIN_NODES = 1 << 17
 COACD_MAX_FACES = 2000  # CoACD input is simplified (igl.qslim) to this many faces
 COACD_SETTINGS: dict[str, Any] = {  # measured: every dev mesh < 20 s, hulls cover the mesh (see tests)
     "preprocess_resolution": 30,
@@ -126,11 +129,12 @@ class SDFGrid:
         )  # fmt: skip
 
 
-def sdf_bucket(n: int, smallest: int = 1 << 15) -> int:
+def sdf_bucket(n: int, smallest: int = SDF_MIN_NODES) -> int:
     """The padded length of a flattened grid of ``n`` nodes: the next power of two, at least ``smallest``.
-    The six GRAB objects' grids (3 mm) fall into three lengths (one compiled program each) and the padding
-    stays below 2x (one length for every object, 600,000 nodes, measured 13-36 % slower in the simulator's
-    forward and backward pass than the unpadded grid, BENCHMARKS.md)."""
+    Every hand-held object whose grid fits ``smallest`` nodes (the six GRAB objects at 3 mm) shares one
+    compiled program per hand and stage; larger grids pad below 2x (one length for every object, 600,000
+    nodes, measured 13-36 % slower in the simulator's forward and backward pass than the unpadded grid,
+    BENCHMARKS.md)."""
     return max(smallest, 1 << max(int(n) - 1, 0).bit_length())
 
 
