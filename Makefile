@@ -22,7 +22,7 @@ $(VENV)/.installed: pyproject.toml
 
 # sample-target (sampling MPC with MuJoCo as the model; under a minute) on the bundled example, judged in
 # MuJoCo beside the kinematic replay; ends with a short summary and the report's path. `demo-ours`: the full
-# method (best on the 25 development clips, BENCHMARKS.md; ~4 min per 60-frame clip) on a 40-frame example.
+# method (best on the 25 development clips, BENCHMARKS.md; ~2-3 min per 60-frame clip) on a 40-frame example.
 demo: setup
 	$(VENV)/bin/quasisim example --out out/example --name cube_lift --overwrite
 	rm -rf out/example/cube_lift/sample_target

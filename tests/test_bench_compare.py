@@ -15,22 +15,22 @@ def _metrics(r: float, t: float, strict: bool) -> dict:
 
 
 def _folder(root: Path, results: dict[str, tuple[float, float, bool, float]], with_kinematic: bool = True) -> Path:
-    """A `bench transfer` folder holding run default+sample+select: {clip: (R_err, T_err, strict, stiffest loss)},
+    """A `bench transfer` folder holding run short+sample+select: {clip: (R_err, T_err, strict, stiffest loss)},
     each with a kinematic replay twice as far off and never strict."""
     for clip, (r, t, strict, loss) in results.items():
         d = root / clip
-        (d / "default+sample+select").mkdir(parents=True)
+        (d / "short+sample+select").mkdir(parents=True)
         row = {"metrics": _metrics(r, t, strict), "seconds": {"retarget": 1.0, "stage2": 10.0 * r, "sample": 5.0}}
         if with_kinematic:
             row["kinematic_metrics"] = _metrics(2 * r, 2 * t, False)
         (d / "clip.json").write_text(
-            json.dumps({"clip": clip, "runs": {"default+sample+select": {"identity": {}, "row": row}}})
+            json.dumps({"clip": clip, "runs": {"short+sample+select": {"identity": {}, "row": row}}})
         )
         sims = [
             {"sim": 8, "loss_best": 1.0},
             {"sim": 9, "loss_best": loss, "start_losses": {"previous": 2.0, "touching": loss}},
         ]
-        (d / "default+sample+select" / "summary.json").write_text(json.dumps({"simulators": sims}))
+        (d / "short+sample+select" / "summary.json").write_text(json.dumps({"simulators": sims}))
     return root
 
 
@@ -43,7 +43,7 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
     b = _folder(tmp_path / "b", {"c1": (5.0, 1.0, True, 0.2), "c2": (6.0, 0.5, True, 0.3)})
     for f, (strict, at20) in zip(sorted(b.glob("*/clip.json")), [(0.25, 0.5), (0.75, 1.0)], strict=True):
         d = json.loads(f.read_text())  # robust success in folder b (fractions of perturbed replays)
-        d["runs"]["default+sample+select"]["row"]["metrics"]["robust"] = {"n": 4, "strict": strict, "20deg_20cm": at20}
+        d["runs"]["short+sample+select"]["row"]["metrics"]["robust"] = {"n": 4, "strict": strict, "20deg_20cm": at20}
         f.write_text(json.dumps(d))
     out = tmp_path / "out"
     r = CliRunner().invoke(main, ["bench", "compare", f"old={a}", f"new={b}", "--out", str(out)])
@@ -65,14 +65,14 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
     renamed = tmp_path / "renamed"
     for f in a.glob("*/clip.json"):
         d = json.loads(f.read_text())
-        d["runs"] = {"none+sample+select": d["runs"]["default+sample+select"]}
+        d["runs"] = {"none+sample+select": d["runs"]["short+sample+select"]}
         (renamed / f.parent.name).mkdir(parents=True)
         (renamed / f.parent.name / "clip.json").write_text(json.dumps(d))
     args = ["bench", "compare", f"old={a}", f"none={renamed}", "--out", str(tmp_path / "o3")]
-    r = CliRunner().invoke(main, [*args, "--run", "default+sample+select,none+sample+select"])
+    r = CliRunner().invoke(main, [*args, "--run", "short+sample+select,none+sample+select"])
     assert r.exit_code == 0, r.output
     md = (tmp_path / "o3" / "compare.md").read_text()
-    assert "default+sample+select / none+sample+select: old vs none, 3 clips" in md
+    assert "short+sample+select / none+sample+select: old vs none, 3 clips" in md
     assert "| none | 7.7 | 4.00 | 15.3 | 100 / 100 / 100 / 33 | - / - | 1 of 3 | - | 0 of 3 | 83 |" in md
     r = CliRunner().invoke(main, [*args, "--run", "a,b,c"])
     assert r.exit_code != 0 and "names 3 runs for 2 folders" in r.output
@@ -84,7 +84,7 @@ def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Pa
     a = _folder(tmp_path / "shadow", {"c1": (10.0, 2.0, False, 0.5), "c2": (4.0, 1.0, True, 0.1)})
     b = _folder(tmp_path / "allegro", {"c1": (5.0, 1.0, True, 0.2), "c2": (6.0, 0.5, True, 0.3)})
     for d in (a, b):  # a folder kept in git: clip.json only, so no stage 2 losses
-        for s in d.glob("*/default+sample+select/summary.json"):
+        for s in d.glob("*/short+sample+select/summary.json"):
             s.unlink()
     out = tmp_path / "out"
     r = CliRunner().invoke(main, ["bench", "compare", str(a), str(b), "--kinematic", "--out", str(out)])

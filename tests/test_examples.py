@@ -38,5 +38,5 @@ def test_custom_stage(tmp_path: Path) -> None:
     assert (run_dir / "checkpoints" / "smooth.npz").is_file()
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stages"] == ["smooth"] and "smooth" in summary["seconds"]
-    assert c.method.startswith("ours[default;stages smooth;")
+    assert c.method.startswith("ours[short;stages smooth;")
     np.testing.assert_array_equal(c.extras["before_smoothing_q"], c.extras["kinematic_q"].astype(np.float32))
