@@ -37,7 +37,7 @@ DEFAULT_DENSITY = 500.0  # kg/m^3
 SIZE_RANGE = (0.005, 2.0)  # m, largest extent of a hand-held object's mesh (in metres)
 SDF_MAX_NODES = 600_000  # the grid is coarsened beyond this (bake ~10 s for a 30k-vertex mesh on 2 cores)
 # grids are padded to at least this many nodes, so that objects up to about the size of a mug share one compiled
-# program (BENCHMARKS.md, "One size class")
+# program (BENCHMARKS.md, "A shorter curriculum, one compiled program for every GRAB object, ...")
 SDF_MIN_NODES = 1 << 17
 COACD_MAX_FACES = 2000  # CoACD input is simplified (igl.qslim) to this many faces
 COACD_SETTINGS: dict[str, Any] = {  # measured: every dev mesh < 20 s, hulls cover the mesh (see tests)
