@@ -3,11 +3,12 @@
     python scripts/patience_replay.py benchmarks/runs/grab25-shadow-mujoco-hull default+sample+select 3,12 4,8
 
 For every checkpoint of stages 1 and 2 of every clip of a ``quasisim bench transfer`` folder (its ``.work``
-folder, kept on the machine that ran it), the control-optimisation loss curve is replayed through the rule of
-``quasisim.optim.adam.adam_steps`` (stop after ``patience`` evaluations without a relative improvement of
-``min_rel_improvement``, or at ``steps``). Up to the stop, a run with the smaller patience takes exactly the
-recorded steps, so its best loss is the best recorded loss up to there. Prints, per checkpoint and setting,
-the mean and largest ratio of that loss to the recorded best, and the evaluations taken against recorded.
+folder, kept on the machine that ran it), the control-optimisation loss curve is fed, in order, to
+``quasisim.optim.adam.adam_steps`` itself, whose early exit decides (stop after ``patience`` evaluations
+without a relative improvement of ``min_rel_improvement``, or at ``steps``). Up to the stop, a run with the
+smaller patience takes exactly the recorded steps, so its best loss is the best recorded loss up to there.
+Prints, per checkpoint and setting, the mean and largest ratio of that loss to the recorded best, and the
+evaluations taken against recorded.
 """
 
 from __future__ import annotations
@@ -15,18 +16,23 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+
+from quasisim.optim.adam import adam_steps
 
 
 def replay(losses: np.ndarray, patience: int, steps: int, rel: float = 1e-3) -> tuple[float, int]:
-    """(best loss, evaluations) of the early-exit rule on a recorded curve ``losses``."""
-    best, since = np.inf, 0
-    for k, lv in enumerate(losses):
-        since = 0 if (lv < best * (1.0 - rel) or k == 0) else since + 1
-        best = min(best, float(lv))
-        if k == steps or since >= patience:
-            return best, k + 1
-    return best, len(losses)
+    """(best loss, evaluations) of ``adam_steps``' early exit on a recorded curve ``losses``: the optimiser
+    itself, fed the recorded losses in order (zero gradients; past the curve's end a non-finite loss ends it)."""
+    recorded = iter(losses)
+
+    def value_and_grad(x: jax.Array) -> tuple[tuple[float, dict[str, float]], jax.Array]:
+        return (float(next(recorded, np.inf)), {}), jnp.zeros_like(x)
+
+    _, log = adam_steps(value_and_grad, jnp.zeros(1), steps, 0.0, patience, rel)
+    return log.best, len(log.losses)
 
 
 def main(folder: str, run: str, settings: list[str]) -> None:
