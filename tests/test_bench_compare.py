@@ -55,6 +55,9 @@ def test_bench_compare_tabulates_the_clips_every_folder_holds(tmp_path: Path) ->
         "| new | 5.5 | 0.75 | 11.0 | 100 / 100 / 100 / 100 | 50 / 75 | 2 of 2 | 0.2500 / 0.2500 | 1 of 2 | 61 |" in md
     )
     assert "| c1 | 10.0 / 2.00 | 5.0 / 1.00 S | 0.5000 | 0.2000 |" in md
+    # where the time went: the stages the folders' clip.json time (mean / median per clip), and their sum
+    assert "| folder | retarget | stage2 | sample | total |" in md
+    assert "| old | 1 / 1 | 70 / 70 | 5 / 5 | 76 / 76 |" in md and "| new | 1 / 1 | 55 / 55 | 5 / 5 | 61 / 61 |" in md
     assert len(json.loads((out / "compare.json").read_text())) == 4
 
     r = CliRunner().invoke(main, ["bench", "compare", f"old={a}", f"x={tmp_path / 'nope'}", "--out", str(out)])

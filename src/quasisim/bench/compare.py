@@ -4,8 +4,9 @@ A change of settings (e.g. ``--set stage2.mode=...``) goes to its own folder (a 
 settings); this command reads the folders' results back (each clip's ``clip.json`` and the run's
 ``summary.json``; nothing is run or checked against the current settings) and tabulates the clips they
 share: per clip R_err / T_err / strict success and stage 2's loss in its stiffest simulator (where the run's
-``summary.json`` is there: a folder kept in git holds only ``clip.json``), then a summary with each folder
-against the first. With ``--kinematic`` each folder's kinematic replay (judged beside the run, in the same
+``summary.json`` is there: a folder kept in git holds only ``clip.json``), a summary with each folder
+against the first, and where each folder's time went: mean / median seconds per clip of the retarget and of
+each stage (``clip.json``'s ``seconds``; stages read back from checkpoints keep the time they took). With ``--kinematic`` each folder's kinematic replay (judged beside the run, in the same
 target with the same hand) joins the table, e.g. one hand per folder: every hand's replay and ours.
 """
 
@@ -33,7 +34,7 @@ def folder_rows(folder: Path, run: str) -> tuple[dict[str, dict[str, Any]], dict
         if run not in runs:
             continue
         clip, row = p.parent.name, runs[run]["row"]
-        wall = {"wall_s": method_seconds(row["seconds"])} if "seconds" in row else {}
+        wall = {"wall_s": method_seconds(row["seconds"]), "seconds": row["seconds"]} if "seconds" in row else {}
         rows[clip] = {**row["metrics"], **wall, **stiffest_simulator(p.parent / run / "summary.json")}
         if "kinematic_metrics" in row:
             kin[clip] = row["kinematic_metrics"]
@@ -69,6 +70,8 @@ def compare_folders(folders: list[tuple[str, Path]], runs: list[str], out: Path,
         header(f"{run}: {' vs '.join(label for label, _ in folders)}, {len(shared)} clips held by every folder"),
         *_summary(per, labels, shared, with_loss),
         "",
+        *_stage_seconds(per, labels, shared),
+        "",
         "Per clip: R_err (deg) / T_err (cm), `S` strict success"
         + ("; stage 2's best loss in its stiffest simulator." if with_loss else "."),
         "",
@@ -80,7 +83,11 @@ def compare_folders(folders: list[tuple[str, Path]], runs: list[str], out: Path,
         cells = [_cell(per[x][c]) for x in labels]
         losses = [f"{per[x][c]['stiffest_loss']:.4f}" if "stiffest_loss" in per[x][c] else "-" for x in loss_labels]
         lines.append(f"| {c} | " + " | ".join(cells + losses) + " |")
-    rows = [{"clip": c, "folder": x, **per[x][c]} for c in shared for x in labels]
+    rows = [
+        {"clip": c, "folder": x, **{k: v for k, v in per[x][c].items() if k != "seconds"}}
+        for c in shared
+        for x in labels
+    ]
     return publish(out, "compare", rows, lines)
 
 
@@ -120,4 +127,28 @@ def _summary(
             + (f" {loss} |" if with_loss else "")
             + f" {vs} | {_mean(rs, 'wall_s', '.0f')} |"
         )
+    return out
+
+
+def _stage_seconds(per: dict[str, dict[str, dict[str, Any]]], labels: list[str], clips: list[str]) -> list[str]:
+    """Mean / median seconds per clip of the retarget, each stage a folder's runs have, and their sum."""
+    from quasisim.method.registry import stages
+
+    words = [w for w in ("retarget", *(st.word for st in stages())) if any(
+        w in per[x][c].get("seconds", {}) for x in labels for c in clips
+    )]  # fmt: skip
+    out = [
+        "Seconds per clip, mean / median (`-`: a folder without the stage, or without times):",
+        "",
+        "| folder | " + " | ".join([*words, "total"]) + " |",
+        "|---" * (2 + len(words)) + "|",
+    ]
+    for x in labels:
+        secs = [per[x][c].get("seconds") for c in clips]
+        if None in secs:
+            out.append(f"| {x} | " + " | ".join(["-"] * (1 + len(words))) + " |")
+            continue
+        cols = [[s.get(w) for s in secs] for w in words] + [[per[x][c]["wall_s"] for c in clips]]
+        cells = ["-" if None in v else f"{np.mean(v):.0f} / {np.median(v):.0f}" for v in cols]
+        out.append(f"| {x} | " + " | ".join(cells) + " |")
     return out
