@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import jax.numpy as jnp
@@ -174,6 +175,27 @@ def test_hands_of_two_demos_share_one_compiled_simulator(synthetic, tmp_path) ->
         return jax.jit(rollout).lower(m, p, s0, c).as_text()
 
     assert program(models[0]) == program(models[1])
+
+    # one static hand per topology, so a process traces the programs once for every demo (the jit cache
+    # keys on it); demo b's rollout is the same with a's static hand as with its own, and its points weigh
+    # b's mass, not a's
+    assert models[1].hand is models[0].hand  # the first human hand this process built
+    own = dataclasses.replace(models[1], hand=b)
+    p_own, p_shared = (default_params(m, 0.1, np.eye(3) * 1e-4, STIFF, hand=b) for m in (own, models[1]))
+    assert float(p_shared.point_mass) == pytest.approx(b.total_mass / HUMAN_POINTS, rel=1e-6)
+    assert float(default_params(models[1], 0.1, np.eye(3) * 1e-4, STIFF).point_mass) == pytest.approx(
+        b.total_mass / HUMAN_POINTS, rel=1e-6
+    )  # without the hand: the masses of the model's geometry arrays
+    assert abs(a.total_mass - b.total_mass) > 1e-3 * b.total_mass
+    q = np.random.default_rng(1).uniform(-0.2, 0.2, b.n_joints)
+    s0 = [initial_state(m, np.zeros(3), np.array([1.0, 0, 0, 0]), q, np.array([0, 0, 0.02]), np.array([1.0, 0, 0, 0]))
+          for m in (own, models[1])]  # fmt: skip
+    c = Control(
+        root_vel=jnp.full((4, 1, 3), 0.01), root_angvel=jnp.zeros((4, 1, 3)), q_target=jnp.full((4, b.n_joints), 0.1),
+        qd_target=jnp.zeros((4, b.n_joints)), tau=jnp.zeros((4, b.n_joints)), point_force=jnp.zeros((4, HUMAN_POINTS, 3)),
+    )  # fmt: skip
+    run = jax.jit(rollout)
+    np.testing.assert_array_equal(run(own, p_own, s0[0], c).q, run(models[1], p_shared, s0[1], c).q)
 
 
 def test_human_point_seed_draws_another_point_set_and_keys_stage_1(synthetic) -> None:

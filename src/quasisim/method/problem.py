@@ -69,7 +69,7 @@ class Problem:
 
     def params(self, contact: dict[str, float]) -> Params:
         """The simulator with contact settings ``contact`` (a curriculum stage) and the object's nominal S."""
-        return default_params(self.model, self.obj.mass, self.obj.inertia, contact)
+        return default_params(self.model, self.obj.mass, self.obj.inertia, contact, hand=join_hands(self.scene.hands))
 
     def reference(self, points: np.ndarray | None = None, point_index: np.ndarray | None = None) -> Reference:
         """The demo as the objective's reference: the hands' metric keypoints, the object, optional points."""

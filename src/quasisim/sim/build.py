@@ -60,7 +60,8 @@ def build_model(
 ) -> Model:
     """``obj`` is an :class:`~quasisim.assets.object.ObjectAsset`; ``table`` a :class:`~quasisim.targets.scene.Table`;
     ``offset`` (3,) the world position of the simulator origin (e.g. the object's initial position). A hand
-    built per demo (``hand.config.per_demo``) gets its geometry as array leaves (``Model.hand_geom``)."""
+    built per demo (``hand.config.per_demo``) gets its geometry as array leaves (``Model.hand_geom``) and, as
+    its static part, the first hand of the same topology this process built (:func:`shared_topology`)."""
     if points is None:
         points = hand_set_points((hand,), opts)
     sdf = obj.sdf(spacing=opts.sdf_spacing).as_flat()
@@ -69,7 +70,7 @@ def build_model(
     sample = obj.support_points if opts.table_points == "hull" else obj.surface_points
     surf, normals = sample(opts.n_surface, seed=0)
     return Model(
-        hand=hand,
+        hand=shared_topology(hand) if hand.config.per_demo else hand,
         point_body=jnp.asarray(points.body, dtype=jnp.int32),
         point_local=jnp.asarray(points.local, F32),
         sdf_values=sdf.values,
@@ -97,6 +98,35 @@ def build_model(
     )
 
 
+# per-demo hands by topology (:func:`shared_topology`); one entry per topology for the life of the process
+_SHARED_HANDS: dict[tuple[Any, ...], HandModel] = {}
+# what a per-demo hand's geometry arrays (HandGeometry) and point set carry: left out of its topology
+_GEOMETRY_FIELDS = frozenset(
+    {"config", "source", "geoms", "body_pos", "body_quat", "body_mass", "body_ipos", "body_iquat", "body_inertia",
+     "joint_axis", "joint_pos", "kp_pos"}
+)  # fmt: skip
+
+
+def topology(hand: HandModel) -> tuple[Any, ...]:
+    """What a compiled program may read from a per-demo hand's static part (its ``Model.hand``): the names,
+    the tree, the joints' types, ranges and limits, the keypoints' bodies, human indices, weights and metric
+    flags, the PD settings; not its geometry (passed to the programs as ``Model.hand_geom``) nor the rest of
+    its config (per-demo file paths and keypoint offsets)."""
+    fields = [f.name for f in dataclasses.fields(hand) if f.name not in _GEOMETRY_FIELDS]
+    val = lambda v: (v.dtype.str, v.shape, v.tobytes()) if isinstance(v, np.ndarray) else v  # noqa: E731
+    return (hand.config.name, hand.config.side, hand.config.pd, *(val(getattr(hand, f)) for f in fields))
+
+
+def shared_topology(hand: HandModel) -> HandModel:
+    """The first per-demo hand of ``hand``'s :func:`topology` built in this process (``hand`` itself if it is
+    the first). The simulator's ``Model.hand`` is static: JAX's in-memory program cache tells models apart by
+    it, so a new hand object per demo traced stage 1's programs again for every demo of a long-lived process
+    (a batch worker: ~5 s per clip, BENCHMARKS.md "Tracing stage 1 once per process"). The programs read a
+    per-demo hand's geometry only from ``Model.hand_geom``; ``hand``'s own geometry, which the shared object
+    does not have, stays with the callers that hold ``hand`` (its point set, its kinematic fit)."""
+    return _SHARED_HANDS.setdefault(topology(hand), hand)
+
+
 def hand_set_points(hands: tuple[HandModel, ...], opts: SimOptions) -> HandPoints:
     """The point sets of ``hands``, each sampled on its own hand (its config's spacing, offset and seed unless
     ``opts`` sets them), concatenated with body indices of the hand set :func:`~quasisim.assets.hand.join_hands`."""
@@ -121,15 +151,24 @@ CONTACT_KEYS = ("alpha", "d_c", "k_n", "k_f", "k_d", "mu")
 
 
 def default_params(
-    model: Model, obj_mass: float, obj_inertia: np.ndarray, contact: dict[str, float], **overrides: Any
-) -> Params:
+    model: Model, obj_mass: float, obj_inertia: np.ndarray, contact: dict[str, float], hand: HandModel | None = None,
+    **overrides: Any,
+) -> Params:  # fmt: skip
     """The simulator with the curriculum settings ``contact`` (:data:`CONTACT_KEYS`, e.g.
     :meth:`~quasisim.method.curriculum.Curriculum.contact`), the object's own S and the calibrated table,
-    joint and point constants below; ``overrides`` replace any other leaf."""
+    joint and point constants below; ``overrides`` replace any other leaf. ``hand``: the hand (set) the model
+    was built from, whose mass its points share; by default ``model.hand``, or for a per-demo hand (whose
+    ``model.hand`` may be another demo's, :func:`shared_topology`) the masses in ``model.hand_geom``."""
     missing = set(CONTACT_KEYS) - set(contact)
     if missing:
         raise KeyError(f"contact settings lack {sorted(missing)}; expected {list(CONTACT_KEYS)}")
-    hand = model.hand
+    if hand is not None:
+        hand_mass = hand.total_mass
+    elif model.hand_geom is not None:
+        hand_mass = float(np.sum(np.asarray(model.hand_geom.body_mass, np.float64)))
+    else:
+        hand_mass = model.hand.total_mass
+    hand = model.hand  # joints and PD settings: the same for every hand of a topology
     J = hand.n_joints
     pd = hand.config.pd
     values: dict[str, Any] = dict(
@@ -144,7 +183,7 @@ def default_params(
         obj_lin_damp=0.0,
         obj_ang_damp=0.0,
         gravity=np.array([0.0, 0.0, -9.81]),
-        point_mass=hand.total_mass / max(model.n_points, 1),
+        point_mass=hand_mass / max(model.n_points, 1),
         joint_damping=np.full(J, pd.joint_damping),
         joint_stiffness=np.zeros(J),
         armature=np.full(J, pd.joint_armature),
