@@ -121,7 +121,7 @@ def shared_topology(hand: HandModel) -> HandModel:
     """The first per-demo hand of ``hand``'s :func:`topology` built in this process (``hand`` itself if it is
     the first). The simulator's ``Model.hand`` is static: JAX's in-memory program cache tells models apart by
     it, so a new hand object per demo traced stage 1's programs again for every demo of a long-lived process
-    (a batch worker: ~5 s per clip, BENCHMARKS.md "Tracing stage 1 once per process"). The programs read a
+    (a batch worker: ~8 s per clip, BENCHMARKS.md "Stage 1 traced once per worker"). The programs read a
     per-demo hand's geometry only from ``Model.hand_geom``; ``hand``'s own geometry, which the shared object
     does not have, stays with the callers that hold ``hand`` (its point set, its kinematic fit)."""
     return _SHARED_HANDS.setdefault(topology(hand), hand)
