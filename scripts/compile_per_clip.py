@@ -30,12 +30,13 @@ def main() -> None:
     import jax
 
     from quasisim import pipeline
+    from quasisim.bench.profile import COMPILE_EVENTS
     from quasisim.method.spec import TransferSpec
 
     phases: dict[str, float] = defaultdict(float)
 
     def on_event(event: str, duration: float, **_: object) -> None:
-        if event.startswith("/jax/core/compile/"):
+        if event in COMPILE_EVENTS:  # the events `quasisim bench profile` counts
             phases[event.rsplit("/", 1)[-1].removesuffix("_duration")] += duration
 
     jax.monitoring.register_event_duration_secs_listener(on_event)

@@ -461,13 +461,19 @@ def throughput(res: BatchResult) -> dict[str, Any]:
     }  # fmt: skip
 
 
-def method_seconds(seconds: dict[str, float]) -> float:
-    """A run's compute time from its stages' own timings (``summary.json`` ``seconds``: the retarget's and
-    each stage's, :attr:`~quasisim.method.stage.Stage.word`; stages read back from checkpoints keep the time
-    they took), so a resumed or seeded run counts what its result cost."""
+def seconds_keys() -> tuple[str, ...]:
+    """The keys of a run's ``seconds`` (``summary.json``) that time its work: the retarget's, then each
+    stage's :attr:`~quasisim.method.stage.Stage.word` in run order."""
     from quasisim.method.registry import stages
 
-    return float(sum(seconds.get(k, 0.0) for k in ("retarget", *(st.word for st in stages()))))
+    return ("retarget", *(st.word for st in stages()))
+
+
+def method_seconds(seconds: dict[str, float]) -> float:
+    """A run's compute time from its stages' own timings (``summary.json`` ``seconds``, :func:`seconds_keys`;
+    stages read back from checkpoints keep the time they took), so a resumed or seeded run counts what its
+    result cost."""
+    return float(sum(seconds.get(k, 0.0) for k in seconds_keys()))
 
 
 def _order(r: dict[str, Any]) -> tuple[str, bool, str]:

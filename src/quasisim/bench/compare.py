@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.batch import CLIP_FILE, method_seconds
+from quasisim.batch import CLIP_FILE, method_seconds, seconds_keys
 from quasisim.bench.tables import header, publish, robust_cells
 from quasisim.bench.transfer import stiffest_simulator
 from quasisim.errors import QuasisimError
@@ -132,11 +132,7 @@ def _summary(
 
 def _stage_seconds(per: dict[str, dict[str, dict[str, Any]]], labels: list[str], clips: list[str]) -> list[str]:
     """Mean / median seconds per clip of the retarget, each stage a folder's runs have, and their sum."""
-    from quasisim.method.registry import stages
-
-    words = [w for w in ("retarget", *(st.word for st in stages())) if any(
-        w in per[x][c].get("seconds", {}) for x in labels for c in clips
-    )]  # fmt: skip
+    words = [w for w in seconds_keys() if any(w in per[x][c].get("seconds", {}) for x in labels for c in clips)]
     out = [
         "Seconds per clip, mean / median (`-`: a folder without the stage, or without times):",
         "",
