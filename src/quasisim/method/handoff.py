@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +37,7 @@ from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import bases_to_roots, forward_kinematics, points_world
 from quasisim.sim.step import object_origin, sdf_lookup
 from quasisim.sim.types import Model, Params, State
+from quasisim.tracecache import cached_jit
 
 Array = jax.Array
 
@@ -101,7 +101,7 @@ def force_keeping_shift(phi: Array, d_c: Array, d_c_next: Array, k_ratio: Array)
     return phi - (d_c_next - k_ratio * (d_c - phi))
 
 
-@partial(jax.jit, static_argnames=("iterations",))
+@cached_jit(static_argnames=("iterations",))
 def touching_joints(
     model: Model, base_rot: Array, base: Array, joints: Array, states: State, shift: Array, damping: Array,
     lo: Array, hi: Array, iterations: int,

@@ -12,7 +12,6 @@ d. the robot point set's controls are optimised to track the human point set (ne
 
 from __future__ import annotations
 
-import functools
 import time
 from typing import Any
 
@@ -34,6 +33,7 @@ from quasisim.optim.trajectory import Trajectory, simulate
 from quasisim.rotations import quat_angle_deg
 from quasisim.sim.kinematics import fk_full, points_world
 from quasisim.sim.types import Model, Params
+from quasisim.tracecache import cached_jit
 
 
 def motion_onset(demo: Demo, pos_tol: float = 0.005, deg_tol: float = 5.0) -> int:
@@ -99,7 +99,7 @@ def _point_set(prob: Problem, params: Params, traj: Trajectory) -> jax.Array:
     return _points_over_time(prob.model, params, traj, prob.base_quat, base_rot, prob.obj0, prob.demo.fps)
 
 
-@functools.partial(jax.jit, static_argnames=("fps",))
+@cached_jit(static_argnames=("fps",))
 def _points_over_time(
     model: Model, params: Params, traj: Trajectory, base_quat: jax.Array, base_rot: jax.Array,
     obj0: tuple[jax.Array, jax.Array], fps: float,

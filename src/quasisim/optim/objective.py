@@ -38,6 +38,7 @@ from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import forward_kinematics, keypoints, points_world
 from quasisim.sim.step import object_pose, rollout
 from quasisim.sim.types import Model, Params, State, pytree, static
+from quasisim.tracecache import cached_jit
 
 if TYPE_CHECKING:
     from quasisim.targets import TargetRollout
@@ -239,7 +240,7 @@ class TrackingObjective:
         return functools.partial(objective_value, self)
 
 
-@jax.jit
+@cached_jit
 def objective_value_and_grad(
     objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
 ) -> tuple[tuple[Array, dict[str, Array]], tuple[Trajectory, SysID]]:
@@ -247,7 +248,7 @@ def objective_value_and_grad(
     return jax.value_and_grad(lambda t, s: objective(t, s, params, weights), argnums=(0, 1), has_aux=True)(traj, sysid)
 
 
-@jax.jit
+@cached_jit
 def objective_value(
     objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
 ) -> tuple[Array, dict[str, Array]]:

@@ -22,6 +22,7 @@ import numpy as np
 from quasisim.rotations import quat_conj, quat_log, quat_mul
 from quasisim.sim.step import initial_state, rollout
 from quasisim.sim.types import Control, Model, Params, State, pytree, static
+from quasisim.tracecache import cached_jit
 
 Array = jax.Array
 F32 = jnp.float32
@@ -148,7 +149,7 @@ def simulate(
     return rollout(model, params, s0, sim_controls(traj, bq, fps))
 
 
-simulate_jit = jax.jit(simulate, static_argnames=("fps",))
+simulate_jit = cached_jit(simulate, static_argnames=("fps",))
 """Compiled :func:`simulate` (the model and the start as arguments: one program per size of scene)."""
 
 

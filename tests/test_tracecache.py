@@ -1,0 +1,91 @@
+"""Traced programs kept on disk (quasisim.tracecache): the same values as jax.jit, no tracing when an entry
+is there, one entry per argument structure, shape and static argument, and damaged entries traced again."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from quasisim import tracecache
+from quasisim.sim.types import pytree, static
+
+
+@pytree
+class Box:
+    a: jax.Array
+    b: jax.Array
+    scale: float = static()
+
+
+TRACES: list[int] = []
+
+
+def f(box: Box, x: jax.Array, n: int) -> dict[str, jax.Array]:
+    TRACES.append(1)  # runs only while tracing
+    y = x
+    for _ in range(n):
+        y = jnp.sin(y) * box.a + box.b * box.scale
+    return {"y": y, "sum": jnp.sum(y)}
+
+
+@pytest.fixture
+def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path))
+    monkeypatch.setenv(tracecache.ENV, "1")
+    TRACES.clear()
+    return tmp_path / "traces"
+
+
+def _args(k: int = 5, scale: float = 2.0) -> tuple[Box, np.ndarray]:
+    r = np.random.default_rng(k)
+    return Box(jnp.asarray(r.normal(size=k), jnp.float32), jnp.float32(0.5), scale), r.normal(size=k).astype(np.float32)
+
+
+def test_a_fresh_process_reads_the_trace_and_gets_jits_values(cache: Path) -> None:
+    box, x = _args()
+    want = jax.jit(f, static_argnames=("n",))(box, x, n=3)
+    TRACES.clear()
+    got = tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)
+    assert TRACES == [1] and len(list(cache.glob("*.bin"))) == 1
+    np.testing.assert_array_equal(got["y"], want["y"])  # the same program: bit for bit
+    again = tracecache.cached_jit(f, static_argnames=("n",))  # a new wrapper: nothing in memory, as a new process
+    np.testing.assert_array_equal(again(box, x, n=3)["sum"], want["sum"])
+    assert TRACES == [1]  # read from disk, not traced
+
+
+def test_one_entry_per_structure_shape_and_static_argument(cache: Path) -> None:
+    g = tracecache.cached_jit(f, static_argnames=("n",))
+    for box, x, n in [(*_args(5), 3), (*_args(5), 3), (*_args(6), 3), (*_args(5), 2), (*_args(5, scale=1.0), 3)]:
+        want = jax.jit(f, static_argnames=("n",))(box, x, n=n)
+        np.testing.assert_allclose(g(box, x, n=n)["y"], want["y"], rtol=1e-6)
+    assert len(list(cache.glob("*.bin"))) == 4  # the repeated call is a hit; shape, n and the static scale are not
+
+
+def test_a_damaged_entry_is_traced_again(cache: Path) -> None:
+    box, x = _args()
+    want = tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)["y"]
+    (entry,) = cache.glob("*.bin")
+    entry.write_bytes(entry.read_bytes()[:100])  # a partial write of another tool
+    TRACES.clear()
+    got = tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)["y"]
+    np.testing.assert_array_equal(got, want)
+    assert TRACES == [1] and entry.stat().st_size > 100  # traced and written again
+
+
+def test_switched_off_writes_nothing(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(tracecache.ENV, "0")
+    box, x = _args()
+    tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)
+    assert not cache.exists()
+
+
+def test_the_key_changes_with_the_code(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    box, x = _args()
+    tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)
+    monkeypatch.setattr(tracecache, "code_version", lambda: "another version of the package")
+    tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)
+    assert len(list(cache.glob("*.bin"))) == 2 and len(TRACES) == 2
