@@ -285,13 +285,16 @@ def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path
 def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(short_demo: Path, tmp_path: Path) -> None:
     """``quasisim bench profile``: one row per checkpointed piece and one for the rest, with compile events
     counted (a fresh XLA cache, so the sampling stage compiles something)."""
+    from quasisim import tracecache
     from quasisim.bench.profile import GLUE, run_profile
     from quasisim.method.config import TransferConfig
     from quasisim.method.spec import TransferSpec
 
     cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 6, "sampling.horizon": 3})
     spec = TransferSpec(method="sample-target", render=False, progress=False).checked()
+    traces = tracecache.folder()
     run_profile(short_demo, spec, cfg, tmp_path / "prof", cold=True, cprofile=False)
+    assert tracecache.folder() == traces  # the cold run's empty trace folder was for it alone
     rows = {r["piece"]: r for r in json.loads((tmp_path / "prof" / "profile.json").read_text())}
     assert {"kinematic", "sample", GLUE} <= set(rows), sorted(rows)
     assert all(r["wall_s"] >= 0 and 0 <= r["compile_s"] for r in rows.values())

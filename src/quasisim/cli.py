@@ -852,7 +852,7 @@ def _layout(text: str) -> tuple[int, int, bool]:
 @click.option("--stages", default="1,2,3,mpc", show_default=True, help="Stages of the profiled transfer.")
 @click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
 @click.option("--budget", default=_SPEC.budget, show_default=True)
-@click.option("--cold", is_flag=True, help="Start from an empty XLA compilation cache.")
+@click.option("--cold", is_flag=True, help="Start from empty XLA compilation and trace caches.")
 @click.option("--cprofile", is_flag=True, help="Also measure MuJoCo's share (cProfile; slows tracing).")
 @click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/profile"), show_default=True)

@@ -36,6 +36,18 @@ from quasisim.files import cache_dir, write_atomic
 
 ENV = "QUASISIM_TRACE_CACHE"
 FORMAT = b"quasisim-trace-v1"
+_FOLDER: list[Path] = []  # set by use_folder (e.g. an empty one for a cold profile); default cache_dir()/traces
+
+
+def use_folder(path: Path) -> None:
+    """Read and write traced programs in ``path`` from now on in this process (instead of
+    ``cache_dir()/traces``); programs already in memory stay."""
+    _FOLDER[:] = [Path(path)]
+
+
+def folder() -> Path:
+    """Where traced programs are read and written."""
+    return _FOLDER[0] if _FOLDER else cache_dir() / "traces"
 
 
 @functools.cache
@@ -105,12 +117,12 @@ class _Cached:
     ) -> tuple[Callable[..., Any], Any]:
         """The compiled-on-first-call program of one argument structure and its output tree structure."""
         key = _disk_key(self.name, treedef, avals, tuple(static.items()))
-        path = cache_dir() / "traces" / f"{key}.bin" if key else None
+        path = folder() / f"{key}.bin" if key else None
         if path is not None and path.is_file():
             try:
                 head, out_tree, blob = pickle.loads(path.read_bytes())
                 if head == FORMAT:
-                    return _compiled(jax.export.deserialize(blob), avals), out_tree
+                    return _compiled(jax.export.deserialize(blob), avals, self.fn.__name__), out_tree
             except Exception:  # an unreadable entry (a partial write, another version): trace again
                 pass
         out_box: list[Any] = []
@@ -125,14 +137,20 @@ class _Cached:
         if path is not None:
             entry = pickle.dumps((FORMAT, out_box[0], bytes(exp.serialize())), protocol=5)
             write_atomic(path, lambda tmp: tmp.write_bytes(entry))
-        return _compiled(exp, avals), out_box[0]
+        return _compiled(exp, avals, self.fn.__name__), out_box[0]
 
 
-def _compiled(exp: jax.export.Exported, avals: tuple[jax.ShapeDtypeStruct, ...]) -> Callable[..., Any]:
-    """The exported program compiled once, ahead of time, for ``avals``: a ``jax.jit`` of it would compile again
-    when the arguments' placement changes (plain arrays on the first call, arrays a program returned on the
-    next), and every compiled copy holds its own memory mappings (:mod:`quasisim.runtime`)."""
-    return jax.jit(exp.call).lower(*avals).compile()
+def _compiled(exp: jax.export.Exported, avals: tuple[jax.ShapeDtypeStruct, ...], name: str) -> Callable[..., Any]:
+    """The exported program compiled once, ahead of time, for ``avals``, under the function's ``name`` (as
+    profiles list it): a ``jax.jit`` of it would compile again when the arguments' placement changes (plain
+    arrays on the first call, arrays a program returned on the next), and every compiled copy holds its own
+    memory mappings (:mod:`quasisim.runtime`)."""
+
+    def call(*xs: Any) -> Any:
+        return exp.call(*xs)
+
+    call.__name__ = call.__qualname__ = name
+    return jax.jit(call).lower(*avals).compile()
 
 
 def cached_jit(fn: Callable[..., Any] | None = None, *, static_argnames: tuple[str, ...] = ()) -> Any:

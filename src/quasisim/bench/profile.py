@@ -20,7 +20,7 @@ from typing import Any
 
 import jax
 
-from quasisim import pipeline
+from quasisim import pipeline, tracecache
 from quasisim.bench.tables import header, publish
 from quasisim.method.config import TransferConfig
 from quasisim.method.spec import TransferSpec
@@ -72,13 +72,15 @@ GLUE = "setup, outputs, judging, glue"
 
 
 def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, cold: bool, cprofile: bool) -> str:
-    """Profile one transfer of ``demo`` into ``out/run`` (from scratch; ``cold``: an empty XLA cache;
+    """Profile one transfer of ``demo`` into ``out/run`` (from scratch; ``cold``: empty XLA and trace caches;
     ``cprofile``: also measure MuJoCo's share, under cProfile, which slows Python-heavy code such as tracing)."""
     w = _Windows(cprofile)
     jax.monitoring.register_event_duration_secs_listener(w.on_event)
-    cache_dir = jax.config.jax_compilation_cache_dir
+    cache_dir, traces = jax.config.jax_compilation_cache_dir, tracecache.folder()
     if cold:
-        jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="quasisim-cold-cache-"))
+        cache = Path(tempfile.mkdtemp(prefix="quasisim-cold-cache-"))
+        jax.config.update("jax_compilation_cache_dir", str(cache / "jax"))
+        tracecache.use_folder(cache / "traces")
     t0 = time.perf_counter()
     try:
         if cprofile:
@@ -88,6 +90,7 @@ def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, 
         w.profiles[GLUE].disable()
         jax.monitoring.unregister_event_duration_listener(w.on_event)
         jax.config.update("jax_compilation_cache_dir", cache_dir)
+        tracecache.use_folder(traces)
     total = time.perf_counter() - t0
     rows = [_row(name, wall, w) for name, wall in w.spans]
     rows.append(_row(GLUE, total - sum(wall for _, wall in w.spans), w))
@@ -115,7 +118,7 @@ def _markdown(
     lines = [
         header(
             f"Profile of one transfer ({demo.stem}, stages {','.join(spec.stages)}, {spec.budget} budget, "
-            f"{'empty' if cold else 'warm'} XLA cache)"
+            f"{'empty' if cold else 'warm'} XLA and trace caches)"
         ),
         f"Total wall time {total:.0f} s"
         + (
