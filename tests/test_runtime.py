@@ -30,6 +30,19 @@ def test_free_compiled_programs_drops_jax_programs_only_when_asked_or_needed(mon
     assert runtime.free_compiled_programs(force=True) and f._cache_size() == 0
 
 
+def test_free_compiled_programs_drops_the_trace_caches_programs_too(tmp_path, monkeypatch) -> None:
+    """The programs :func:`quasisim.tracecache.cached_jit` compiled ahead of time are held by it, not by JAX:
+    released with JAX's, or a long-lived process would still reach the mapping limit."""
+    from quasisim import tracecache
+
+    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path))
+    g = tracecache.cached_jit(lambda x: jnp.cos(x) + 1.0)
+    g(jnp.ones(3))
+    assert len(g.programs) == 1
+    assert runtime.free_compiled_programs(force=True) and len(g.programs) == 0
+    assert float(g(jnp.zeros(3))[0]) == 2.0  # read back from the disk cache when next called
+
+
 def test_map_counts_reads_this_process() -> None:
     counts = runtime._map_counts()
     if counts is not None:  # Linux

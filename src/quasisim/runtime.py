@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax
 
+from quasisim import tracecache
 from quasisim.files import cache_dir
 
 # XLA's CPU backend routes small dots and reductions through YNNPACK fusions, which made the simulator's
@@ -57,6 +58,7 @@ def free_compiled_programs(force: bool = False) -> bool:
     if not force and (counts is None or counts[0] < MAP_SHARE * counts[1]):
         return False
     jax.clear_caches()
+    tracecache.clear_memory()
     gc.collect()
     return True
 

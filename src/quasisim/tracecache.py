@@ -26,6 +26,7 @@ import hashlib
 import inspect
 import os
 import pickle
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,16 @@ def _disk_key(name: str, treedef: Any, avals: tuple[jax.ShapeDtypeStruct, ...], 
     return h.hexdigest()
 
 
+_INSTANCES: weakref.WeakSet[_Cached] = weakref.WeakSet()
+
+
+def clear_memory() -> None:
+    """Drop every compiled program held in memory by :func:`cached_jit` functions (they are read from the
+    disk and persistent caches when next called); :func:`quasisim.runtime.free_compiled_programs` calls it."""
+    for c in list(_INSTANCES):
+        c.programs.clear()
+
+
 class _Cached:
     """See :func:`cached_jit`."""
 
@@ -96,6 +107,7 @@ class _Cached:
         self.programs: dict[Any, tuple[Callable[..., Any], Any]] = {}
         self.jitted = jax.jit(fn, static_argnames=static_argnames)  # where the disk cache is off
         functools.update_wrapper(self, fn)
+        _INSTANCES.add(self)
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if not enabled():
