@@ -129,6 +129,7 @@ def test_hands_of_two_demos_share_one_compiled_simulator(synthetic, tmp_path) ->
     import jax
     import trimesh
 
+    from quasisim import tracecache
     from quasisim.assets.human_hand import HUMAN_POINTS
     from quasisim.assets.object import load_object
     from quasisim.sim.articulation import body_jacobians, mass_matrix
@@ -196,6 +197,17 @@ def test_hands_of_two_demos_share_one_compiled_simulator(synthetic, tmp_path) ->
     )  # fmt: skip
     run = jax.jit(rollout)
     np.testing.assert_array_equal(run(own, p_own, s0[0], c).q, run(models[1], p_shared, s0[1], c).q)
+
+    # traced programs on disk (quasisim.tracecache) are keyed by a per-demo hand's topology, as the process
+    # shares it in memory: a process that built b first reads the programs another process traced for a. A
+    # hand whose programs read its geometry from the static part (not per demo: a robot hand) is keyed whole.
+
+    def key(m) -> str | None:
+        return tracecache._disk_key("rollout", jax.tree_util.tree_structure(m), (), ())
+
+    assert key(own) == key(models[1]) is not None
+    fixed = [dataclasses.replace(h, config=dataclasses.replace(h.config, per_demo=False)) for h in (a, b)]
+    assert key(dataclasses.replace(own, hand=fixed[0])) != key(dataclasses.replace(own, hand=fixed[1]))
 
 
 def test_human_point_seed_draws_another_point_set_and_keys_stage_1(synthetic) -> None:

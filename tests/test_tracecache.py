@@ -89,3 +89,41 @@ def test_the_key_changes_with_the_code(cache: Path, monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(tracecache, "code_version", lambda: "another version of the package")
     tracecache.cached_jit(f, static_argnames=("n",))(box, x, n=3)
     assert len(list(cache.glob("*.bin"))) == 2 and len(TRACES) == 2
+
+
+class Shape:
+    """Static data of which the traced function reads only ``n`` (``tag`` is along for the ride)."""
+
+    def __init__(self, n: int, tag: str) -> None:
+        self.n, self.tag = n, tag
+
+    def __hash__(self) -> int:
+        return hash(self.n)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Shape) and other.n == self.n
+
+
+def g(x: jax.Array, shape: Shape) -> jax.Array:
+    TRACES.append(1)
+    return x * shape.n
+
+
+def test_key_by_keys_static_data_by_the_part_the_programs_read(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tracecache, "_KEYS", {Shape: lambda s: s.n if s.tag != "whole" else None})
+    x = jnp.ones(3)
+    for tag in ("a", "b"):  # another tag, the same n: one entry, read from disk by a new wrapper
+        assert float(tracecache.cached_jit(g, static_argnames=("shape",))(x, Shape(2, tag))[0]) == 2.0
+    assert len(list(cache.glob("*.bin"))) == 1 and TRACES == [1]
+    tracecache.cached_jit(g, static_argnames=("shape",))(x, Shape(2, "whole"))  # keyed whole: its own entry
+    assert len(list(cache.glob("*.bin"))) == 2
+
+
+def test_use_folder_is_for_its_block_alone(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After a ``use_folder`` block (a cold profile) the folder follows ``QUASISIM_CACHE`` again, so a later
+    change of the cache (another test, another run in the process) is not pinned to the old folder."""
+    with tracecache.use_folder(tmp_path / "cold"):
+        tracecache.cached_jit(f, static_argnames=("n",))(*_args(), n=3)
+    assert len(list((tmp_path / "cold").glob("*.bin"))) == 1 and not cache.exists()
+    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path / "later"))
+    assert tracecache.folder() == tmp_path / "later" / "traces"

@@ -282,7 +282,9 @@ def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path
             np.testing.assert_allclose(d["start_qvel"][t, c], d["run_qvel"][t], rtol=0, atol=0)
 
 
-def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(short_demo: Path, tmp_path: Path) -> None:
+def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(
+    short_demo: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``quasisim bench profile``: one row per checkpointed piece and one for the rest, with compile events
     counted (a fresh XLA cache, so the sampling stage compiles something)."""
     from quasisim import tracecache
@@ -292,9 +294,10 @@ def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(short_demo
 
     cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 6, "sampling.horizon": 3})
     spec = TransferSpec(method="sample-target", render=False, progress=False).checked()
-    traces = tracecache.folder()
     run_profile(short_demo, spec, cfg, tmp_path / "prof", cold=True, cprofile=False)
-    assert tracecache.folder() == traces  # the cold run's empty trace folder was for it alone
+    # the cold run's empty trace folder was for it alone: the folder follows QUASISIM_CACHE again
+    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path / "after"))
+    assert tracecache.folder() == tmp_path / "after" / "traces"
     rows = {r["piece"]: r for r in json.loads((tmp_path / "prof" / "profile.json").read_text())}
     assert {"kinematic", "sample", GLUE} <= set(rows), sorted(rows)
     assert all(r["wall_s"] >= 0 and 0 <= r["compile_s"] for r in rows.values())

@@ -12,7 +12,8 @@ cache when it is there).
 
 The key of a traced program is a SHA-256 over everything that decides what tracing produces: the
 function's module and name, the source of the quasisim package (every ``.py`` and ``.yaml`` file), the JAX
-version and the 64-bit switch, the arguments' tree structure with its static metadata (as pickled) and
+version and the 64-bit switch, the arguments' tree structure with its static metadata (as pickled; for
+types registered with :func:`key_by`, the part the programs read) and
 every leaf's shape, dtype and weak type, and the static arguments. A change anywhere in the package makes
 every key new. Environment: ``QUASISIM_TRACE_CACHE=0`` turns the disk cache off (calls trace as with
 ``jax.jit``); the entries are pickles and StableHLO written by this user's own processes, trusted as
@@ -21,13 +22,15 @@ Python's own bytecode caches are.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
+import io
 import os
 import pickle
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -37,13 +40,20 @@ from quasisim.files import cache_dir, write_atomic
 
 ENV = "QUASISIM_TRACE_CACHE"
 FORMAT = b"quasisim-trace-v1"
-_FOLDER: list[Path] = []  # set by use_folder (e.g. an empty one for a cold profile); default cache_dir()/traces
+_FOLDER: list[Path] = []  # set inside use_folder (e.g. an empty one for a cold profile); default cache_dir()/traces
 
 
-def use_folder(path: Path) -> None:
-    """Read and write traced programs in ``path`` from now on in this process (instead of
-    ``cache_dir()/traces``); programs already in memory stay."""
+@contextlib.contextmanager
+def use_folder(path: Path) -> Iterator[None]:
+    """Read and write traced programs in ``path`` inside the ``with`` block (instead of
+    ``cache_dir()/traces``, which follows ``QUASISIM_CACHE``); the setting before it, the default included,
+    comes back after. Programs already in memory stay."""
+    before = list(_FOLDER)
     _FOLDER[:] = [Path(path)]
+    try:
+        yield
+    finally:
+        _FOLDER[:] = before
 
 
 def folder() -> Path:
@@ -75,10 +85,36 @@ def _avals(leaves: list[Any]) -> tuple[jax.ShapeDtypeStruct, ...]:
     return tuple(out)
 
 
+_KEYS: dict[type, Callable[[Any], Any]] = {}
+
+
+def key_by(cls: type, key: Callable[[Any], Any]) -> None:
+    """Key static values of type ``cls`` in traced programs' keys by ``key(value)`` (picklable; None: the whole
+    value) instead of the whole value: for static data of which the programs read only a part. Example: a per-demo human hand,
+    whose programs read its topology, not its geometry (:func:`quasisim.sim.build.topology`); keyed whole,
+    each demo would trace its own copy of stage 1's programs."""
+    _KEYS[cls] = key
+
+
+def _keyed(kind: str, key: Any) -> None:
+    """Stands in a key for a value :func:`key_by` keys (never called: keys are hashed, not unpickled)."""
+
+
+class _KeyPickler(pickle.Pickler):
+    def reducer_override(self, obj: Any) -> Any:
+        key = _KEYS.get(type(obj))
+        k = None if key is None else key(obj)
+        if k is None:
+            return NotImplemented
+        return _keyed, (f"{type(obj).__module__}.{type(obj).__qualname__}", k)
+
+
 def _disk_key(name: str, treedef: Any, avals: tuple[jax.ShapeDtypeStruct, ...], static: tuple[Any, ...]) -> str | None:
     """The SHA-256 key of a traced program, or None when the structure does not pickle (never cached)."""
+    buf = io.BytesIO()
     try:
-        tree = pickle.dumps((treedef, static), protocol=5)
+        _KeyPickler(buf, protocol=5).dump((treedef, static))
+        tree = buf.getvalue()
     except Exception:  # an unpicklable static value: trace in memory only
         return None
     h = hashlib.sha256(code_version().encode() + name.encode() + tree)

@@ -10,6 +10,7 @@ fall in.
 
 from __future__ import annotations
 
+import contextlib
 import cProfile
 import pstats
 import tempfile
@@ -76,21 +77,21 @@ def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, 
     ``cprofile``: also measure MuJoCo's share, under cProfile, which slows Python-heavy code such as tracing)."""
     w = _Windows(cprofile)
     jax.monitoring.register_event_duration_secs_listener(w.on_event)
-    cache_dir, traces = jax.config.jax_compilation_cache_dir, tracecache.folder()
+    cache_dir, traces = jax.config.jax_compilation_cache_dir, contextlib.nullcontext()
     if cold:
         cache = Path(tempfile.mkdtemp(prefix="quasisim-cold-cache-"))
         jax.config.update("jax_compilation_cache_dir", str(cache / "jax"))
-        tracecache.use_folder(cache / "traces")
+        traces = tracecache.use_folder(cache / "traces")
     t0 = time.perf_counter()
     try:
         if cprofile:
             w.profiles[GLUE].enable()
-        pipeline.run_transfer(demo, out / "run", spec, cfg, resume=False, piece_hook=w.piece)
+        with traces:
+            pipeline.run_transfer(demo, out / "run", spec, cfg, resume=False, piece_hook=w.piece)
     finally:
         w.profiles[GLUE].disable()
         jax.monitoring.unregister_event_duration_listener(w.on_event)
         jax.config.update("jax_compilation_cache_dir", cache_dir)
-        tracecache.use_folder(traces)
     total = time.perf_counter() - t0
     rows = [_row(name, wall, w) for name, wall in w.spans]
     rows.append(_row(GLUE, total - sum(wall for _, wall in w.spans), w))

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from quasisim import tracecache
 from quasisim.assets.hand import HandModel
 from quasisim.sim.kinematics import geometry_arrays
 from quasisim.sim.pointset import HandPoints, sample_hand_points
@@ -115,6 +116,11 @@ def topology(hand: HandModel) -> tuple[Any, ...]:
     fields = [f.name for f in dataclasses.fields(hand) if f.name not in _GEOMETRY_FIELDS]
     val = lambda v: (v.dtype.str, v.shape, v.tobytes()) if isinstance(v, np.ndarray) else v  # noqa: E731
     return (hand.config.name, hand.config.side, hand.config.pd, *(val(getattr(hand, f)) for f in fields))
+
+
+# Traced programs on disk: a per-demo hand (whose programs read its geometry from Model.hand_geom) is keyed by
+# its topology, as shared_topology shares it in memory; any other hand (geometry read from Model.hand) whole.
+tracecache.key_by(HandModel, lambda hand: topology(hand) if hand.config.per_demo else None)
 
 
 def shared_topology(hand: HandModel) -> HandModel:
