@@ -525,3 +525,25 @@ def test_pybullet_backs_up_exactly(real) -> None:
         again = tgt.rollout(plan)
     np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-9)
     np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-9)
+
+
+def test_replanning_every_few_frames_applies_what_was_predicted(real) -> None:
+    """``replan`` 3: each chosen window's first three frames are applied before planning again, so a third
+    of the steps roll out windows; the applied frames are what the chosen candidate predicted (the target is
+    deterministic) and the run is a replay of its targets. With zero noise it is the plan's replay."""
+    from quasisim.method.sampling import Transitions
+
+    demo, plan, scene = real
+    T = demo.n_frames
+    zero = run_sampling(demo, scene, plan, dataclasses.replace(ZERO, replan=3), W, progress=False)
+    np.testing.assert_array_equal(zero.q_targets, plan)
+    np.testing.assert_allclose(zero.rollout.object_pos, _replay(scene, plan).object_pos, atol=1e-9)
+    every = run_sampling(demo, scene, plan, OPTS, W, progress=False)
+    kept = Transitions()
+    three = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, replan=3), W, progress=False, transitions=kept)
+    assert [int(r["frame"]) for r in kept.steps] == list(range(0, T - 1, 3))
+    rollouts = lambda r: r.n_physics_steps - (T - 1) * 25  # noqa: E731  (the applied frames' own steps)
+    assert rollouts(three) * 3 == pytest.approx(rollouts(every), rel=0.1)
+    assert three.prediction_error.max() <= 1e-9 and three.backups == 0
+    np.testing.assert_allclose(_replay(scene, three.q_targets).object_pos, three.rollout.object_pos, atol=1e-9)
+    assert not np.array_equal(three.q_targets, every.q_targets)

@@ -35,8 +35,11 @@ At every control frame ``t`` of a clip with ``T`` frames:
    ``max(0, e_pos / 2 cm - strict_margin) + max(0, e_rot / 30 deg - strict_margin)``, so that among
    candidates of similar mean error the one that keeps every frame inside the limits wins;
 5. ``predictive``: keep the cheapest window as the plan; ``mppi``: the plan becomes the
-   ``softmax(-cost / temperature)``-weighted mean of the windows. Apply the plan's first frame
-   (``t -> t+1``) in the target, record the frame, shift the window by one and repeat.
+   ``softmax(-cost / temperature)``-weighted mean of the windows. Apply the plan's first ``replan`` frames
+   (``t -> t+replan``; 1 on frames re-planned after a back-up, step 6) in the target, recording each frame
+   and checking it against the strict limits, then plan again from there. The target is deterministic and
+   its state is copied exactly, so the applied frames are what the chosen candidate predicted (predictive
+   mode); planning every ``replan`` frames divides the rollouts by about ``replan``.
 6. Backing up (``backtrack`` > 0): when the frame just applied leaves the strict limits, the target is put
    back to its saved state ``backtrack`` frames earlier (at least frame 1) and those frames are planned
    again with ``backtrack_samples`` times the samples, around the plan chosen so far; at most
@@ -81,6 +84,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       robust_seed: 1           # ... seeds the copies' perturbations
       backtrack_copies: false  # ... back up also when a copy leaves the strict limits
       screen: 2                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
+      replan: 1                # frames of the chosen window applied before planning again
 """
 
 from __future__ import annotations
@@ -131,6 +135,8 @@ class SamplingOptions:
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
         screen: draw ``screen`` x the windows and roll out only the kinematic pre-screen's cheapest (step 2;
             1: no pre-screen).
+        replan: frames of the chosen window applied before planning again (step 5; at most ``horizon``;
+            1 on frames re-planned after a back-up).
     """
 
     samples: int
@@ -155,13 +161,14 @@ class SamplingOptions:
     robust_seed: int = 1
     backtrack_copies: bool = False
     screen: int = 1
+    replan: int = 1
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
         """Raise :class:`QuasisimError` naming the first bad setting."""
-        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top", "screen"):
+        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top", "screen", "replan"):
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
@@ -203,7 +210,8 @@ class SampleResult:
     Attributes:
         q_targets: (T, 6 + J) the PD targets applied in the target.
         rollout: the target's recorded run (a replay of ``q_targets``).
-        window_loss: (T - 1,) lowest candidate window cost per frame (with copies, step 7: the lowest score).
+        window_loss: (T - 1,) per frame, the lowest candidate window cost of the plan that applied it (with
+            copies, step 7: the lowest score).
         wall_s: wall time of the control loop (s).
         n_physics_steps: physics steps simulated, candidates and the applied frames together.
         prediction_error: (T - 1,) after each applied frame, the largest difference between the chosen
@@ -541,38 +549,44 @@ def _control_loop(
             sub = dataclasses.replace(pred, **{k: v[keep] for k, v in kept.items() if v is not None})
             transitions.add(t, start, wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
         work[t : t + H + 1] = win
-        applied[t + 1] = win[1]
-        if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
+        steps += pred.n_steps
+        # apply the window's first `replan` frames (one where frames are re-planned after a back-up)
+        for j in range(1, 1 + (1 if widened[t] else min(opts.replan, H, T - 1 - t))):
+            applied[t + 1] = win[j]
+            if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
+                for tg in every:
+                    tg.reset(applied[0], (applied[1] - applied[0]) * fps)
+                frames.append(target.observe())
             for tg in every:
-                tg.reset(applied[0], (applied[1] - applied[0]) * fps)
+                tg.advance(applied[t], applied[t + 1])
             frames.append(target.observe())
-        for tg in every:
-            tg.advance(applied[t], applied[t + 1])
-        frames.append(target.observe())
-        losses[t] = score.min()
-        steps += pred.n_steps + len(every) * target.substeps
-        if best is not None:  # what the chosen candidate predicted against what the target did
-            q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
-            pred_err[t] = max(np.abs(pred.qpos[best, 0] - q_now).max(), np.abs(pred.obj_pos[best, 0] - p_now).max())
-        t += 1
-        off = not _within_limits(frames[-1], ref_pos[t], ref_quat[t])
-        if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
-            off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
-        back = _back_up_to(t, off, opts, backed_from)
-        if opts.backtrack > 0:  # the states a back-up may return to
-            saved[t] = [tg.save_state() for tg in every]
-            back, drop = _kept_states(sorted(saved), t, back, opts.backtrack)
-            for k in drop:
-                _release(every, saved.pop(k))
-        if back is not None:
-            backed_from.add(t)
-            for tg, state in zip(every, saved[back], strict=True):
-                tg.restore_state(state)
-            del frames[back + 1 :]
-            widened[back:t] = True
-            bar.update(back - t)
-            t = back
-        bar.update(1)
+            losses[t] = score.min()
+            steps += len(every) * target.substeps
+            if best is not None:  # what the chosen candidate predicted against what the target did
+                q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
+                pred_err[t] = max(
+                    np.abs(pred.qpos[best, j - 1] - q_now).max(), np.abs(pred.obj_pos[best, j - 1] - p_now).max()
+                )
+            t += 1
+            off = not _within_limits(frames[-1], ref_pos[t], ref_quat[t])
+            if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
+                off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
+            back = _back_up_to(t, off, opts, backed_from)
+            if opts.backtrack > 0:  # the states a back-up may return to
+                saved[t] = [tg.save_state() for tg in every]
+                back, drop = _kept_states(sorted(saved), t, back, opts.backtrack)
+                for k in drop:
+                    _release(every, saved.pop(k))
+            bar.update(1)
+            if back is not None:
+                backed_from.add(t)
+                for tg, state in zip(every, saved[back], strict=True):
+                    tg.restore_state(state)
+                del frames[back + 1 :]
+                widened[back:t] = True
+                bar.update(back - t)
+                t = back
+                break
     bar.close()
     for states in saved.values():
         _release(every, states)
