@@ -97,6 +97,10 @@ def _replay(scene, q):
         ("backtrack_copies", 1, "backtrack_copies"),
         ("kinematic_alternative", "yes", "kinematic_alternative"),
         ("screen", 0, "screen"),
+        ("replan", 0, "replan"),
+        ("replan_margin", 0.0, "replan_margin"),
+        ("replan_margin", float("inf"), "replan_margin"),
+        ("replan_margin", "0.5", "replan_margin"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -525,6 +529,37 @@ def test_pybullet_backs_up_exactly(real) -> None:
         again = tgt.rollout(plan)
     np.testing.assert_allclose(again.object_pos, res.rollout.object_pos, atol=1e-9)
     np.testing.assert_allclose(again.qpos, res.rollout.qpos, atol=1e-9)
+
+
+def test_replanning_within_a_margin_plans_afresh_where_the_object_nears_the_limits(real) -> None:
+    """``replan_margin``: a frame after the first of a window is applied unplanned only where the chosen
+    candidate predicted the object within that fraction of the strict limits; a margin nothing meets is
+    planning every frame (bit for bit), one everything meets is plain ``replan``."""
+    from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
+    from quasisim.method.sampling import Transitions
+
+    demo, plan, scene = real
+    T = demo.n_frames
+    every = run_sampling(demo, scene, plan, OPTS, W, progress=False)
+    three = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, replan=3), W, progress=False)
+    never = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, replan=3, replan_margin=1e-9), W, progress=False)
+    np.testing.assert_array_equal(never.q_targets, every.q_targets)
+    always = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, replan=3, replan_margin=1e9), W, progress=False)
+    np.testing.assert_array_equal(always.q_targets, three.q_targets)
+    kept, margin = Transitions(), 0.7
+    opts = dataclasses.replace(OPTS, replan=3, replan_margin=margin)
+    run_sampling(demo, scene, plan, opts, W, progress=False, transitions=kept)
+    planned = [int(r["frame"]) for r in kept.steps] + [T - 1]
+    assert 1 < len(planned) - 1 < T - 1  # some frames applied unplanned, some planned afresh
+    for r, nxt in zip(kept.steps, planned[1:], strict=True):
+        t, best = int(r["frame"]), int(r["chosen"])
+        n = min(3, T - 1 - t)  # predicted frames t+1 .. t+n inside the clip
+        ref_pos, ref_quat = demo.object_pos[t + 1 : t + 1 + n], demo.object_quat[t + 1 : t + 1 + n]
+        rot, trans = object_errors(ref_pos, ref_quat, r["obj_pos"][best, :n], r["obj_quat"][best, :n])
+        calm = np.maximum(trans / STRICT_CM, rot / STRICT_DEG) < margin
+        applied = nxt - t  # frames this plan applied: the first, then while calm (up to 3)
+        assert calm[1:applied].all()
+        assert applied == n or not calm[applied]
 
 
 def test_replanning_every_few_frames_applies_what_was_predicted(real) -> None:

@@ -39,7 +39,10 @@ At every control frame ``t`` of a clip with ``T`` frames:
    (``t -> t+replan``; 1 on frames re-planned after a back-up, step 6) in the target, recording each frame
    and checking it against the strict limits, then plan again from there. The target is deterministic and
    its state is copied exactly, so the applied frames are what the chosen candidate predicted (predictive
-   mode); planning every ``replan`` frames divides the rollouts by about ``replan``.
+   mode); planning every ``replan`` frames divides the rollouts by about ``replan``. With ``replan_margin``
+   a frame after the first is applied only while the chosen candidate predicted the object within
+   ``replan_margin`` x the strict limits there (2 cm, 30 deg); otherwise the loop plans that frame afresh, so
+   frames near the limits get the full search of every frame.
 6. Backing up (``backtrack`` > 0): when the frame just applied leaves the strict limits, the target is put
    back to its saved state ``backtrack`` frames earlier (at least frame 1) and those frames are planned
    again with ``backtrack_samples`` times the samples, around the plan chosen so far; at most
@@ -85,6 +88,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       backtrack_copies: false  # ... back up also when a copy leaves the strict limits
       screen: 2                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
       replan: 1                # frames of the chosen window applied before planning again
+      replan_margin: null      # ... those after the first only while predicted within this fraction of the limits
 """
 
 from __future__ import annotations
@@ -136,7 +140,9 @@ class SamplingOptions:
         screen: draw ``screen`` x the windows and roll out only the kinematic pre-screen's cheapest (step 2;
             1: no pre-screen).
         replan: frames of the chosen window applied before planning again (step 5; at most ``horizon``;
-            1 on frames re-planned after a back-up).
+            1 on frames re-planned after a back-up).  replan_margin: frames after the first applied only while
+            the chosen candidate predicted the object within this fraction of the strict limits (step 5;
+            None: always).
     """
 
     samples: int
@@ -162,6 +168,7 @@ class SamplingOptions:
     backtrack_copies: bool = False
     screen: int = 1
     replan: int = 1
+    replan_margin: float | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -189,6 +196,9 @@ class SamplingOptions:
         for name in ("kinematic_alternative", "backtrack_copies"):
             if not isinstance(getattr(self, name), bool):
                 raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
+        m = self.replan_margin
+        if m is not None and not (_is_number(m) and m > 0):
+            raise QuasisimError(f"sampling option 'replan_margin' must be null or a finite number > 0, got {m!r}")
         if self.mode not in MODES:
             raise choice_error("sampling mode", self.mode, MODES)
         if not (_is_number(self.temperature) and self.temperature > 0):
@@ -552,6 +562,8 @@ def _control_loop(
         steps += pred.n_steps
         # apply the window's first `replan` frames (one where frames are re-planned after a back-up)
         for j in range(1, 1 + (1 if widened[t] else min(opts.replan, H, T - 1 - t))):
+            if j > 1 and not _calm(pred, best, j, ref_pos[t + 1], ref_quat[t + 1], opts.replan_margin):
+                break  # the frame's predicted object error is not well inside the limits: plan it afresh
             applied[t + 1] = win[j]
             if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
                 for tg in every:
@@ -652,6 +664,21 @@ def _back_up_to(t: int, off: bool, opts: SamplingOptions, backed_from: set[int])
     if not off or opts.backtrack == 0 or len(backed_from) >= opts.backtrack_budget or t in backed_from or t < 2:
         return None
     return max(1, t - opts.backtrack)
+
+
+def _calm(
+    pred: Prediction, best: int | None, j: int, ref_pos: np.ndarray, ref_quat: np.ndarray, margin: float | None
+) -> bool:
+    """Whether frame ``j`` (>= 2) of the chosen window may be applied without planning again (step 5): always
+    without a ``margin``; otherwise only when the chosen candidate ``best`` predicted the object at that frame
+    within ``margin`` x the strict limits of its reference pose (3,), (4,) (never in ``mppi`` mode, where no
+    single candidate is applied and nothing predicted the frame)."""
+    if margin is None:
+        return True
+    if best is None:
+        return False
+    trans, rot = strict_fractions(pred.obj_pos[best, j - 1], pred.obj_quat[best, j - 1], ref_pos, ref_quat)
+    return max(float(trans), float(rot)) < margin
 
 
 def _within_limits(obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray) -> bool:
