@@ -101,6 +101,7 @@ def _replay(scene, q):
         ("replan_margin", 0.0, "replan_margin"),
         ("replan_margin", float("inf"), "replan_margin"),
         ("replan_margin", "0.5", "replan_margin"),
+        ("widen_margin", -1.0, "widen_margin"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -560,6 +561,30 @@ def test_replanning_within_a_margin_plans_afresh_where_the_object_nears_the_limi
         applied = nxt - t  # frames this plan applied: the first, then while calm (up to 3)
         assert calm[1:applied].all()
         assert applied == n or not calm[applied]
+
+
+def test_steps_that_start_with_the_object_astray_sample_more(real) -> None:
+    """``widen_margin``: a step that starts with the object beyond that fraction of the strict limits rolls
+    out ``backtrack_samples`` x the windows, the others the usual count (counted exactly in physics steps,
+    the strays found from the recorded start states); a margin nothing crosses changes nothing."""
+    from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
+    from quasisim.method.sampling import Transitions
+
+    demo, plan, scene = real
+    T, applied = demo.n_frames, (demo.n_frames - 1) * 25  # the applied frames' own physics steps
+    every = run_sampling(demo, scene, plan, OPTS, W, progress=False)
+    never = run_sampling(demo, scene, plan, dataclasses.replace(OPTS, widen_margin=1e9), W, progress=False)
+    np.testing.assert_array_equal(never.q_targets, every.q_targets)
+    per_step = (every.n_physics_steps - applied) // (T - 1)  # one step's rollouts
+    kept, opts = Transitions(), dataclasses.replace(OPTS, widen_margin=0.65)
+    wide = run_sampling(demo, scene, plan, opts, W, progress=False, transitions=kept)
+    t = np.array([int(r["frame"]) for r in kept.steps])
+    rot, trans = object_errors(
+        demo.object_pos[t], demo.object_quat[t], *(np.stack([r[f"start_obj_{k}"] for r in kept.steps]) for k in ("pos", "quat"))
+    )  # fmt: skip
+    strays = int(np.sum((np.maximum(trans / STRICT_CM, rot / STRICT_DEG) > 0.65) & (t > 0)))
+    assert 0 < strays < T - 2
+    assert wide.n_physics_steps - applied == per_step * (T - 1 + (OPTS.backtrack_samples - 1) * strays)
 
 
 def test_replanning_every_few_frames_applies_what_was_predicted(real) -> None:

@@ -17,7 +17,8 @@ At every control frame ``t`` of a clip with ``T`` frames:
    step 4 with the hands exactly at their PD targets (forward kinematics of the robot's keypoints, the same
    sites the target reports) and without the object terms (:func:`kinematic_costs`). No physics: it ranks
    by hand tracking and smoothness, which dominate the window cost (BENCHMARKS.md, "could any simulator
-   pre-screen");
+   pre-screen"). A step that starts with the object beyond ``widen_margin`` x the strict limits (2 cm, 30 deg)
+   draws ``backtrack_samples`` x the windows, as a re-planned step does (step 6);
 3. roll every candidate out in the target from that state with the target's one PD schedule
    (:meth:`~quasisim.targets.base.Target.rollout_windows`, :func:`~quasisim.targets.base.pd_schedule`;
    MuJoCo: ``mujoco.rollout`` on a copy of the scene with ``framepos`` sensors on the metric keypoint sites;
@@ -89,6 +90,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       screen: 2                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
       replan: 1                # frames of the chosen window applied before planning again
       replan_margin: null      # ... those after the first only while predicted within this fraction of the limits
+      widen_margin: null       # steps starting with the object beyond this fraction of the limits: more samples
 """
 
 from __future__ import annotations
@@ -142,7 +144,8 @@ class SamplingOptions:
         replan: frames of the chosen window applied before planning again (step 5; at most ``horizon``;
             1 on frames re-planned after a back-up).  replan_margin: frames after the first applied only while
             the chosen candidate predicted the object within this fraction of the strict limits (step 5;
-            None: always).
+            None: always).  widen_margin: steps that start with the object beyond this fraction of the strict
+            limits sample ``backtrack_samples`` x the windows (step 2; None: never).
     """
 
     samples: int
@@ -169,6 +172,7 @@ class SamplingOptions:
     screen: int = 1
     replan: int = 1
     replan_margin: float | None = None
+    widen_margin: float | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -196,9 +200,10 @@ class SamplingOptions:
         for name in ("kinematic_alternative", "backtrack_copies"):
             if not isinstance(getattr(self, name), bool):
                 raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
-        m = self.replan_margin
-        if m is not None and not (_is_number(m) and m > 0):
-            raise QuasisimError(f"sampling option 'replan_margin' must be null or a finite number > 0, got {m!r}")
+        for name in ("replan_margin", "widen_margin"):
+            m = getattr(self, name)
+            if m is not None and not (_is_number(m) and m > 0):
+                raise QuasisimError(f"sampling option '{name}' must be null or a finite number > 0, got {m!r}")
         if self.mode not in MODES:
             raise choice_error("sampling mode", self.mode, MODES)
         if not (_is_number(self.temperature) and self.temperature > 0):
@@ -529,7 +534,8 @@ def _control_loop(
     bar = tqdm(total=T - 1, desc="sampling", unit="frame", disable=not progress, leave=False)
     t = 0
     while t < T - 1:
-        step_opts = wide if widened[t] else opts
+        strays = bool(frames) and _limit_fraction(frames[-1], ref_pos[t], ref_quat[t]) > (opts.widen_margin or math.inf)
+        step_opts = wide if widened[t] or strays else opts
         w = slice(t + 1, t + H + 1)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         cost = functools.partial(
@@ -681,7 +687,13 @@ def _calm(
     return max(float(trans), float(rot)) < margin
 
 
+def _limit_fraction(obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray) -> float:
+    """The larger of the object's translation and rotation errors in ``obs`` against its reference pose (3,),
+    (4,), as a fraction of the strict limits (above 1: over)."""
+    trans, rot = strict_fractions(obs["obj_pos"], obs["obj_quat"], ref_pos, ref_quat)
+    return max(float(trans), float(rot))
+
+
 def _within_limits(obs: Observation, ref_pos: np.ndarray, ref_quat: np.ndarray) -> bool:
     """Whether the object of ``obs`` is within the strict limits of its reference pose (3,), (4,)."""
-    trans, rot = strict_fractions(obs["obj_pos"], obs["obj_quat"], ref_pos, ref_quat)
-    return max(float(trans), float(rot)) <= 1.0
+    return _limit_fraction(obs, ref_pos, ref_quat) <= 1.0
