@@ -102,6 +102,8 @@ def _replay(scene, q):
         ("replan_margin", float("inf"), "replan_margin"),
         ("replan_margin", "0.5", "replan_margin"),
         ("widen_margin", -1.0, "widen_margin"),
+        ("backtrack_retries", -1, "backtrack_retries"),
+        ("backtrack_strict_weight", -0.5, "backtrack_strict_weight"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -200,15 +202,30 @@ def test_back_up_bookkeeping_survives_chained_back_ups() -> None:
     once raised KeyError); without a back-up the states older than t - 2 backtrack are released."""
     from quasisim.method.sampling import _kept_states
 
-    kept = list(range(40, 51))  # after frame 50: frames 40..50 (backtrack 5)
-    back, drop = _kept_states(kept, 50, 45, 5)
+    kept = list(range(40, 51))  # after frame 50: frames 40..50 (backtrack 5: 10 frames kept)
+    back, drop = _kept_states(kept, 50, 45, 10)
     assert back == 45 and drop == [46, 47, 48, 49, 50]
     kept = [k for k in kept if k not in drop] + [46]
-    back, drop = _kept_states(kept, 46, 41, 5)
+    back, drop = _kept_states(kept, 46, 41, 10)
     assert back == 41 and drop == [42, 43, 44, 45, 46]
-    back, drop = _kept_states([40, 41, 42], 42, 37, 5)
+    back, drop = _kept_states([40, 41, 42], 42, 37, 10)
     assert back == 40 and drop == [41, 42]
-    assert _kept_states(list(range(30, 42)), 41, None, 5) == (None, [30])
+    assert _kept_states(list(range(30, 42)), 41, None, 10) == (None, [30])
+
+
+def test_a_frame_that_leaves_the_limits_again_backs_up_further() -> None:
+    """Step 6's choice: the first back-up from frame 50 goes ``backtrack`` frames back, a retry from the same
+    frame ``backtrack`` further; past ``backtrack_retries`` or the clip's budget, none."""
+    from quasisim.method.sampling import _back_up_to
+
+    opts = dataclasses.replace(OPTS, backtrack=5, backtrack_budget=3, backtrack_retries=1)
+    assert _back_up_to(50, True, opts, {}) == 45
+    assert _back_up_to(50, True, opts, {50: 1}) == 40
+    assert _back_up_to(50, True, opts, {50: 2}) is None  # one retry only
+    assert _back_up_to(50, False, opts, {}) is None  # on track
+    assert _back_up_to(50, True, opts, {20: 2, 30: 1}) is None  # the budget is spent
+    assert _back_up_to(7, True, opts, {7: 1}) == 1  # not before frame 1
+    assert _back_up_to(50, True, dataclasses.replace(opts, backtrack_retries=0), {50: 1}) is None
 
 
 def test_robust_scores_average_the_copies() -> None:
@@ -561,6 +578,41 @@ def test_replanning_within_a_margin_plans_afresh_where_the_object_nears_the_limi
         applied = nxt - t  # frames this plan applied: the first, then while calm (up to 3)
         assert calm[1:applied].all()
         assert applied == n or not calm[applied]
+
+
+def test_retried_back_ups_reach_further_and_still_replay_exactly(real) -> None:
+    """With zero noise every re-planned frame is the plan again, so a frame that left the limits leaves them
+    again: with ``backtrack_retries`` 1 the loop backs up a second time from it, further back (more back-ups
+    and more physics steps than without), and the run is still the plan's exact replay."""
+    demo, plan, scene = real
+    opts = dataclasses.replace(ZERO, backtrack=3, backtrack_budget=100)  # a budget never spent
+    once = run_sampling(demo, scene, plan, opts, W, progress=False)
+    twice = run_sampling(demo, scene, plan, dataclasses.replace(opts, backtrack_retries=1), W, progress=False)
+    assert 1 <= once.backups < twice.backups <= 2 * once.backups
+    assert twice.n_physics_steps > once.n_physics_steps
+    np.testing.assert_array_equal(twice.q_targets, plan)
+    np.testing.assert_allclose(twice.rollout.object_pos, _replay(scene, plan).object_pos, atol=1e-9)
+
+
+def test_re_planned_frames_can_weigh_the_strict_limits(real) -> None:
+    """``backtrack_strict_weight``: the hinge on the strict limits at that weight only on frames re-planned
+    after a back-up. Weight 0 is the default (strict_weight 0) exactly; a heavy weight applies the same
+    frames up to the first back-up's frame, chooses other windows after it, and is still a replay of what it
+    applied."""
+    from quasisim.method.sampling import Transitions
+
+    demo, plan, scene = real
+    opts = dataclasses.replace(OPTS, backtrack=3, backtrack_budget=2)
+    kept = Transitions()
+    base = run_sampling(demo, scene, plan, opts, W, progress=False, transitions=kept)
+    zero = run_sampling(demo, scene, plan, dataclasses.replace(opts, backtrack_strict_weight=0.0), W, progress=False)
+    np.testing.assert_array_equal(zero.q_targets, base.q_targets)
+    heavy = run_sampling(demo, scene, plan, dataclasses.replace(opts, backtrack_strict_weight=10.0), W, progress=False)
+    frames = np.array([int(r["frame"]) for r in kept.steps])
+    first_back = int(frames[1:][np.diff(frames) < 0][0])  # the frame the first back-up returned to
+    np.testing.assert_array_equal(heavy.q_targets[: first_back + 1], base.q_targets[: first_back + 1])
+    assert not np.array_equal(heavy.q_targets, base.q_targets)
+    np.testing.assert_allclose(_replay(scene, heavy.q_targets).object_pos, heavy.rollout.object_pos, atol=1e-9)
 
 
 def test_steps_that_start_with_the_object_astray_sample_more(real) -> None:

@@ -47,7 +47,10 @@ At every control frame ``t`` of a clip with ``T`` frames:
 6. Backing up (``backtrack`` > 0): when the frame just applied leaves the strict limits, the target is put
    back to its saved state ``backtrack`` frames earlier (at least frame 1) and those frames are planned
    again with ``backtrack_samples`` times the samples, around the plan chosen so far; at most
-   ``backtrack_budget`` times per clip, once per failing frame.
+   ``backtrack_budget`` times per clip. A frame that leaves the limits again after a back-up from it backs
+   up once more, ``backtrack`` frames further back each time, up to ``backtrack_retries`` times (0: once per
+   failing frame). With ``backtrack_strict_weight`` the re-planned frames' window cost holds the hinge of
+   step 4 at that weight instead of ``strict_weight``, so the re-planning aims at the limits it left.
 7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
    (:func:`quasisim.eval.robust.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
    ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
@@ -83,6 +86,8 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       backtrack: 5             # frames to back up when a frame leaves the strict limits (0: never)
       backtrack_samples: 4     # samples multiplier while re-planning those frames
       backtrack_budget: 6      # back-ups per clip at most
+      backtrack_retries: 0     # further back-ups from a frame that leaves the limits again (0: none)
+      backtrack_strict_weight: null  # the hinge's weight on re-planned frames (null: strict_weight)
       robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
@@ -135,7 +140,10 @@ class SamplingOptions:
             the kinematic retarget at every frame (no effect when the plan is the kinematic retarget).
         strict_weight, strict_margin: the hinge on the strict limits in the window cost (step 4; weight 0: none).
         backtrack, backtrack_samples, backtrack_budget: backing up when a frame leaves the strict limits
-            (step 6; 0 frames: never).
+            (step 6; 0 frames: never).  backtrack_retries: further back-ups from a frame that leaves the
+            limits again, each ``backtrack`` frames further back (step 6; 0: none).
+            backtrack_strict_weight: the hinge's weight on frames re-planned after a back-up (step 6;
+            None: ``strict_weight``).
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
@@ -173,6 +181,8 @@ class SamplingOptions:
     replan: int = 1
     replan_margin: float | None = None
     widen_margin: float | None = None
+    backtrack_retries: int = 0
+    backtrack_strict_weight: float | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -183,7 +193,7 @@ class SamplingOptions:
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
-        for name in ("backtrack", "backtrack_budget", "robust_copies"):
+        for name in ("backtrack", "backtrack_budget", "robust_copies", "backtrack_retries"):
             v = getattr(self, name)
             if not _is_int(v) or v < 0:
                 raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
@@ -200,6 +210,11 @@ class SamplingOptions:
         for name in ("kinematic_alternative", "backtrack_copies"):
             if not isinstance(getattr(self, name), bool):
                 raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
+        w = self.backtrack_strict_weight
+        if w is not None and not (_is_number(w) and w >= 0):
+            raise QuasisimError(
+                f"sampling option 'backtrack_strict_weight' must be null or a finite number >= 0, got {w!r}"
+            )
         for name in ("replan_margin", "widen_margin"):
             m = getattr(self, name)
             if m is not None and not (_is_number(m) and m > 0):
@@ -529,7 +544,12 @@ def _control_loop(
     frames: list[Observation] = []
     saved: dict[int, list[object]] = {}  # frame -> the target's and the copies' states after it (for backing up)
     widened = np.zeros(T, bool)  # frames planned again with more samples after a back-up
-    backed_from: set[int] = set()
+    backed_from: dict[int, int] = {}  # frame -> back-ups from it
+    behind = opts.backtrack * (2 + opts.backtrack_retries)  # frames of saved states kept behind the current one
+    rehinge = (
+        opts.strict_weight if opts.backtrack_strict_weight is None else opts.backtrack_strict_weight,
+        opts.strict_margin,
+    )
     t0 = time.perf_counter()
     bar = tqdm(total=T - 1, desc="sampling", unit="frame", disable=not progress, leave=False)
     t = 0
@@ -540,7 +560,8 @@ def _control_loop(
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         cost = functools.partial(
             window_costs, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], frame_w=frame_w,
-            weights=weights, base_cols=base_cols, strict=(opts.strict_weight, opts.strict_margin),
+            weights=weights, base_cols=base_cols,
+            strict=rehinge if widened[t] else (opts.strict_weight, opts.strict_margin),
         )  # fmt: skip
         pre = None  # step 2's pre-screen: the cost of windows with the hands at their targets
         if kp is not None:
@@ -592,12 +613,12 @@ def _control_loop(
             back = _back_up_to(t, off, opts, backed_from)
             if opts.backtrack > 0:  # the states a back-up may return to
                 saved[t] = [tg.save_state() for tg in every]
-                back, drop = _kept_states(sorted(saved), t, back, opts.backtrack)
+                back, drop = _kept_states(sorted(saved), t, back, behind)
                 for k in drop:
                     _release(every, saved.pop(k))
             bar.update(1)
             if back is not None:
-                backed_from.add(t)
+                backed_from[t] = backed_from.get(t, 0) + 1
                 for tg, state in zip(every, saved[back], strict=True):
                     tg.restore_state(state)
                 del frames[back + 1 :]
@@ -611,7 +632,9 @@ def _control_loop(
     wall = time.perf_counter() - t0
     if transitions is not None:
         transitions.finish(applied, frames)
-    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(backed_from))
+    return SampleResult(
+        applied, target.recorded(frames, wall), losses, wall, steps, pred_err, sum(backed_from.values())
+    )
 
 
 def _draw(
@@ -640,12 +663,12 @@ def _score_in_copies(
     return robust_scores(costs, [cost(wins[top], p) for p in preds], top), sum(p.n_steps for p in preds)
 
 
-def _kept_states(frames: list[int], t: int, back: int | None, backtrack: int) -> tuple[int | None, list[int]]:
+def _kept_states(frames: list[int], t: int, back: int | None, keep: int) -> tuple[int | None, list[int]]:
     """The back-up bookkeeping after frame ``t``'s state is saved (``frames``: the frames with a saved state):
     the frame to go back to (``back``, or the oldest frame kept when chained back-ups reach past it) and the
-    saved frames to release: without a back-up those older than ``t - 2 backtrack``, with one those after it."""
+    saved frames to release: without a back-up those older than ``t - keep``, with one those after it."""
     if back is None:
-        return None, [k for k in frames if k < t - 2 * backtrack]
+        return None, [k for k in frames if k < t - keep]
     back = max(back, frames[0])
     return back, [k for k in frames if k > back]
 
@@ -665,11 +688,14 @@ def _recorded(block: int, n: int, blocks: int, best: int | None) -> np.ndarray:
     return keep
 
 
-def _back_up_to(t: int, off: bool, opts: SamplingOptions, backed_from: set[int]) -> int | None:
-    """The frame to go back to when frame ``t`` left the strict limits (``off``; step 6), or None."""
-    if not off or opts.backtrack == 0 or len(backed_from) >= opts.backtrack_budget or t in backed_from or t < 2:
+def _back_up_to(t: int, off: bool, opts: SamplingOptions, backed_from: dict[int, int]) -> int | None:
+    """The frame to go back to when frame ``t`` left the strict limits (``off``; step 6), or None:
+    ``backtrack`` frames back, ``backtrack`` further for each back-up from ``t`` before (``backed_from``:
+    frame -> back-ups from it), within ``backtrack_retries`` retries and the clip's ``backtrack_budget``."""
+    done = backed_from.get(t, 0)
+    if not off or opts.backtrack == 0 or sum(backed_from.values()) >= opts.backtrack_budget or t < 2:
         return None
-    return max(1, t - opts.backtrack)
+    return None if done > opts.backtrack_retries else max(1, t - (done + 1) * opts.backtrack)
 
 
 def _calm(
