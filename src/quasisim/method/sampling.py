@@ -85,8 +85,8 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       strict_margin: 0.75      # ... from this fraction of the limits
       backtrack: 5             # frames to back up when a frame leaves the strict limits (0: never)
       backtrack_samples: 4     # samples multiplier while re-planning those frames
-      backtrack_budget: 6      # back-ups per clip at most
-      backtrack_retries: 0     # further back-ups from a frame that leaves the limits again (0: none)
+      backtrack_budget: 12     # back-ups per clip at most
+      backtrack_retries: 1     # further back-ups from a frame that leaves the limits again (0: none)
       backtrack_strict_weight: null  # the hinge's weight on re-planned frames (null: strict_weight)
       robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
