@@ -17,7 +17,9 @@ from quasisim.method.sampling import (
     Prediction,
     SamplingOptions,
     copy_scenes,
+    cost_bounds,
     knot_basis,
+    pruner,
     robust_scores,
     run_sampling,
     sample_windows,
@@ -104,6 +106,9 @@ def _replay(scene, q):
         ("widen_margin", -1.0, "widen_margin"),
         ("backtrack_retries", -1, "backtrack_retries"),
         ("backtrack_strict_weight", -0.5, "backtrack_strict_weight"),
+        ("prune_frames", -1, "prune_frames"),
+        ("prune_keep", 0.0, "prune_keep"),
+        ("prune_keep", 1.5, "prune_keep"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -659,3 +664,58 @@ def test_replanning_every_few_frames_applies_what_was_predicted(real) -> None:
     assert three.prediction_error.max() <= 1e-9 and three.backups == 0
     np.testing.assert_allclose(_replay(scene, three.q_targets).object_pos, three.rollout.object_pos, atol=1e-9)
     assert not np.array_equal(three.q_targets, every.q_targets)
+
+
+def test_cost_bounds_never_exceed_the_cost_and_reach_it_with_every_frame() -> None:
+    """cost_bounds from the first F frames: at most the window cost (the later frames' errors set to 0, every
+    term a mean of non-negative per-frame errors), rising with F, the cost itself at F = H; the pruner keeps
+    the ceil(prune_keep N) lowest bounds and is off at 0 frames or at the horizon."""
+    rng = np.random.default_rng(0)
+    N, H, K = 6, 4, 5
+    ref_pos, ref_kp = rng.normal(size=(H, 3)), rng.normal(size=(H, K, 3))
+    ref_quat = np.tile([1.0, 0.0, 0.0, 0.0], (H, 1))
+    quat = rng.normal(size=(N, H, 4))
+    pred = Prediction(
+        qpos=np.zeros((N, H, 8)), obj_pos=ref_pos + rng.normal(0, 0.05, (N, H, 3)),
+        obj_quat=quat / np.linalg.norm(quat, axis=-1, keepdims=True), keypoints=ref_kp + rng.normal(0, 0.05, (N, H, K, 3)),
+        n_steps=0,
+    )  # fmt: skip
+    wins = rng.normal(0, 0.1, (N, H + 1, 8))
+
+    def cost(w: np.ndarray, p: Prediction) -> np.ndarray:
+        return window_costs(w, p, ref_pos, ref_quat, ref_kp, np.ones(H), W, strict=(0.5, 0.75))
+
+    def head(f: int) -> Prediction:
+        return dataclasses.replace(
+            pred, obj_pos=pred.obj_pos[:, :f], obj_quat=pred.obj_quat[:, :f], keypoints=pred.keypoints[:, :f]
+        )
+
+    full = cost(wins, pred)
+    bounds = np.stack([cost_bounds(head(f), wins, ref_pos, ref_quat, ref_kp, cost) for f in range(1, H + 1)])
+    assert (np.diff(bounds, axis=0) >= -1e-7).all() and (bounds[:-1] <= full + 1e-7).all()
+    np.testing.assert_allclose(bounds[-1], full, rtol=1e-6)
+    assert (bounds[0] < full - 1e-4).all()  # a real bound, not the cost
+    opts = dataclasses.replace(OPTS, prune_frames=2, prune_keep=0.4)
+    p = pruner(opts, wins, lambda h, w: cost_bounds(h, w, ref_pos, ref_quat, ref_kp, cost))
+    assert p is not None and p.frames == 2
+    np.testing.assert_array_equal(np.sort(p.keep(head(2))), np.sort(np.argsort(bounds[1])[:3]))
+    assert pruner(OPTS, wins, lambda h, w: full) is None  # prune_frames 0: off
+    assert pruner(dataclasses.replace(opts, prune_frames=H), wins, lambda h, w: full) is None
+
+
+def test_pruned_sampling_rolls_out_fewer_frames_and_still_replays_exactly(real) -> None:
+    """With pruning the loop simulates fewer physics steps, chooses only candidates that ran their whole
+    window, and its recorded run is still the exact replay of the targets it applied; recording transitions
+    rolls every window out in full (the run equals the unpruned one)."""
+    from quasisim.method.sampling import Transitions
+
+    demo, plan, scene = real
+    opts = dataclasses.replace(OPTS, backtrack=3)
+    plain = run_sampling(demo, scene, plan, opts, W, progress=False)
+    pruned_opts = dataclasses.replace(opts, prune_frames=1, prune_keep=0.5)
+    pruned = run_sampling(demo, scene, plan, pruned_opts, W, progress=False)
+    assert pruned.n_physics_steps < 0.85 * plain.n_physics_steps
+    assert np.isfinite(pruned.window_loss).all()
+    np.testing.assert_allclose(pruned.rollout.object_pos, _replay(scene, pruned.q_targets).object_pos, atol=1e-9)
+    recorded = run_sampling(demo, scene, plan, pruned_opts, W, progress=False, transitions=Transitions())
+    np.testing.assert_array_equal(recorded.q_targets, plain.q_targets)

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from helpers import box_object, scene_with, smooth_targets
 from quasisim import targets
-from quasisim.targets import TARGETS, Target, make_target, pd_gains, pd_schedule
+from quasisim.targets import TARGETS, Prediction, Prune, Target, make_target, pd_gains, pd_schedule
 
 
 def _installed(name: str) -> bool:
@@ -233,6 +233,39 @@ def test_rollout_windows_match_advancing_by_hand(backend: str, shadow) -> None:
                 np.testing.assert_allclose(pred.obj_quat[0, f], o["obj_quat"], atol=1e-9)
                 np.testing.assert_allclose(pred.keypoints[0, f], o["keypoints"][metric], atol=1e-9)
             assert np.abs(pred.qpos[1] - pred.qpos[0]).max() > 1e-4  # the candidates differ
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_pruned_windows_go_on_only_for_the_kept(backend: str, shadow) -> None:
+    """With a :class:`Prune`, every candidate runs its first frames as without it; ``keep`` sees those frames
+    and only the candidates it returns run the rest, as an unbroken rollout does (MuJoCo: up to the solver's
+    warm start); the others' later frames are NaN, and the physics steps count what ran."""
+    sc, q = _contact_scene(shadow)
+    rng = np.random.default_rng(4)
+    wins = np.repeat(q[None, 1:6], 4, axis=0)
+    wins[1:, 1:] += rng.normal(0.0, 0.01, wins[1:, 1:].shape)
+    seen = []
+
+    def keep(head: Prediction) -> np.ndarray:
+        seen.append(head)
+        return np.array([3, 1])
+
+    with make_target(backend, sc, threads=2) as tgt:
+        tgt.reset(q[0], None)
+        tgt.advance(q[0], q[1])
+        before = tgt.observe()
+        full = tgt.rollout_windows(wins)
+        pruned = tgt.rollout_windows(wins, None, Prune(2, keep))
+        _same(tgt.observe(), before)  # left where it was
+    (head,) = seen
+    assert head.obj_pos.shape == (4, 2, 3)
+    np.testing.assert_array_equal(head.obj_pos, full.obj_pos[:, :2])
+    np.testing.assert_array_equal(pruned.qpos[:, :2], full.qpos[:, :2])
+    assert np.isnan(pruned.obj_pos[[0, 2], 2:]).all() and np.isnan(pruned.keypoints[[0, 2], 2:]).all()
+    for k in ("qpos", "obj_pos", "keypoints"):
+        np.testing.assert_allclose(getattr(pruned, k)[[1, 3]], getattr(full, k)[[1, 3]], rtol=0, atol=1e-6, err_msg=k)
+    extra = 1 if backend == "mujoco" else 0  # mujoco.rollout runs one more step per rollout (lagging sensors)
+    assert pruned.n_steps == 4 * (2 * tgt.substeps + extra) + 2 * (2 * tgt.substeps + extra)
 
 
 def _rot(quat_wxyz: np.ndarray) -> Rotation:

@@ -119,7 +119,7 @@ from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
 from quasisim.files import save_npz_atomic
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
-from quasisim.targets import Observation, Prediction, Target, TargetRollout, make_target
+from quasisim.targets import Observation, Prediction, Prune, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
 
 MODES = ("predictive", "mppi")
@@ -154,6 +154,8 @@ class SamplingOptions:
             the chosen candidate predicted the object within this fraction of the strict limits (step 5;
             None: always).  widen_margin: steps that start with the object beyond this fraction of the strict
             limits sample ``backtrack_samples`` x the windows (step 2; None: never).
+        prune_frames, prune_keep: every candidate runs the first ``prune_frames`` frames of its window, then
+            only the ``prune_keep`` fraction with the lowest cost bound goes on (step 3; 0 frames: no pruning).
     """
 
     samples: int
@@ -183,6 +185,8 @@ class SamplingOptions:
     widen_margin: float | None = None
     backtrack_retries: int = 0
     backtrack_strict_weight: float | None = None
+    prune_frames: int = 0
+    prune_keep: float = 0.5
 
     def __post_init__(self) -> None:
         self.validate()
@@ -193,7 +197,7 @@ class SamplingOptions:
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
-        for name in ("backtrack", "backtrack_budget", "robust_copies", "backtrack_retries"):
+        for name in ("backtrack", "backtrack_budget", "robust_copies", "backtrack_retries", "prune_frames"):
             v = getattr(self, name)
             if not _is_int(v) or v < 0:
                 raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
@@ -219,6 +223,8 @@ class SamplingOptions:
             m = getattr(self, name)
             if m is not None and not (_is_number(m) and m > 0):
                 raise QuasisimError(f"sampling option '{name}' must be null or a finite number > 0, got {m!r}")
+        if not (_is_number(self.prune_keep) and 0 < self.prune_keep <= 1):
+            raise QuasisimError(f"sampling option 'prune_keep' must be a number in (0, 1], got {self.prune_keep!r}")
         if self.mode not in MODES:
             raise choice_error("sampling mode", self.mode, MODES)
         if not (_is_number(self.temperature) and self.temperature > 0):
@@ -348,6 +354,38 @@ def kinematic_costs(
         keypoints=kp(wins[:, 1:]), n_steps=0,
     )  # fmt: skip
     return cost(wins, pred)
+
+
+def cost_bounds(
+    head: Prediction, wins: np.ndarray, ref_pos: np.ndarray, ref_quat: np.ndarray, ref_kp: np.ndarray,
+    cost: Callable[[np.ndarray, Prediction], np.ndarray],
+) -> np.ndarray:  # fmt: skip
+    """(N,) lower bounds of the window cost ``cost`` of candidate windows ``wins`` (N, H + 1, D) from their
+    rollouts' first F frames ``head``: the cost with the object and the keypoints of frames F+1..H on their
+    references (``ref_pos`` (H, 3), ``ref_quat`` (H, 4), ``ref_kp`` (H, K, 3)). Every term of step 4 is a
+    mean of non-negative per-frame errors (smoothness needs no rollout), so the later frames can only add."""
+    N, F = len(wins), head.obj_pos.shape[1]
+
+    def filled(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, np.broadcast_to(ref[F:], (N, *ref[F:].shape))], axis=1)
+
+    pred = Prediction(
+        qpos=wins[:, 1:], obj_pos=filled(head.obj_pos, ref_pos), obj_quat=filled(head.obj_quat, ref_quat),
+        keypoints=filled(head.keypoints, ref_kp), n_steps=0,
+    )  # fmt: skip
+    return cost(wins, pred)
+
+
+def pruner(
+    opts: SamplingOptions, wins: np.ndarray, bound: Callable[[Prediction, np.ndarray], np.ndarray]
+) -> Prune | None:
+    """Step 3's early exit (None when ``opts.prune_frames`` is 0 or not below the horizon): after
+    ``prune_frames`` frames the ``ceil(prune_keep N)`` candidates with the lowest ``bound(head, wins)``
+    (:func:`cost_bounds`) go on."""
+    if opts.prune_frames == 0 or opts.prune_frames >= wins.shape[1] - 1:
+        return None
+    n = math.ceil(opts.prune_keep * len(wins))
+    return Prune(opts.prune_frames, lambda head: np.argsort(bound(head, wins), kind="stable")[:n])
 
 
 def screened(wins: np.ndarray, n: int, costs: np.ndarray) -> np.ndarray:
@@ -573,8 +611,12 @@ def _control_loop(
         qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
         # the state the windows start from: the frame just observed (before the first step, the reset state)
         start = (frames[-1] if frames else target.observe()) if transitions is not None else None
-        pred = target.rollout_windows(wins, qd0)
+        bound = functools.partial(cost_bounds, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], cost=cost)
+        prune = pruner(opts, wins, bound) if transitions is None else None  # a recording keeps every frame
+        pred = target.rollout_windows(wins, qd0, prune)
         costs = cost(wins, pred)
+        if prune is not None:  # the candidates that stopped early are never chosen
+            costs = np.where(np.isnan(pred.obj_pos[:, -1, 0]), np.inf, costs)
         live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
         score, n_copy_steps = _score_in_copies(live, wins, qd0, costs, cost, opts.robust_top)
         steps += n_copy_steps

@@ -19,6 +19,7 @@ from quasisim.targets.base import (
     Observation,
     PDGains,
     Prediction,
+    Prune,
     Target,
     TargetRollout,
     feed_forward,
@@ -34,7 +35,7 @@ BACKENDS: dict[str, str] = {
 TARGETS = tuple(BACKENDS)
 
 __all__ = [
-    "BACKENDS", "MAX_HAND_SPEED", "MAX_OBJECT_SPEED", "OBS_KEYS", "TARGETS", "Observation", "PDGains", "Prediction", "Target",
+    "BACKENDS", "MAX_HAND_SPEED", "MAX_OBJECT_SPEED", "OBS_KEYS", "TARGETS", "Observation", "PDGains", "Prediction", "Prune", "Target",
     "TargetRollout", "feed_forward", "make_target", "pd_gains", "pd_schedule",
 ]  # fmt: skip
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -135,6 +136,20 @@ class Prediction:
     qvel: np.ndarray | None = None
     obj_vel: np.ndarray | None = None
     obj_angvel: np.ndarray | None = None
+
+
+class Prune(NamedTuple):
+    """Early exit for candidate windows (:meth:`Target.rollout_windows`): every candidate runs the first
+    ``frames`` frames of its window; ``keep`` gets their :class:`Prediction` of those frames (N candidates,
+    ``frames`` frames) and returns the indices of the candidates that run the rest."""
+
+    frames: int
+    keep: Callable[[Prediction], np.ndarray]
+
+
+def _head(out: dict[str, np.ndarray], frames: int) -> Prediction:
+    """The :class:`Prediction` of the first ``frames`` frames of per-candidate arrays ``out`` (N, H, ...)."""
+    return Prediction(**{k: v[:, :frames] for k, v in out.items()}, n_steps=0)
 
 
 # ---- the PD law ---------------------------------------------------------------------------------------
@@ -289,28 +304,46 @@ class Target(abc.ABC):
             extras=self.extras(),
         )
 
-    def rollout_windows(self, wins: np.ndarray, qd0: np.ndarray | None = None) -> Prediction:
+    def rollout_windows(
+        self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None
+    ) -> Prediction:
         """Roll candidate windows (N, H + 1, D) out from the current state, each for H frames, and leave the
         state as it was; ``qd0`` (N, D) replaces each candidate's initial hand velocity (its hands then start
-        at the window's frame 0). Here: one candidate after the other from :meth:`save_state`."""
+        at the window's frame 0). With ``prune`` (:class:`Prune`), every candidate runs ``prune.frames``
+        frames, then only those ``prune.keep`` picks run on (the others' later frames are NaN). Here: one
+        candidate after the other from :meth:`save_state`."""
         N, H, D = len(wins), wins.shape[1] - 1, wins.shape[2]
         metric = np.flatnonzero(self.scene.kp_metric)
         shapes = {"qpos": (D,), "obj_pos": (3,), "obj_quat": (4,), "keypoints": (len(metric), 3), "qvel": (D,),
                   "obj_vel": (3,), "obj_angvel": (3,)}  # fmt: skip
-        out = {k: np.zeros((N, H, *s)) for k, s in shapes.items()}
-        state = self.save_state()
-        for i in range(N):
-            self.restore_state(state)
-            if qd0 is not None:
-                self.set_hands(wins[i, 0], qd0[i])
-            for f in range(H):
+        out = {k: np.full((N, H, *s), np.nan) for k, s in shapes.items()}
+        split = H if prune is None else min(max(prune.frames, 1), H)
+
+        def run(i: int, frames: range) -> None:
+            for f in frames:
                 self.advance(wins[i, f], wins[i, f + 1])
                 o = self.observe()
                 for k in shapes:
                     out[k][i, f] = o[k][metric] if k == "keypoints" else o[k]
+
+        state = self.save_state()
+        heads = []  # with pruning: each candidate's state after the first `split` frames
+        for i in range(N):
+            self.restore_state(state)
+            if qd0 is not None:
+                self.set_hands(wins[i, 0], qd0[i])
+            run(i, range(split))
+            if prune is not None:
+                heads.append(self.save_state())
+        kept = np.arange(N) if prune is None else np.asarray(prune.keep(_head(out, split)), dtype=int)
+        for i, head in enumerate(heads):
+            if i in kept:
+                self.restore_state(head)
+                run(i, range(split, H))
+            self.release_state(head)
         self.restore_state(state)
         self.release_state(state)
-        return Prediction(**out, n_steps=N * H * self.substeps)
+        return Prediction(**out, n_steps=(N * split + len(kept) * (H - split)) * self.substeps)
 
     def judge(self, demo: Demo, q_targets: np.ndarray, weights: Weights) -> float:
         """The whole-clip objective J of :meth:`rollout` of ``q_targets`` (T, D) against ``demo``

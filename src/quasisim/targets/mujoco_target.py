@@ -23,6 +23,7 @@ on a copy of the scene with ``framepos`` sensors on the metric keypoint sites.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import mujoco
@@ -31,7 +32,7 @@ import numpy as np
 from quasisim.assets.hand import HandModel
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
-from quasisim.targets.base import Observation, Prediction, Target, pd_gains, pd_schedule
+from quasisim.targets.base import Observation, Prediction, Prune, Target, pd_gains, pd_schedule
 from quasisim.targets.scene import Scene
 
 HAND_PREFIX = "hand/"  # the one hand of a one-hand scene (Scene.prefixes: two hands are rhand/ and lhand/)
@@ -313,6 +314,21 @@ class _WindowModel:
         self.pool = rollout.Rollout(nthread=threads if threads > 1 else 0)
 
 
+def _joined(head: Prediction, tail: Prediction, kept: np.ndarray, frames: int) -> Prediction:
+    """Every candidate's first frames (``head``, N candidates) followed by the later frames of the candidates
+    ``kept`` (``tail``); the others' later frames NaN. ``frames``: the window's frames in all."""
+    parts = {}
+    for f in dataclasses.fields(Prediction):
+        a, b = getattr(head, f.name), getattr(tail, f.name)
+        if f.name == "n_steps" or a is None:
+            continue
+        full = np.full((len(a), frames, *a.shape[2:]), np.nan)
+        full[:, : a.shape[1]] = a
+        full[kept, a.shape[1] :] = b
+        parts[f.name] = full
+    return Prediction(**parts, n_steps=head.n_steps + tail.n_steps)
+
+
 class MujocoTarget(Target):
     """Roll PD targets out in MuJoCo. See the module docstring for the set-up.
 
@@ -386,36 +402,58 @@ class MujocoTarget(Target):
         d.qpos[mm.hand_qpos] = q
         d.qvel[mm.hand_dof] = qd
 
-    def rollout_windows(self, wins: np.ndarray, qd0: np.ndarray | None = None) -> Prediction:
+    def rollout_windows(
+        self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None
+    ) -> Prediction:
         """The candidate windows (N, H + 1, D) rolled out from the run's current state with ``mujoco.rollout``
         on the sensor model (``mj_getState(..., mjSTATE_FULLPHYSICS)`` and ``qacc_warmstart`` copied, the
         controls of :func:`pd_schedule`); with ``qd0`` (N, D) each candidate's hands start at its window's
-        frame 0 with velocity ``qd0``, as in :meth:`Target.rollout_windows`."""
+        frame 0 with velocity ``qd0``, as in :meth:`Target.rollout_windows`. With ``prune``, the candidates
+        ``prune.keep`` picks go on from their states after ``prune.frames`` frames, with the solver's warm
+        start of the step (``mujoco.rollout`` does not return it), so their later frames may differ from an
+        unbroken rollout's in the solver's last digits."""
         if self._windows is None:
             self._windows = _WindowModel(self.scene, self.mm.model, self.threads)
-        wm, mm, d = self._windows, self.mm, self._run()
-        N, H, n = len(wins), wins.shape[1] - 1, self.substeps
+        wm, mm = self._windows, self.mm
+        N, H = len(wins), wins.shape[1] - 1
         state = np.repeat(self.save_state()[0][None], N, axis=0)
         if qd0 is not None:
             state[:, wm.qpos_off + mm.hand_qpos] = wins[:, 0]
             state[:, wm.qvel_off + mm.hand_dof] = qd0
+        split = H if prune is None else min(max(prune.frames, 1), H)
+        out, ends = self._windows_from(state, wins[:, : split + 1])
+        n_steps = N * (split * self.substeps + 1)
+        if split < H:
+            kept = np.asarray(prune.keep(out), dtype=int)  # type: ignore[union-attr]
+            tail, _ = self._windows_from(ends[kept], wins[kept, split:])
+            out = _joined(out, tail, kept, H)
+            n_steps += len(kept) * ((H - split) * self.substeps + 1)
+        return dataclasses.replace(out, n_steps=n_steps)
+
+    def _windows_from(self, state: np.ndarray, wins: np.ndarray) -> tuple[Prediction, np.ndarray]:
+        """Windows (N, F + 1, D) rolled out from full-physics states (N, nstate) on the sensor model: their
+        :class:`Prediction` at frames 1..F and the states (N, nstate) after frame F."""
+        wm, mm, d = self._windows, self.mm, self._run()
+        assert wm is not None
+        N, F, n = len(wins), wins.shape[1] - 1, self.substeps
         pd, ff = pd_schedule(wins[:, :-1], wins[:, 1:], n, self.scene.fps)
-        ctrl = np.zeros((N, H * n + 1, wm.model.nu))  # one more step: sensors lag one step behind qpos
-        ctrl[:, :-1, mm.pd_act] = pd.reshape(N, H * n, -1)
+        ctrl = np.zeros((N, F * n + 1, wm.model.nu))  # one more step: sensors lag one step behind qpos
+        ctrl[:, :-1, mm.pd_act] = pd.reshape(N, F * n, -1)
         ctrl[:, :-1, mm.ff_act] = np.repeat(ff, n, axis=1)
         ctrl[:, -1] = ctrl[:, -2]
         warm = np.repeat(d.qacc_warmstart[None], N, axis=0)
         states, sens = wm.pool.rollout(wm.model, wm.datas, state, ctrl, initial_warmstart=warm)
-        ends = np.arange(1, H + 1) * n  # the state after frame f is step f n - 1; its sensors are step f n
+        ends = np.arange(1, F + 1) * n  # the state after frame f is step f n - 1; its sensors are step f n
         qpos = states[:, ends - 1, wm.qpos_off : wm.qpos_off + wm.model.nq]
         qvel = states[:, ends - 1, wm.qvel_off : wm.qvel_off + wm.model.nv]
         o, od = mm.obj_qpos, mm.obj_dof
         obj_vel, obj_angvel = object_twist(qpos[..., o + 3 : o + 7], qvel[..., od : od + 6], self.scene.obj.com)
-        return Prediction(
+        pred = Prediction(
             qpos=qpos[..., mm.hand_qpos], obj_pos=qpos[..., o : o + 3], obj_quat=qpos[..., o + 3 : o + 7],
-            keypoints=sens[:, ends].reshape(N, H, -1, 3), n_steps=N * (H * n + 1), qvel=qvel[..., mm.hand_dof],
+            keypoints=sens[:, ends].reshape(N, F, -1, 3), n_steps=N * (F * n + 1), qvel=qvel[..., mm.hand_dof],
             obj_vel=obj_vel, obj_angvel=obj_angvel,
         )  # fmt: skip
+        return pred, states[:, ends[-1] - 1]
 
     def extras(self) -> dict[str, Any]:
         return {"sim_warnings": self.warnings()}
