@@ -22,7 +22,12 @@ At every control frame ``t`` of a clip with ``T`` frames:
 3. roll every candidate out in the target from that state with the target's one PD schedule
    (:meth:`~quasisim.targets.base.Target.rollout_windows`, :func:`~quasisim.targets.base.pd_schedule`;
    MuJoCo: ``mujoco.rollout`` on a copy of the scene with ``framepos`` sensors on the metric keypoint sites;
-   PyBullet: one candidate after the other from ``restoreState``);
+   PyBullet: one candidate after the other from ``restoreState``). Pruning (``prune_frames`` > 0): every
+   candidate runs the first ``prune_frames`` frames of its window, and only the ``ceil(prune_keep N)`` with the
+   lowest lower bound of their window cost (:func:`cost_bounds`: step 4's cost with the later frames' errors
+   at 0) run the rest, continued from their own states (MuJoCo: with the step's solver warm start, which
+   ``mujoco.rollout`` does not return); the others are never chosen. A recorded run (``--record-transitions``)
+   rolls every window out in full;
 4. score each window with the MPC window objective (:func:`quasisim.optim.objective.window_costs`),
    evaluated on the target's states: mean over the window's frames of ``obj_pos |p - p_ref|`` (m),
    ``obj_rot (1 - |q . q_ref|)`` and ``hand`` x mean metric-keypoint distance (m), plus ``smooth`` x the
@@ -96,6 +101,8 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       replan: 1                # frames of the chosen window applied before planning again
       replan_margin: null      # ... those after the first only while predicted within this fraction of the limits
       widen_margin: null       # steps starting with the object beyond this fraction of the limits: more samples
+      prune_frames: 0          # frames every candidate runs before only the cheapest bounds go on (0: all run)
+      prune_keep: 0.5          # ... the fraction that goes on
 """
 
 from __future__ import annotations
