@@ -695,27 +695,34 @@ def test_cost_bounds_never_exceed_the_cost_and_reach_it_with_every_frame() -> No
     assert (np.diff(bounds, axis=0) >= -1e-7).all() and (bounds[:-1] <= full + 1e-7).all()
     np.testing.assert_allclose(bounds[-1], full, rtol=1e-6)
     assert (bounds[0] < full - 1e-4).all()  # a real bound, not the cost
-    opts = dataclasses.replace(OPTS, prune_frames=2, prune_keep=0.4)
+    opts = dataclasses.replace(OPTS, samples=2, prune_frames=2, prune_keep=0.4)
     p = pruner(opts, wins, lambda h, w: cost_bounds(h, w, ref_pos, ref_quat, ref_kp, cost))
     assert p is not None and p.frames == 2
     np.testing.assert_array_equal(np.sort(p.keep(head(2))), np.sort(np.argsort(bounds[1])[:3]))
+    p = pruner(dataclasses.replace(opts, samples=5), wins, lambda h, w: full)
+    assert p is not None and len(p.keep(head(2))) == 5  # at least one plan's samples go on
+    assert pruner(dataclasses.replace(opts, samples=6), wins, lambda h, w: full) is None  # all of them: no pruning
     assert pruner(OPTS, wins, lambda h, w: full) is None  # prune_frames 0: off
     assert pruner(dataclasses.replace(opts, prune_frames=H), wins, lambda h, w: full) is None
 
 
 def test_pruned_sampling_rolls_out_fewer_frames_and_still_replays_exactly(real) -> None:
-    """With pruning the loop simulates fewer physics steps, chooses only candidates that ran their whole
-    window, and its recorded run is still the exact replay of the targets it applied; recording transitions
-    rolls every window out in full (the run equals the unpruned one)."""
+    """With pruning (windows around the plan and around an alternative, so a step holds twice the samples)
+    the loop simulates fewer physics steps, chooses only candidates that ran their whole window, and its
+    recorded run is still the exact replay of the targets it applied; recording transitions rolls every window
+    out in full (the run equals the unpruned one)."""
     from quasisim.method.sampling import Transitions
 
     demo, plan, scene = real
-    opts = dataclasses.replace(OPTS, backtrack=3)
-    plain = run_sampling(demo, scene, plan, opts, W, progress=False)
+    opts = dataclasses.replace(OPTS, backtrack=0)  # the same steps with and without pruning
+    alt = (plan + 0.01,)
+    plain = run_sampling(demo, scene, plan, opts, W, progress=False, alternatives=alt)
     pruned_opts = dataclasses.replace(opts, prune_frames=1, prune_keep=0.5)
-    pruned = run_sampling(demo, scene, plan, pruned_opts, W, progress=False)
-    assert pruned.n_physics_steps < 0.85 * plain.n_physics_steps
+    pruned = run_sampling(demo, scene, plan, pruned_opts, W, progress=False, alternatives=alt)
+    assert pruned.n_physics_steps < 0.8 * plain.n_physics_steps  # a window: 1 + 3 / 2 of 4 frames
     assert np.isfinite(pruned.window_loss).all()
     np.testing.assert_allclose(pruned.rollout.object_pos, _replay(scene, pruned.q_targets).object_pos, atol=1e-9)
-    recorded = run_sampling(demo, scene, plan, pruned_opts, W, progress=False, transitions=Transitions())
+    recorded = run_sampling(
+        demo, scene, plan, pruned_opts, W, progress=False, alternatives=alt, transitions=Transitions()
+    )
     np.testing.assert_array_equal(recorded.q_targets, plain.q_targets)

@@ -23,8 +23,8 @@ At every control frame ``t`` of a clip with ``T`` frames:
    (:meth:`~quasisim.targets.base.Target.rollout_windows`, :func:`~quasisim.targets.base.pd_schedule`;
    MuJoCo: ``mujoco.rollout`` on a copy of the scene with ``framepos`` sensors on the metric keypoint sites;
    PyBullet: one candidate after the other from ``restoreState``). Pruning (``prune_frames`` > 0): every
-   candidate runs the first ``prune_frames`` frames of its window, and only the ``ceil(prune_keep N)`` with the
-   lowest lower bound of their window cost (:func:`cost_bounds`: step 4's cost with the later frames' errors
+   candidate runs the first ``prune_frames`` frames of its window, and only the ``max(ceil(prune_keep N),
+   samples)`` with the lowest lower bound of their window cost (:func:`cost_bounds`: step 4's cost with the later frames' errors
    at 0) run the rest, continued from their own states (MuJoCo: with the step's solver warm start, which
    ``mujoco.rollout`` does not return); the others are never chosen. A recorded run (``--record-transitions``)
    rolls every window out in full;
@@ -162,7 +162,8 @@ class SamplingOptions:
             None: always).  widen_margin: steps that start with the object beyond this fraction of the strict
             limits sample ``backtrack_samples`` x the windows (step 2; None: never).
         prune_frames, prune_keep: every candidate runs the first ``prune_frames`` frames of its window, then
-            only the ``prune_keep`` fraction with the lowest cost bound goes on (step 3; 0 frames: no pruning).
+            only the ``prune_keep`` fraction (at least ``samples``) with the lowest cost bound goes on (step 3;
+            0 frames: no pruning).
     """
 
     samples: int
@@ -386,12 +387,13 @@ def cost_bounds(
 def pruner(
     opts: SamplingOptions, wins: np.ndarray, bound: Callable[[Prediction, np.ndarray], np.ndarray]
 ) -> Prune | None:
-    """Step 3's early exit (None when ``opts.prune_frames`` is 0 or not below the horizon): after
-    ``prune_frames`` frames the ``ceil(prune_keep N)`` candidates with the lowest ``bound(head, wins)``
-    (:func:`cost_bounds`) go on."""
-    if opts.prune_frames == 0 or opts.prune_frames >= wins.shape[1] - 1:
+    """Step 3's early exit: after ``prune_frames`` frames the ``max(ceil(prune_keep N), samples)`` candidates
+    with the lowest ``bound(head, wins)`` (:func:`cost_bounds`) go on, so a step never runs fewer whole windows
+    than one plan's ``samples``; None (every window in full) when that is all of them, when ``prune_frames`` is
+    0 or when it is not below the horizon."""
+    n = max(math.ceil(opts.prune_keep * len(wins)), opts.samples)
+    if opts.prune_frames == 0 or opts.prune_frames >= wins.shape[1] - 1 or n >= len(wins):
         return None
-    n = math.ceil(opts.prune_keep * len(wins))
     return Prune(opts.prune_frames, lambda head: np.argsort(bound(head, wins), kind="stable")[:n])
 
 
