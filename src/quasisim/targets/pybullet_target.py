@@ -50,7 +50,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -58,7 +58,7 @@ from scipy.spatial import ConvexHull
 from quasisim.assets.hand import HINGE, Geom, HandModel
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
-from quasisim.targets.base import Observation, PDGains, Target, feed_forward, pd_gains, pd_schedule
+from quasisim.targets.base import Observation, Target, feed_forward, pd_gains, pd_schedule
 from quasisim.targets.scene import Scene
 
 DUMMY_MASS = 1e-4  # kg
@@ -168,6 +168,23 @@ class _HandBody:
     def mm_order(self) -> np.ndarray:
         """PyBullet's dof order (= joint index order) -> ours."""
         return np.argsort(self.dof_joint)
+
+
+class _PDLaw(NamedTuple):
+    """One hand's PD law during one control frame, per dof in PyBullet's dof order (6 + J each): the multibody,
+    its dof joints, the dofs' columns in the state vector, :class:`PDGains`' arrays, the feed-forward ``kv qd*``,
+    the physics step ``dt`` (s) and the implicit diagonal ``dt (kv + damping)``."""
+
+    body: int
+    joints: list[int]
+    cols: np.ndarray
+    kp: np.ndarray
+    kv: np.ndarray
+    limit: np.ndarray
+    damping: np.ndarray
+    ff: np.ndarray
+    dt: float
+    implicit: np.ndarray
 
 
 def hand_links(scene: Scene, hand: HandModel | None = None, base_rot: np.ndarray | None = None) -> tuple[
@@ -434,15 +451,6 @@ class PybulletTarget(Target):
         st = self.pb.getJointStates(part.id, part.dof_joint.tolist(), **self._kw())
         return np.array([s[0] for s in st]), np.array([s[1] for s in st])
 
-    def mass_matrix(self, q: np.ndarray, part: int = 0) -> np.ndarray:
-        """Joint-space mass matrix (6 + J, 6 + J) of hand ``part`` at its ``q`` (6 + J) in our dof order
-        (kg, kg m, kg m^2)."""
-        h = self.parts[part]
-        order = h.mm_order
-        inv = np.argsort(order)
-        M = self.pb.calculateMassMatrix(h.id, q[order].tolist(), **self._kw())
-        return np.asarray(M)[np.ix_(inv, inv)]
-
     def body_poses(self, part: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """World poses of hand ``part``'s bodies from PyBullet's links: positions (B, 3) m, rotations (B, 3, 3)."""
         h = self.parts[part]
@@ -504,26 +512,35 @@ class PybulletTarget(Target):
         ``qb`` (D each) with their velocity fed forward; the PD law of the module docstring, per hand."""
         pb, kw = self.pb, self._kw()
         targets, _ = pd_schedule(qa, qb, self.substeps, self.scene.fps)
-        hands = [
-            (i, part, sl, pd_gains(part.hand, self.scene.physics.gain_scale))
-            for i, (part, sl) in enumerate(self._slices())
-        ]
-        ff = [feed_forward(g.kv, qa[sl], qb[sl], self.scene.fps) for _, _, sl, g in hands]  # kv qd*
+        laws = [self._pd_law(part, sl, qa, qb) for part, sl in self._slices()]
         for target in targets:
-            for (i, part, sl, g), f in zip(hands, ff, strict=True):
-                tau = self._pd_torque(i, g, target[sl], f)
-                pb.setJointMotorControlArray(part.id, part.dof_joint.tolist(), pb.TORQUE_CONTROL, forces=tau, **kw)
+            for law in laws:
+                tau = self._pd_torque(law, target[law.cols])
+                pb.setJointMotorControlArray(law.body, law.joints, pb.TORQUE_CONTROL, forces=tau, **kw)
             pb.stepSimulation(**kw)
 
-    def _pd_torque(self, i: int, g: PDGains, target: np.ndarray, ff: np.ndarray) -> list[float]:
-        """Hand ``i``'s PD torques (6 + J) towards its PD ``target`` with feed-forward ``ff`` (``kv qd*``)."""
-        kp, kv, lim, damp = g
+    def _pd_law(self, part: _HandBody, sl: slice, qa: np.ndarray, qb: np.ndarray) -> _PDLaw:
+        """One hand's PD law for the frame from ``qa`` to ``qb``, every per-dof array in PyBullet's dof order."""
+        g = pd_gains(part.hand, self.scene.physics.gain_scale)
+        order = part.mm_order
+        cols = np.arange(sl.start, sl.stop)[order]
+        kp, kv, lim, damp = (x[order] for x in g)
+        ff = feed_forward(kv, qa[cols], qb[cols], self.scene.fps)  # kv qd*
         dt = self.scene.physics.pybullet_dt
-        q, qd = self._joint_states(self.parts[i])
-        M = self.mass_matrix(q, i)
-        e = kp * (target - q)
-        v = np.linalg.solve(M + dt * np.diag(kv + damp), M @ qd + dt * (e + ff))  # end-of-step velocity
-        return (np.clip(e - kv * v, -lim, lim) + ff - damp * v).tolist()
+        return _PDLaw(part.id, part.dof_joint[order].tolist(), cols, kp, kv, lim, damp, ff, dt, dt * (kv + damp))
+
+    def _pd_torque(self, law: _PDLaw, target: np.ndarray) -> list[float]:
+        """A hand's PD torques (6 + J, PyBullet's dof order) towards its PD ``target`` (same order): the
+        linearly implicit law of the module docstring, with ``M`` from ``calculateMassMatrix``."""
+        pb, kw = self.pb, self._kw()
+        st = pb.getJointStates(law.body, law.joints, **kw)
+        q = np.array([s[0] for s in st])
+        qd = np.array([s[1] for s in st])
+        M = np.array(pb.calculateMassMatrix(law.body, q.tolist(), **kw))
+        e = law.kp * (target - q)
+        A = M + np.diag(law.implicit)
+        v = np.linalg.solve(A, M @ qd + law.dt * (e + law.ff))  # end-of-step velocity
+        return (np.clip(e - law.kv * v, -law.limit, law.limit) + law.ff - law.damping * v).tolist()
 
     # ---- lifetime --------------------------------------------------------------------------------
 
