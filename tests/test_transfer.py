@@ -148,7 +148,7 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--budget", "huge"])
     assert r.exit_code == 2 and "valid options: fast, paper" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--curriculum", "soft"])
-    assert r.exit_code == 2 and "curriculum2, default, none, short" in r.output
+    assert r.exit_code == 2 and "curriculum2, default, lean, none, short" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--set", "budgets.fast.x=1"])
     assert r.exit_code == 2 and "budgets.fast.x" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--method", "rl"])
