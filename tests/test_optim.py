@@ -142,7 +142,7 @@ def test_curricula_are_the_papers_tables() -> None:
     c2 = load_curriculum("curriculum2")
     assert [s.d_c for s in c2.stages] == [0.1, 0.1, 0.05, 0.02, 0.01, 0.0, 0.0]
     assert [s.d_c for s in load_curriculum("none").stages] == [0.0, 0.0]
-    with pytest.raises(QuasisimError, match="curriculum2, default, none"):
+    with pytest.raises(QuasisimError, match="curriculum2, default, lean, none"):
         load_curriculum("soft")
 
 
