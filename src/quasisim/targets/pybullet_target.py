@@ -444,11 +444,12 @@ class PybulletTarget(Target):
 
     def joint_states(self) -> tuple[np.ndarray, np.ndarray]:
         """Measured hands' ``qfull`` (D,) and its velocity, in our dof order."""
-        q, v = zip(*(self._joint_states(part) for part in self.parts), strict=True)
+        q, v = zip(*(self._joint_states(p.id, p.dof_joint.tolist()) for p in self.parts), strict=True)
         return (q[0], v[0]) if len(q) == 1 else (np.concatenate(q), np.concatenate(v))
 
-    def _joint_states(self, part: _HandBody) -> tuple[np.ndarray, np.ndarray]:
-        st = self.pb.getJointStates(part.id, part.dof_joint.tolist(), **self._kw())
+    def _joint_states(self, body: int, joints: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities of multibody ``body``'s ``joints``, in that order."""
+        st = self.pb.getJointStates(body, joints, **self._kw())
         return np.array([s[0] for s in st]), np.array([s[1] for s in st])
 
     def body_poses(self, part: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -532,11 +533,8 @@ class PybulletTarget(Target):
     def _pd_torque(self, law: _PDLaw, target: np.ndarray) -> list[float]:
         """A hand's PD torques (6 + J, PyBullet's dof order) towards its PD ``target`` (same order): the
         linearly implicit law of the module docstring, with ``M`` from ``calculateMassMatrix``."""
-        pb, kw = self.pb, self._kw()
-        st = pb.getJointStates(law.body, law.joints, **kw)
-        q = np.array([s[0] for s in st])
-        qd = np.array([s[1] for s in st])
-        M = np.array(pb.calculateMassMatrix(law.body, q.tolist(), **kw))
+        q, qd = self._joint_states(law.body, law.joints)
+        M = np.array(self.pb.calculateMassMatrix(law.body, q.tolist(), **self._kw()))
         e = law.kp * (target - q)
         A = M + np.diag(law.implicit)
         v = np.linalg.solve(A, M @ qd + law.dt * (e + law.ff))  # end-of-step velocity
