@@ -32,16 +32,14 @@ def main() -> None:
     jax.config.update("jax_enable_compilation_cache", False)
     from quasisim.bench.sim import kinematic_replay
     from quasisim.method.config import TransferConfig
-    from quasisim.optim.objective import objective_value_and_grad
+    from quasisim.optim.objective import padded_value_and_grad
     from quasisim.optim.sysid import SysID
 
     r = kinematic_replay(args.demo, "shadow", args.substeps)
     obj = r.prob.objective(r.prob.reference())
     rest = (r.prob.trajectory(r.q_kin), SysID.init(), r.params, TransferConfig.from_yaml().weights.arrays())
     t0 = time.perf_counter()
-    lowered = [
-        jax.jit(objective_value_and_grad.fn).lower(o, *rest) for o in (obj, obj.with_substeps(args.substeps // 2))
-    ]
+    lowered = [jax.jit(padded_value_and_grad.fn).lower(o, *rest) for o in (obj, obj.with_substeps(args.substeps // 2))]
     print(f"trace and lower both: {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
     if args.mode == "serial":

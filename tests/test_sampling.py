@@ -106,6 +106,7 @@ def _replay(scene, q):
         ("widen_margin", -1.0, "widen_margin"),
         ("backtrack_retries", -1, "backtrack_retries"),
         ("backtrack_strict_weight", -0.5, "backtrack_strict_weight"),
+        ("backtrack_after_lost", 0, "backtrack_after_lost"),
         ("prune_frames", -1, "prune_frames"),
         ("prune_keep", 0.0, "prune_keep"),
         ("prune_keep", 1.5, "prune_keep"),
@@ -423,6 +424,21 @@ def test_backing_up_restores_the_target_exactly(real) -> None:
     start = np.stack([np.concatenate([r[f"start_{k}"].ravel() for k in ("qpos", "obj_pos", "obj_quat")])
                       for r in kept.steps])  # fmt: skip
     np.testing.assert_array_equal(step_frames(start), frames)
+
+
+def test_no_back_up_once_a_frame_stayed_outside_the_limits(real) -> None:
+    """With zero noise a re-planned frame is the plan again, so the first frame that leaves the limits leaves
+    them again after its back-up and stays out (no retries): strict is lost. Without
+    ``backtrack_after_lost`` that is the run's only back-up; with it every later frame outside the limits
+    backs up as well, up to the budget, for the same applied targets and more physics steps."""
+    demo, plan, scene = real
+    opts = dataclasses.replace(ZERO, backtrack=3, backtrack_budget=4, backtrack_retries=0)
+    stop = run_sampling(demo, scene, plan, dataclasses.replace(opts, backtrack_after_lost=False), W, progress=False)
+    more = run_sampling(demo, scene, plan, opts, W, progress=False)
+    assert stop.backups == 1 and more.backups == 4
+    np.testing.assert_array_equal(stop.q_targets, plan)
+    np.testing.assert_array_equal(more.q_targets, plan)
+    assert stop.n_physics_steps < more.n_physics_steps
 
 
 def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:

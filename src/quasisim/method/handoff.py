@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quasisim.optim.trajectory import Trajectory, simulate_jit
+from quasisim.optim.trajectory import Trajectory, bucket_frames, first_frames, pad_frames, simulate_jit
 from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import bases_to_roots, forward_kinematics, points_world
 from quasisim.sim.step import object_origin, sdf_lookup
@@ -140,7 +140,9 @@ def touching(
     base_rot: np.ndarray, fps: float, obj0: tuple[np.ndarray, np.ndarray], opts: HandoffOptions,
 ) -> Trajectory:  # fmt: skip
     """``traj`` (found in the simulator ``params``, S applied) with the joint targets moved so that each of
-    its contacts pushes in the simulator ``next_params`` as it did in ``params`` (module docstring)."""
+    its contacts pushes in the simulator ``next_params`` as it did in ``params`` (module docstring). Computed
+    on the frames padded to :func:`~quasisim.optim.trajectory.bucket_frames` (one program per bucket)."""
+    n_frames, traj = traj.base.shape[0], pad_frames(traj, bucket_frames(traj.base.shape[0]))
     states = simulate_jit(model, params, traj, jnp.asarray(base_quat, jnp.float32), fps, obj0)
     shift = force_keeping_shift(state_depths(model, states), params.d_c, next_params.d_c, params.k_n / next_params.k_n)
     hand = model.hand
@@ -150,4 +152,4 @@ def touching(
         model, jnp.asarray(base_rot, jnp.float32), traj.base[1:], traj.joints[1:], states, shift,
         jnp.float32(opts.damping), jnp.asarray(lo), jnp.asarray(hi), opts.iterations,
     )  # fmt: skip
-    return dataclasses.replace(traj, joints=traj.joints.at[1:].set(q))
+    return first_frames(dataclasses.replace(traj, joints=traj.joints.at[1:].set(q)), n_frames)

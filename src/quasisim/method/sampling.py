@@ -56,6 +56,8 @@ At every control frame ``t`` of a clip with ``T`` frames:
    up once more, ``backtrack`` frames further back each time, up to ``backtrack_retries`` times (0: once per
    failing frame). With ``backtrack_strict_weight`` the re-planned frames' window cost holds the hinge of
    step 4 at that weight instead of ``strict_weight``, so the re-planning aims at the limits it left.
+   A frame that stays outside the limits (its retries or the budget spent) fails strict success for the
+   clip: unless ``backtrack_after_lost``, no back-up follows it, as none can make the clip strict again.
 7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
    (:func:`quasisim.eval.robust.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
    ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
@@ -93,6 +95,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       backtrack_budget: 12     # back-ups per clip at most
       backtrack_retries: 1     # further back-ups from a frame that leaves the limits again (0: none)
       backtrack_strict_weight: null  # the hinge's weight on re-planned frames (null: strict_weight)
+      backtrack_after_lost: false  # back up after a frame stayed outside the limits (strict already lost)
       robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
@@ -150,7 +153,8 @@ class SamplingOptions:
             (step 6; 0 frames: never).  backtrack_retries: further back-ups from a frame that leaves the
             limits again, each ``backtrack`` frames further back (step 6; 0: none).
             backtrack_strict_weight: the hinge's weight on frames re-planned after a back-up (step 6;
-            None: ``strict_weight``).
+            None: ``strict_weight``).  backtrack_after_lost: go on backing up after a frame has stayed
+            outside the limits (step 6).
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
@@ -195,6 +199,7 @@ class SamplingOptions:
     backtrack_strict_weight: float | None = None
     prune_frames: int = 0
     prune_keep: float = 0.5
+    backtrack_after_lost: bool = True
 
     def __post_init__(self) -> None:
         self.validate()
@@ -219,7 +224,7 @@ class SamplingOptions:
         sc = self.noise_scales
         if not isinstance(sc, tuple) or not sc or not all(_is_number(s) and s >= 0 for s in sc):
             raise QuasisimError(f"sampling option 'noise_scales' must be a non-empty tuple of numbers >= 0, got {sc!r}")
-        for name in ("kinematic_alternative", "backtrack_copies"):
+        for name in ("kinematic_alternative", "backtrack_copies", "backtrack_after_lost"):
             if not isinstance(getattr(self, name), bool):
                 raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
         w = self.backtrack_strict_weight
@@ -592,6 +597,7 @@ def _control_loop(
     saved: dict[int, list[object]] = {}  # frame -> the target's and the copies' states after it (for backing up)
     widened = np.zeros(T, bool)  # frames planned again with more samples after a back-up
     backed_from: dict[int, int] = {}  # frame -> back-ups from it
+    lost = False  # a frame stayed outside the strict limits: the clip cannot pass strict any more
     behind = opts.backtrack * (2 + opts.backtrack_retries)  # frames of saved states kept behind the current one
     rehinge = (
         opts.strict_weight if opts.backtrack_strict_weight is None else opts.backtrack_strict_weight,
@@ -661,7 +667,8 @@ def _control_loop(
             off = not _within_limits(frames[-1], ref_pos[t], ref_quat[t])
             if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
                 off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
-            back = _back_up_to(t, off, opts, backed_from)
+            back = None if lost and not opts.backtrack_after_lost else _back_up_to(t, off, opts, backed_from)
+            lost = lost or (off and back is None)
             if opts.backtrack > 0:  # the states a back-up may return to
                 saved[t] = [tg.save_state() for tg in every]
                 back, drop = _kept_states(sorted(saved), t, back, behind)

@@ -29,7 +29,7 @@ from quasisim.method.retarget import RetargetOptions, RetargetResult, retarget
 from quasisim.optim.adam import Progress, StepBudget, StepLog, minimise
 from quasisim.optim.objective import Reference, Weights, hand_point_positions
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory, simulate
+from quasisim.optim.trajectory import Trajectory, bucket_frames, pad_frames, simulate
 from quasisim.rotations import quat_angle_deg
 from quasisim.sim.kinematics import fk_full, points_world
 from quasisim.sim.types import Model, Params
@@ -94,9 +94,12 @@ def human_point_set(
 
 
 def _point_set(prob: Problem, params: Params, traj: Trajectory) -> jax.Array:
-    """(T, P, 3): all hand points at frame 0 and along the rollout of ``traj``."""
+    """(T, P, 3): all hand points at frame 0 and along the rollout of ``traj`` (compiled for its frames
+    padded to :func:`~quasisim.optim.trajectory.bucket_frames`)."""
     base_rot = jnp.asarray(prob.base_rots, jnp.float32)
-    return _points_over_time(prob.model, params, traj, prob.base_quat, base_rot, prob.obj0, prob.demo.fps)
+    n = traj.base.shape[0]
+    padded = pad_frames(traj, bucket_frames(n))
+    return _points_over_time(prob.model, params, padded, prob.base_quat, base_rot, prob.obj0, prob.demo.fps)[:n]
 
 
 @cached_jit(static_argnames=("fps",))

@@ -15,8 +15,9 @@ of them call :func:`tracking_errors`.
 
 The objectives are pytrees (the clip's model, reference and start as array leaves, not closed-over
 constants), differentiated and compiled by module-level functions (:func:`objective_value_and_grad`,
-:func:`window_value_and_grad`): one compiled program serves every clip of equal sizes, within a process
-and, through the persistent compilation cache, across processes.
+:func:`objective_value`): one compiled program serves every clip of equal sizes (a clip's frames
+padded to a multiple of ten), within a process and, through the persistent compilation cache, across
+processes.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import numpy as np
 
 from quasisim.data.demo import Demo
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory, sim_controls, simulate
+from quasisim.optim.trajectory import Trajectory, bucket_frames, first_frames, pad_frames, sim_controls, simulate
 from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import forward_kinematics, keypoints, points_world
 from quasisim.sim.step import object_pose, rollout
@@ -134,11 +135,12 @@ def _norm(x: Array) -> Array:
 
 def frame_mean(err: Array, frame_w: Array | None) -> Array:
     """Mean of per-frame errors ``err`` (F, ...): over everything when ``frame_w`` is None, else the
-    ``frame_w`` (F,)-weighted mean over frames of each frame's mean (frames of weight 0 drop out)."""
+    ``frame_w`` (F,)-weighted mean over frames of each frame's mean (frames of weight 0 drop out, even
+    when their errors are not finite)."""
     if frame_w is None:
         return jnp.mean(err)
     per_frame = jnp.mean(err, axis=tuple(range(1, err.ndim))) if err.ndim > 1 else err
-    return jnp.sum(frame_w * per_frame) / jnp.maximum(jnp.sum(frame_w), 1.0)
+    return jnp.sum(jnp.where(frame_w > 0, frame_w * per_frame, 0.0)) / jnp.maximum(jnp.sum(frame_w), 1.0)
 
 
 def tracking_errors(
@@ -166,11 +168,13 @@ def tracking_terms(
     return terms
 
 
-def smoothness(base: Array, joints: Array) -> Array:
-    """Mean squared second differences of the base (T, 6) and joint (T, J) PD targets (0 for T < 3)."""
+def smoothness(base: Array, joints: Array, frame_w: Array | None = None) -> Array:
+    """Mean squared second differences of the base (T, 6) and joint (T, J) PD targets (0 for T < 3); with
+    ``frame_w`` (T - 1,) over frames 1..T-1, only the differences that end on a frame of weight > 0."""
     if base.shape[0] < 3:
         return jnp.zeros((), F32)
-    return jnp.mean(jnp.diff(base, 2, axis=0) ** 2) + jnp.mean(jnp.diff(joints, 2, axis=0) ** 2)
+    w = None if frame_w is None else frame_w[1:]  # difference i spans frames i, i + 1, i + 2
+    return frame_mean(jnp.diff(base, 2, axis=0) ** 2, w) + frame_mean(jnp.diff(joints, 2, axis=0) ** 2, w)
 
 
 def weighted_sum(terms: dict[str, Array], weights: dict[str, Array]) -> Array:
@@ -199,7 +203,11 @@ class TrackingObjective:
     object pose (``obj_pos0``, ``obj_quat0``) in the simulator ``params`` (with S from ``sysid``, relative to
     the nominal ``mass0`` kg, ``inertia0`` (3, 3) kg m^2) and score it against ``ref``. One differentiable
     function serves control optimisation and identification (one compiled program:
-    :attr:`value_and_grad`)."""
+    :attr:`value_and_grad`).
+
+    ``ref`` and ``frame_w`` run over the clip's frames padded to :func:`~quasisim.optim.trajectory.bucket_frames`
+    (``frame_w`` 1 on the clip's frames 1..T-1, 0 after): a trajectory of the clip's T frames is padded to
+    them (:func:`~quasisim.optim.trajectory.pad_frames`), and frames after the clip's end weigh nothing."""
 
     model: Model
     ref: Reference
@@ -208,16 +216,23 @@ class TrackingObjective:
     obj_quat0: Array
     mass0: Array
     inertia0: Array
+    frame_w: Array
     fps: float = static()
+
+    @property
+    def n_frames(self) -> int:
+        """The padded number of frames (the length of every trajectory the compiled programs take)."""
+        return int(self.frame_w.shape[0]) + 1
 
     def __call__(
         self, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
     ) -> tuple[Array, dict[str, Array]]:
+        traj = pad_frames(traj, self.n_frames)
         p = sysid.apply(params, self.mass0, self.inertia0)
         states = simulate(self.model, p, traj, self.base_quat, self.fps, (self.obj_pos0, self.obj_quat0))
-        terms = tracking_terms(self.model, p, states, self.ref)
-        terms["smooth"] = smoothness(traj.base, traj.joints)
-        terms["point_force"] = jnp.mean(jnp.sum(traj.point_force**2, -1)) * p.alpha
+        terms = tracking_terms(self.model, p, states, self.ref, self.frame_w)
+        terms["smooth"] = smoothness(traj.base, traj.joints, self.frame_w)
+        terms["point_force"] = frame_mean(jnp.sum(traj.point_force**2, -1), self.frame_w) * p.alpha
         return weighted_sum(terms, weights), terms
 
     @property
@@ -240,19 +255,38 @@ class TrackingObjective:
         return functools.partial(objective_value, self)
 
 
-@cached_jit
 def objective_value_and_grad(
     objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
 ) -> tuple[tuple[Array, dict[str, Array]], tuple[Trajectory, SysID]]:
-    """The objective's value and its gradient with respect to the trajectory and S."""
+    """The objective's value and its gradient with respect to the trajectory (of the clip's T frames) and S,
+    by the compiled program of the padded length (:func:`padded_value_and_grad`)."""
+    n = traj.base.shape[0]
+    (loss, terms), (g, gs) = padded_value_and_grad(
+        objective, pad_frames(traj, objective.n_frames), sysid, params, weights
+    )
+    return (loss, terms), (first_frames(g, n), gs)
+
+
+def objective_value(
+    objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
+) -> tuple[Array, dict[str, Array]]:
+    """The objective's value and terms, without the gradient (compiled for the padded length)."""
+    return padded_value(objective, pad_frames(traj, objective.n_frames), sysid, params, weights)
+
+
+@cached_jit
+def padded_value_and_grad(
+    objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
+) -> tuple[tuple[Array, dict[str, Array]], tuple[Trajectory, SysID]]:
+    """:func:`objective_value_and_grad` of a trajectory of ``objective.n_frames`` frames."""
     return jax.value_and_grad(lambda t, s: objective(t, s, params, weights), argnums=(0, 1), has_aux=True)(traj, sysid)
 
 
 @cached_jit
-def objective_value(
+def padded_value(
     objective: TrackingObjective, traj: Trajectory, sysid: SysID, params: Params, weights: dict[str, Array]
 ) -> tuple[Array, dict[str, Array]]:
-    """The objective's value and terms, without the gradient."""
+    """:func:`objective_value` of a trajectory of ``objective.n_frames`` frames."""
     return objective(traj, sysid, params, weights)
 
 
@@ -260,9 +294,23 @@ def make_objective(
     model: Model, ref: Reference, base_quat: np.ndarray, fps: float, obj0: tuple[np.ndarray, np.ndarray],
     mass0: float, inertia0: np.ndarray,
 ) -> TrackingObjective:  # fmt: skip
-    """The :class:`TrackingObjective` of a clip (arrays as float32 leaves)."""
+    """The :class:`TrackingObjective` of a clip (arrays as float32 leaves; ``ref`` over the clip's frames
+    1..T-1, padded here to :func:`~quasisim.optim.trajectory.bucket_frames` (T) - 1 frames)."""
     f = lambda x: jnp.asarray(x, F32)  # noqa: E731
-    return TrackingObjective(model, ref, f(base_quat), f(obj0[0]), f(obj0[1]), f(mass0), f(inertia0), float(fps))
+    n = ref.obj_pos.shape[0]
+    extra = bucket_frames(n + 1) - 1 - n
+    hold = lambda x: None if x is None else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])  # noqa: E731
+    ref = dataclasses.replace(
+        ref,
+        obj_pos=hold(ref.obj_pos),
+        obj_quat=hold(ref.obj_quat),
+        keypoints=hold(ref.keypoints),
+        points=hold(ref.points),
+    )
+    frame_w = f(np.arange(n + extra) < n)
+    return TrackingObjective(
+        model, ref, f(base_quat), f(obj0[0]), f(obj0[1]), f(mass0), f(inertia0), frame_w, float(fps)
+    )
 
 
 def padded(x: np.ndarray, horizon: int) -> np.ndarray:

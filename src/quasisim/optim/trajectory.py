@@ -7,6 +7,9 @@
   (root velocities by finite differences of the base targets, joint PD targets with their velocity).
 * :func:`simulate` rolls a trajectory out from rest; :func:`observed_state` turns a target's observation
   into a simulator state.
+* :func:`bucket_frames`, :func:`pad_frames`, :func:`first_frames`: compiled programs over a whole clip take
+  its frames padded to the next multiple of :data:`FRAME_BUCKET`, so that clips of 51 to 60 frames share
+  one program (the simulator is causal: frames after the clip's end change nothing before it).
 
 Units: m, rad, s, N.
 """
@@ -26,6 +29,10 @@ from quasisim.tracecache import cached_jit
 
 Array = jax.Array
 F32 = jnp.float32
+FRAME_BUCKET = 10
+"""Whole-clip programs run on the frames padded to a multiple of this: one compiled program per 10 frames of
+clip length instead of one per length (a 58-frame clip after 60-frame ones recompiled every stage 1-2
+program, ~200 s on one core; BENCHMARKS.md, "A leaner curriculum, compile flags, clip length")."""
 
 
 @pytree
@@ -61,6 +68,33 @@ class Trajectory:
             point_force=jnp.zeros((len(q) - 1, n_points, 3), F32),
             hand_joints=hand_layout(hand_joints),
         )
+
+
+def bucket_frames(n_frames: int) -> int:
+    """The padded length of a clip of ``n_frames`` frames: the next multiple of :data:`FRAME_BUCKET`."""
+    return -(-n_frames // FRAME_BUCKET) * FRAME_BUCKET
+
+
+def pad_frames(traj: Trajectory, n_frames: int) -> Trajectory:
+    """``traj`` (T frames) continued to ``n_frames`` >= T frames: the last PD targets held, no point forces
+    after the clip's end (works on arrays and on traced values)."""
+    extra = n_frames - traj.base.shape[0]
+    if extra < 0:
+        raise ValueError(f"cannot pad a {traj.base.shape[0]}-frame trajectory to {n_frames} frames")
+    if extra == 0:
+        return traj
+    hold = lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])  # noqa: E731
+    force = jnp.concatenate([traj.point_force, jnp.zeros((extra, *traj.point_force.shape[1:]), F32)])
+    return dataclasses.replace(traj, base=hold(traj.base), joints=hold(traj.joints), point_force=force)
+
+
+def first_frames(traj: Trajectory, n_frames: int) -> Trajectory:
+    """The first ``n_frames`` frames of ``traj`` (or of a gradient with its structure): undoes :func:`pad_frames`."""
+    if traj.base.shape[0] == n_frames:
+        return traj
+    return dataclasses.replace(
+        traj, base=traj.base[:n_frames], joints=traj.joints[:n_frames], point_force=traj.point_force[: n_frames - 1]
+    )
 
 
 def hand_layout(hand_joints: tuple[int, ...]) -> tuple[int, ...]:
@@ -149,8 +183,17 @@ def simulate(
     return rollout(model, params, s0, sim_controls(traj, bq, fps))
 
 
-simulate_jit = cached_jit(simulate, static_argnames=("fps",))
-"""Compiled :func:`simulate` (the model and the start as arguments: one program per size of scene)."""
+_simulate_padded = cached_jit(simulate, static_argnames=("fps",))
+
+
+def simulate_jit(
+    model: Model, params: Params, traj: Trajectory, base_quat: Array, fps: float, obj0: tuple[np.ndarray, np.ndarray]
+) -> State:
+    """Compiled :func:`simulate` (the model and the start as arguments: one program per size of scene and
+    :func:`bucket_frames` of the clip's length): the states of ``traj``'s T - 1 frames."""
+    n = traj.base.shape[0]
+    states = _simulate_padded(model, params, pad_frames(traj, bucket_frames(n)), base_quat, fps, obj0)
+    return jax.tree.map(lambda x: x[: n - 1], states)
 
 
 def observed_state(model: Model, obs: dict[str, np.ndarray], base_quat: Array) -> State:
