@@ -57,7 +57,8 @@ At every control frame ``t`` of a clip with ``T`` frames:
    failing frame). With ``backtrack_strict_weight`` the re-planned frames' window cost holds the hinge of
    step 4 at that weight instead of ``strict_weight``, so the re-planning aims at the limits it left.
    A frame that stays outside the limits (its retries or the budget spent) fails strict success for the
-   clip: unless ``backtrack_after_lost``, no back-up follows it, as none can make the clip strict again.
+   clip, unless a later back-up reaches back past it: without ``backtrack_after_lost`` no back-up follows
+   it (less time, but back-ups after it also keep the object near its path and can re-plan the lost frame).
 7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
    (:func:`quasisim.eval.robust.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
    ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
@@ -95,7 +96,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       backtrack_budget: 12     # back-ups per clip at most
       backtrack_retries: 1     # further back-ups from a frame that leaves the limits again (0: none)
       backtrack_strict_weight: null  # the hinge's weight on re-planned frames (null: strict_weight)
-      backtrack_after_lost: false  # back up after a frame stayed outside the limits (strict already lost)
+      backtrack_after_lost: true  # back up after a frame stayed outside the limits (false: never)
       robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
