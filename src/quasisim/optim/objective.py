@@ -135,8 +135,8 @@ def _norm(x: Array) -> Array:
 
 def frame_mean(err: Array, frame_w: Array | None) -> Array:
     """Mean of per-frame errors ``err`` (F, ...): over everything when ``frame_w`` is None, else the
-    ``frame_w`` (F,)-weighted mean over frames of each frame's mean (frames of weight 0 drop out, even
-    when their errors are not finite)."""
+    ``frame_w`` (F,)-weighted mean over frames of each frame's mean (frames of weight 0 drop out of the
+    value even where their errors are not finite)."""
     if frame_w is None:
         return jnp.mean(err)
     per_frame = jnp.mean(err, axis=tuple(range(1, err.ndim))) if err.ndim > 1 else err
