@@ -98,4 +98,5 @@ def test_clips_of_one_bucket_share_one_program(lift) -> None:
         (loss, _), (g, _) = obj.value_and_grad(prob.trajectory(q[:n]), SysID.init(), params, w)
         assert np.isfinite(float(loss)) and g.joints.shape[0] == n
         seen.append(len(padded_value_and_grad.programs))
+    assert seen[0] >= 1, "the compiled programs are recorded (QUASISIM_TRACE_CACHE must not be 0)"
     assert seen[1] == seen[0] and seen[2] == seen[0], seen
