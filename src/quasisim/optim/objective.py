@@ -34,7 +34,15 @@ import numpy as np
 
 from quasisim.data.demo import Demo
 from quasisim.optim.sysid import SysID
-from quasisim.optim.trajectory import Trajectory, bucket_frames, first_frames, pad_frames, sim_controls, simulate
+from quasisim.optim.trajectory import (
+    Trajectory,
+    bucket_frames,
+    first_frames,
+    hold_last,
+    pad_frames,
+    sim_controls,
+    simulate,
+)
 from quasisim.rotations import quat_to_mat
 from quasisim.sim.kinematics import forward_kinematics, keypoints, points_world
 from quasisim.sim.step import object_pose, rollout
@@ -299,14 +307,9 @@ def make_objective(
     f = lambda x: jnp.asarray(x, F32)  # noqa: E731
     n = ref.obj_pos.shape[0]
     extra = bucket_frames(n + 1) - 1 - n
-    hold = lambda x: None if x is None else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])  # noqa: E731
-    ref = dataclasses.replace(
-        ref,
-        obj_pos=hold(ref.obj_pos),
-        obj_quat=hold(ref.obj_quat),
-        keypoints=hold(ref.keypoints),
-        points=hold(ref.points),
-    )
+    held = {k: hold_last(getattr(ref, k), extra) for k in ("obj_pos", "obj_quat", "keypoints")}
+    points = None if ref.points is None else hold_last(ref.points, extra)
+    ref = dataclasses.replace(ref, **held, points=points)
     frame_w = f(np.arange(n + extra) < n)
     return TrackingObjective(
         model, ref, f(base_quat), f(obj0[0]), f(obj0[1]), f(mass0), f(inertia0), frame_w, float(fps)

@@ -75,6 +75,11 @@ def bucket_frames(n_frames: int) -> int:
     return -(-n_frames // FRAME_BUCKET) * FRAME_BUCKET
 
 
+def hold_last(x: Array, extra: int) -> Array:
+    """``x`` (T, ...) followed by ``extra`` copies of its last frame (JAX arrays; traced values too)."""
+    return x if extra == 0 else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])
+
+
 def pad_frames(traj: Trajectory, n_frames: int) -> Trajectory:
     """``traj`` (T frames) continued to ``n_frames`` >= T frames: the last PD targets held, no point forces
     after the clip's end (works on arrays and on traced values)."""
@@ -83,9 +88,10 @@ def pad_frames(traj: Trajectory, n_frames: int) -> Trajectory:
         raise ValueError(f"cannot pad a {traj.base.shape[0]}-frame trajectory to {n_frames} frames")
     if extra == 0:
         return traj
-    hold = lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])  # noqa: E731
     force = jnp.concatenate([traj.point_force, jnp.zeros((extra, *traj.point_force.shape[1:]), F32)])
-    return dataclasses.replace(traj, base=hold(traj.base), joints=hold(traj.joints), point_force=force)
+    return dataclasses.replace(
+        traj, base=hold_last(traj.base, extra), joints=hold_last(traj.joints, extra), point_force=force
+    )
 
 
 def first_frames(traj: Trajectory, n_frames: int) -> Trajectory:
