@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quasisim.batch import FAULT_ENV, Job, Run, Settings, run_batch
+from quasisim.batch import FAULT_ENV, Job, Run, Settings, run_batch, spread_objects
 from quasisim.errors import QuasisimError
 from quasisim.method.spec import TransferSpec
 
@@ -61,8 +61,13 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
     assert sorted(row["clip"] for row in res["rows"]) == good
     assert list(res["failures"]) == ["broken"] and "broken.npz" in res["failures"]["broken"]
     assert not (out / ".work" / good[0]).exists()  # scratch removed once the clip is persisted
-    # each worker that could pin itself (a parallel test may hold the cores) runs on one core of its own
-    pinned = [set(c) for c in res["cores_per_worker"].values() if c is not None]
+    # the first readable clip (round-robin over objects) ran alone on every core, in a process of its own that ended
+    # after it; each later worker that could pin itself (a parallel test may hold the cores) runs on one core
+    lead = res["lead_clip"]
+    assert lead["clip"] == next(j.clip for j in spread_objects(_jobs(clips_dir)) if j.clip != "broken")
+    workers = {pid: c for pid, c in res["cores_per_worker"].items() if pid != str(lead["pid"])}
+    assert len(workers) == len(res["cores_per_worker"]) - 1 and workers  # the lead's process ran no other clip
+    pinned = [set(c) for c in workers.values() if c is not None]
     assert all(len(c) == 1 for c in pinned) and len(set().union(*pinned)) == len(pinned)
     for c in good:
         d = json.loads((out / c / "clip.json").read_text())
@@ -92,6 +97,17 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
     r = _batch_cli(clips_dir, tmp_path / "no_retry", "--clips", good[0], "--retries", "0", fault=good[0])
     dead = json.loads((tmp_path / "no_retry" / "batch.json").read_text())
     assert r.returncode == 0 and list(dead["failures"]) == [good[0]] and not dead["rows"]
+
+
+def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip() -> None:
+    import dataclasses
+
+    from quasisim.batch import leads
+
+    s = Settings(workers=2, threads=1)
+    assert leads(s, 2) and not leads(s, 1)
+    for other in ({"ray_address": "auto"}, {"pin_cores": False}, {"workers": 1}, {"lead_clip": False}):
+        assert not leads(dataclasses.replace(s, **other), 25), other
 
 
 def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path) -> None:

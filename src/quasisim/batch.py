@@ -26,7 +26,7 @@ import resource
 import shutil
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,6 +78,8 @@ class Settings:
     keep_scratch: bool = False  # keep each clip's checkpoints (later runs of the same clip start from them)
     record_transitions: bool = False  # each run keeps what its sampling stage rolled out (RUN/transitions/)
     pin_cores: bool = True  # each worker on `threads` cores of its own (runtime.pin_to_free_cores)
+    # a local batch of pinned workers runs its first clip alone on every core first (:func:`leads`)
+    lead_clip: bool = True
 
     def resolved(self) -> Settings:
         cores = os.cpu_count() or 1
@@ -247,6 +249,7 @@ class BatchResult:
     workers: int
     peak_rss_mb: dict[str, float]
     cores: dict[str, list[int] | None] = field(default_factory=dict)
+    lead: dict[str, Any] | None = None  # the clip run alone on every core first (:func:`leads`): clip, pid
 
 
 def finished_runs(out: Path, job: Job, s: Settings, any_revision: bool = False) -> dict[str, dict[str, Any]]:
@@ -318,7 +321,10 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
     peak: dict[str, float] = {}
     cores: dict[str, list[int] | None] = {}
     t0 = time.perf_counter()
+    lead = None
     for job, result in _dispatch(spread_objects(todo), s, scratch) if todo else ():
+        if isinstance(result, dict) and result.get("lead"):
+            lead = {"clip": job.clip, "pid": result["pid"]}
         if isinstance(result, str):
             failures[job.clip] = result
         else:
@@ -330,35 +336,72 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
             cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
         if on_clip is not None:
             on_clip(rows, failures)
-    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores)
+    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores, lead)
+
+
+def leads(s: Settings, n_todo: int) -> bool:
+    """Whether the batch runs its first clip alone on all ``workers x threads`` cores before the workers
+    start: a local batch (``ray_address`` None) of several pinned workers and clips. Every later clip's
+    compiled programs then come from the persistent caches that clip filled, and XLA compiles each program
+    on every core instead of each worker compiling the same programs side by side on one core each
+    (BENCHMARKS.md, "The first clip alone on both cores")."""
+    return s.lead_clip and s.ray_address is None and s.pin_cores and s.workers > 1 and n_todo > 1
+
+
+def run_lead_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> dict[str, Any]:
+    """:func:`run_job` for the lead clip (its own Ray function, so that its worker process, unpinned and
+    with XLA's thread pool sized for every core, exits after it instead of running pinned clips)."""
+    return {**run_job(job, files, s, scratch), "lead": True}
 
 
 def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
-    """Yield (job, result or error text) as the workers finish, with a progress bar over clips."""
+    """Yield (job, result or error text) as the workers finish, with a progress bar over clips; with
+    :func:`leads`, the first readable clip runs alone on every core before the others are handed out."""
     from tqdm import tqdm
 
     ray = _ray_init(s)
     try:
         task = ray.remote(num_cpus=s.threads, max_retries=s.max_retries)(run_job)
-        pending = {}
+        rest = list(todo)
         with tqdm(total=len(todo), desc="clips", unit="clip", dynamic_ncols=True) as bar:
-            for j in todo:
-                try:
-                    pending[task.remote(j, pack_demo(j.demo_path), s, scratch / j.clip)] = j
-                except QuasisimError as e:  # an unreadable demo fails its clip only
-                    bar.update(1)
-                    yield j, str(e)
-            while pending:
-                ready, _ = ray.wait(list(pending), num_returns=1)
-                job = pending.pop(ready[0])
-                try:
-                    yield job, ray.get(ready[0])
-                except Exception as e:  # one clip's failure is reported; the batch goes on
-                    yield job, _error_text(e)
-                    bar.set_postfix(failed=job.clip)
-                bar.update(1)
+            if leads(s, len(todo)):
+                cores = s.workers * s.threads  # the XLA flags (the compilation cache's key) stay the workers'
+                lead = ray.remote(num_cpus=cores, max_retries=s.max_retries, max_calls=1)(run_lead_job)
+                while rest:
+                    done = yield from _run_group(
+                        ray, lead, dataclasses.replace(s, threads=cores), rest[:1], scratch, bar
+                    )
+                    rest = rest[1:]
+                    if done:
+                        break
+            yield from _run_group(ray, task, s, rest, scratch, bar)
     finally:
         ray.shutdown()
+
+
+def _run_group(
+    ray: Any, fn: Any, s: Settings, jobs: list[Job], scratch: Path, bar: Any
+) -> Generator[tuple[Job, dict[str, Any] | str], None, int]:
+    """Submit ``jobs`` as tasks of the Ray function ``fn``, yield (job, result or error text) as they end;
+    returns how many were submitted (a demo that cannot be read is not)."""
+    pending = {}
+    for j in jobs:
+        try:
+            pending[fn.remote(j, pack_demo(j.demo_path), s, scratch / j.clip)] = j
+        except QuasisimError as e:  # an unreadable demo fails its clip only
+            bar.update(1)
+            yield j, str(e)
+    submitted = len(pending)
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        job = pending.pop(ready[0])
+        try:
+            yield job, ray.get(ready[0])
+        except Exception as e:  # one clip's failure is reported; the batch goes on
+            yield job, _error_text(e)
+            bar.set_postfix(failed=job.clip)
+        bar.update(1)
+    return submitted
 
 
 def _error_text(e: BaseException) -> str:
@@ -457,7 +500,7 @@ def throughput(res: BatchResult) -> dict[str, Any]:
     return {
         "clips_run": res.n_run, "wall_s": res.wall_s,
         "clips_per_hour": 3600.0 * res.n_run / res.wall_s if res.n_run and res.wall_s > 0 else None,
-        "peak_rss_mb_per_worker": res.peak_rss_mb, "cores_per_worker": res.cores,
+        "peak_rss_mb_per_worker": res.peak_rss_mb, "cores_per_worker": res.cores, "lead_clip": res.lead,
     }  # fmt: skip
 
 
