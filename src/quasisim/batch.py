@@ -452,7 +452,7 @@ def lifted_as_demo(metrics: dict[str, Any]) -> bool:
 def run_batch_command(
     data_dir: Path, names: tuple[str, ...], pattern: str, spec: TransferSpec, out: Path, ray_address: str | None,
     workers: int, threads: int, config_path: Path | None, overrides: dict[str, Any], retries: int = 2,
-    record_transitions: bool = False,
+    record_transitions: bool = False, lead_clip: bool = True,
 ) -> BatchResult:  # fmt: skip
     """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput;
     ``record_transitions``: each clip keeps what its sampling stage rolled out (``OUT/<clip>/transitions/``)."""
@@ -479,6 +479,7 @@ def run_batch_command(
         overrides,
         max_retries=retries,
         record_transitions=record_transitions,
+        lead_clip=lead_clip,
     ).resolved()
     jobs = [Job(p, (Run("", spec),)) for p in paths]
     meta = {"data_dir": str(data_dir), "spec": dataclasses.asdict(spec), "workers": s.workers, "threads": s.threads,

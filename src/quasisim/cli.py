@@ -491,6 +491,11 @@ def transfer(
     help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
     "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
 )  # fmt: skip
+@click.option(
+    "--lead-clip/--no-lead-clip", default=True, show_default=True,
+    help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
+    "compile once on all cores (docs/batch.md).",
+)  # fmt: skip
 @_ROBUST
 @_ablation_flags
 @_friendly
@@ -498,7 +503,7 @@ def batch(
     data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
     pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
     sets: tuple[str, ...], render: bool, record: bool, robust: int | None, no_residual: bool, no_local_residual: bool,
-    no_control_transform: bool,
+    no_control_transform: bool, lead_clip: bool,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
     reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
@@ -524,6 +529,7 @@ def batch(
         _parse_sets(sets),
         retries,
         record,
+        lead_clip,
     )
 
 
@@ -750,11 +756,16 @@ def bench_sim(
     help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
     "finished before keep their judging: use a new OUT.",
 )  # fmt: skip
+@click.option(
+    "--lead-clip/--no-lead-clip", default=True, show_default=True,
+    help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
+    "compile once on all cores (docs/batch.md).",
+)  # fmt: skip
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
-    record: bool, robust: int | None,
+    record: bool, robust: int | None, lead_clip: bool,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -771,7 +782,9 @@ def bench_transfer(
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     overrides = _parse_sets(sets)
     TransferConfig.from_yaml(overrides=overrides)  # a bad key fails here, before any clip runs
-    s = Settings(ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record)
+    s = Settings(
+        ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record, lead_clip=lead_clip
+    )
     run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust)
 
 
