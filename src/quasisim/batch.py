@@ -367,12 +367,10 @@ def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job
             if leads(s, len(todo)):
                 cores = s.workers * s.threads  # the XLA flags (the compilation cache's key) stay the workers'
                 lead = ray.remote(num_cpus=cores, max_retries=s.max_retries, max_calls=1)(run_lead_job)
-                while rest:
-                    done = yield from _run_group(
-                        ray, lead, dataclasses.replace(s, threads=cores), rest[:1], scratch, bar
-                    )
-                    rest = rest[1:]
-                    if done:
+                lead_s = dataclasses.replace(s, threads=cores)
+                while rest:  # until one lead clip could be read and submitted
+                    first, rest = rest[:1], rest[1:]
+                    if (yield from _run_group(ray, lead, lead_s, first, scratch, bar)):
                         break
             yield from _run_group(ray, task, s, rest, scratch, bar)
     finally:

@@ -92,6 +92,11 @@ _ROBUST = click.option(
     "--robust", type=click.IntRange(0, 1000), default=None,
     help="Perturbed replays for robust success (default: n of configs/robust.yaml; 0: none).",
 )  # fmt: skip
+_LEAD_CLIP = click.option(
+    "--lead-clip/--no-lead-clip", default=True, show_default=True,
+    help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
+    "compile once on all cores (docs/batch.md).",
+)  # fmt: skip
 
 
 def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
@@ -491,11 +496,7 @@ def transfer(
     help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
     "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
 )  # fmt: skip
-@click.option(
-    "--lead-clip/--no-lead-clip", default=True, show_default=True,
-    help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
-    "compile once on all cores (docs/batch.md).",
-)  # fmt: skip
+@_LEAD_CLIP
 @_ROBUST
 @_ablation_flags
 @_friendly
@@ -756,11 +757,7 @@ def bench_sim(
     help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
     "finished before keep their judging: use a new OUT.",
 )  # fmt: skip
-@click.option(
-    "--lead-clip/--no-lead-clip", default=True, show_default=True,
-    help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
-    "compile once on all cores (docs/batch.md).",
-)  # fmt: skip
+@_LEAD_CLIP
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
