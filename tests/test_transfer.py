@@ -306,6 +306,7 @@ def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(
 
 
 @pytest.mark.slow
+@pytest.mark.extended  # stage 3 and the MPC are not the default method; test_stage3.py and test_mpc.py cover them in CI
 def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> None:
     """``--stages 3,mpc``: the simulator is fitted to MuJoCo rollouts of the plan (checkpointed, held-out errors
     in the summary) and the MPC plans with it; stage 3 is refused for PyBullet."""
