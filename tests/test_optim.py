@@ -194,3 +194,44 @@ def test_restart_guard_skips_diverged_and_repeated_starts_and_stage_2_goes_on() 
     d = {"losses": np.zeros(0), "wall_s": np.array(1.0), "start_losses": np.array("{}")}
     _record_simulator(record, cur, 2, d, {"mass_kg": 0.1}, Progress(False))
     assert record.simulators[0]["steps"] == 0 and record.curves["sim 3"] == []
+
+
+@pytest.mark.parametrize("sysid_steps", [0, 3])
+def test_stage2_reads_back_where_identification_ended_instead_of_evaluating_it_again(sysid_steps: int) -> None:
+    """One simulator of stage 2 on a toy objective coupling the controls x and S: the control optimisation's
+    first evaluation, at (x, best S), is identification's own, so the objective runs once fewer than the two
+    optimisations' loss evaluations (none fewer without identification), and the result is exactly that of
+    running both optimisations with their own evaluations."""
+    from quasisim.method.stage2 import one_simulator
+    from quasisim.optim.adam import Progress, StepBudget, minimise
+
+    target = jnp.array([0.3, -0.2])
+
+    @jax.jit
+    def vg(x, s, params, w):
+        def f(x, s):
+            loss = jnp.sum((x - target * (1.0 + s.log_mass)) ** 2) + 0.1 * (s.log_mass - 0.5) ** 2
+            return loss, {"loss": loss}
+
+        return jax.value_and_grad(f, argnums=(0, 1), has_aux=True)(x, s)
+
+    calls = {"n": 0}
+
+    def counted(*a):
+        calls["n"] += 1
+        return vg(*a)
+
+    sb = StepBudget(control_steps=4, sysid_steps=sysid_steps, control_lr=0.05, sysid_lr=0.05, patience=5,
+                    min_rel_improvement=0.0)  # fmt: skip
+    x0, s0 = jnp.zeros(2), SysID.init()
+    x, s, log_s, log_c = one_simulator(counted, x0, s0, None, {}, sb, Progress(False), "toy")
+    assert calls["n"] == len(log_s.losses) + len(log_c.losses) - (sysid_steps > 0)
+    # the same as both optimisations run in full
+    s_ref, log_s_ref = (minimise(lambda v: (vg(x0, v, None, {})[0], vg(x0, v, None, {})[1][1]), s0, sysid_steps,
+                                 0.05, sb, Progress(False), "s") if sysid_steps else (s0, None))  # fmt: skip
+    x_ref, log_c_ref = minimise(
+        lambda v: (vg(v, s_ref, None, {})[0], vg(v, s_ref, None, {})[1][0]), x0, 4, 0.05, sb, Progress(False), "c"
+    )
+    np.testing.assert_array_equal(x, x_ref)
+    np.testing.assert_array_equal(s.log_mass, s_ref.log_mass)
+    assert log_c.losses == log_c_ref.losses and (log_s_ref is None or log_s.losses == log_s_ref.losses)
