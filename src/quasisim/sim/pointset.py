@@ -80,6 +80,16 @@ def sample_hand_points(
         return HandPoints(pts.body[keep], pts.local[keep], pts.normal[keep])
 
 
+def inside_convex(m: trimesh.Trimesh, pts: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """(N,) whether ``pts`` (N, 3) lie inside the convex hull of ``m`` by more than ``tol`` m: every face
+    plane ``n . p <= n . v0`` holds. A collision geom is convex (box, capsule, ...) or collides as its convex
+    hull (MuJoCo's meshes). Unlike trimesh's ``contains``, which casts ambiguous rays again in directions drawn
+    from a generator seeded by OS entropy, the answer is the same in every process."""
+    hull = m.convex_hull
+    n = hull.face_normals
+    return np.all(pts @ n.T - np.sum(n * hull.triangles[:, 0], axis=1) < -tol, axis=1)
+
+
 def _sample(hand: HandModel, spacing: float, offset: float, seed: int) -> HandPoints:
     rng = np.random.default_rng(seed)
     geoms = hand.collision_geoms()
@@ -95,7 +105,7 @@ def _sample(hand: HandModel, spacing: float, offset: float, seed: int) -> HandPo
         keep = np.ones(len(pts), bool)
         for h, mh in zip(geoms, meshes, strict=True):
             if h is not g and h.body == g.body and mh.is_watertight:
-                keep &= ~mh.contains(pts)
+                keep &= ~inside_convex(mh, pts)
         bodies.append(np.full(int(keep.sum()), g.body))
         locs.append(pts[keep])
         norms.append(nrm[keep])
