@@ -40,7 +40,7 @@ demo-ours: setup
 # and what they check (behaviour, resumes, errors against closed forms and MuJoCo) does not depend on it; the
 # benchmarks (`quasisim bench ...`) measure the programs as users compile them.
 TEST_XLA := --xla_backend_optimization_level=0
-# `test` (CI) leaves out the extended tests (research paths outside the default method, ~20 min more on 2 cores);
+# `test` (CI) leaves out the extended tests (research paths outside the default method, ~25 min more on 2 cores);
 # `test-all` runs every test.
 test: setup
 	@sh scripts/test_deps.sh

@@ -121,6 +121,7 @@ def test_ablation_flags_and_the_run_identity() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.extended  # a benchmark of stage 3, outside the default method
 def test_bench_fit_rows_on_a_short_clip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``quasisim bench fit`` on one short clip: a row per simulator variant with finite held-out errors (one
     network row, with every network, instead of five: each row compiles its own program)."""

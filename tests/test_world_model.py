@@ -170,6 +170,7 @@ def test_fit_trains_a_correction_that_predicts_the_target_better(
 
 
 @pytest.mark.slow
+@pytest.mark.extended  # a world-model benchmark, outside the default method
 def test_bench_world_without_a_model_compares_the_nominal_simulator_with_its_variants(
     recorded: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
@@ -271,6 +272,7 @@ def test_selection_of_a_perfect_and_of_a_reversed_predictor() -> None:
     assert good["random_3"] == bad["random_3"] < 1.0
 
 
+@pytest.mark.extended  # a world-model benchmark, outside the default method
 def test_bench_screen_scores_every_candidate_and_checks_the_recorded_costs(
     recorded: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
