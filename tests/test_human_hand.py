@@ -236,6 +236,7 @@ def test_point_set_is_the_same_whatever_state_the_shared_random_generators_hold(
     the containment test agrees with a capsule's closed form."""
     import trimesh
 
+    from quasisim.assets.human_hand import HUMAN_POINTS
     from quasisim.rotations import np_quat_to_mat
     from quasisim.sim.pointset import geom_mesh, inside_convex, sample_hand_points
 
@@ -243,7 +244,7 @@ def test_point_set_is_the_same_whatever_state_the_shared_random_generators_hold(
     draws = []
     for seed in (1, 2, 3):
         monkeypatch.setattr(trimesh.util, "_RANDOM_DEFAULT", np.random.default_rng(seed))
-        p = sample_hand_points(hand, 0.005, 0.0, seed=0, count=1536)
+        p = sample_hand_points(hand, 0.005, 0.0, seed=0, count=HUMAN_POINTS)
         draws.append(np.concatenate([p.body[:, None], p.local], axis=1))
     assert all(np.array_equal(draws[0], d) for d in draws[1:])
     # a capsule (axis z in its frame, radius r, half-length h): inside its 16-sided tessellation, or outside it

@@ -202,6 +202,7 @@ def test_stage2_reads_back_where_identification_ended_instead_of_evaluating_it_a
     first evaluation, at (x, best S), is identification's own, so the objective runs once fewer than the two
     optimisations' loss evaluations (none fewer without identification), and the result is exactly that of
     running both optimisations with their own evaluations."""
+    from quasisim.method.stage1 import pick_grad
     from quasisim.method.stage2 import one_simulator
     from quasisim.optim.adam import Progress, StepBudget, minimise
 
@@ -227,11 +228,9 @@ def test_stage2_reads_back_where_identification_ended_instead_of_evaluating_it_a
     x, s, log_s, log_c = one_simulator(counted, x0, s0, None, {}, sb, Progress(False), "toy")
     assert calls["n"] == len(log_s.losses) + len(log_c.losses) - (sysid_steps > 0)
     # the same as both optimisations run in full
-    s_ref, log_s_ref = (minimise(lambda v: (vg(x0, v, None, {})[0], vg(x0, v, None, {})[1][1]), s0, sysid_steps,
-                                 0.05, sb, Progress(False), "s") if sysid_steps else (s0, None))  # fmt: skip
-    x_ref, log_c_ref = minimise(
-        lambda v: (vg(v, s_ref, None, {})[0], vg(v, s_ref, None, {})[1][0]), x0, 4, 0.05, sb, Progress(False), "c"
-    )
+    s_ref, log_s_ref = (minimise(lambda v: pick_grad(vg(x0, v, None, {}), 1), s0, sysid_steps, 0.05, sb,
+                                 Progress(False), "s") if sysid_steps else (s0, None))  # fmt: skip
+    x_ref, log_c_ref = minimise(lambda v: pick_grad(vg(v, s_ref, None, {}), 0), x0, 4, 0.05, sb, Progress(False), "c")
     np.testing.assert_array_equal(x, x_ref)
     np.testing.assert_array_equal(s.log_mass, s_ref.log_mass)
     assert log_c.losses == log_c_ref.losses and (log_s_ref is None or log_s.losses == log_s_ref.losses)
