@@ -36,10 +36,12 @@ demo-ours: setup
 		--target mujoco --out out/example40/cube_lift/ours
 
 # Two test processes (one per core; a test module stays in one process, so its compiled programs are shared).
-# Tests compile without XLA's backend (LLVM) optimisation: compilation is most of the end-to-end tests' time,
-# and what they check (behaviour, resumes, errors against closed forms and MuJoCo) does not depend on it; the
-# benchmarks (`quasisim bench ...`) measure the programs as users compile them.
-TEST_XLA := --xla_backend_optimization_level=0
+# Tests compile without XLA's backend (LLVM) optimisation and without its CPU fusion emitters (0.6x the
+# compile time of the simulator's value and gradient, BENCHMARKS.md "Test programs compiled without the fusion
+# emitters"): compilation is most of the end-to-end tests' time, and what they check (behaviour, resumes,
+# errors against closed forms and MuJoCo) does not depend on it; the benchmarks (`quasisim bench ...`) measure
+# the programs as users compile them.
+TEST_XLA := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false
 # `test` (CI) leaves out the extended tests (research paths outside the default method, ~25 min more on 2 cores);
 # `test-all` runs every test.
 test: setup

@@ -127,3 +127,37 @@ def test_use_folder_is_for_its_block_alone(cache: Path, tmp_path: Path, monkeypa
     assert len(list((tmp_path / "cold").glob("*.bin"))) == 1 and not cache.exists()
     monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path / "later"))
     assert tracecache.folder() == tmp_path / "later" / "traces"
+
+
+def test_a_fresh_process_traces_none_of_the_per_clip_kinematics(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The programs every command runs on a clip: the retarget (its solver, keypoints and the rest pose of the
+    root fit), the evaluation's hand surface points and the sampling stage's pre-screen keypoints. Once
+    their traces are on disk, a process with nothing in memory calls the forward kinematics neither to trace
+    them again nor op by op (each eager call of the Python function costs seconds of per-op compiles)."""
+    import quasisim.sim.kinematics as kin
+    from helpers import scene_with
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.eval.evaluate import robot_surface
+    from quasisim.method.retarget import RetargetOptions, retarget
+    from quasisim.method.sampling import kinematic_keypoints
+
+    demo = load_demo(write_example("cube_lift", cache.parent / "demo", n_frames=12))
+    hand = load_hand("shadow")
+    opts = RetargetOptions(iters=3)
+
+    def run() -> tuple[np.ndarray, ...]:
+        r = retarget(hand, demo, opts)
+        kp = kinematic_keypoints(scene_with(hand, base_rot=r.base_rot))(r.q)
+        return r.q, robot_surface(hand, r.base_rot, r.q), kp
+
+    first = run()
+    calls: list[int] = []
+    real = kin.forward_kinematics_with_joints
+    monkeypatch.setattr(kin, "forward_kinematics_with_joints", lambda *a, **k: calls.append(1) or real(*a, **k))
+    tracecache.clear_memory()  # as a fresh process: nothing in memory, the traces on disk
+    again = run()
+    assert calls == []
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -316,6 +316,12 @@ class HandModel:
         """Joints of each hand, in order (a hand's joints are contiguous)."""
         return tuple(int(n) for n in np.bincount(self.body_hand[self.joint_body], minlength=self.n_hands))
 
+    def __getstate__(self) -> dict[str, Any]:
+        """The fields without the cached properties: a hand pickles to the same bytes whether or not they
+        have been computed (traced programs on disk are keyed by the pickle, :mod:`quasisim.tracecache`)."""
+        cached = {k for k, v in vars(type(self)).items() if isinstance(v, cached_property)}
+        return {k: v for k, v in vars(self).items() if k not in cached}
+
 
 @cache
 def join_hands(hands: tuple[HandModel, ...]) -> HandModel:

@@ -16,7 +16,6 @@ its own human keypoints (:func:`kinematic_controls`); the controls concatenate t
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import jax
@@ -30,6 +29,7 @@ from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash
 from quasisim.rotations import chordal_mean_rotation, euler_xyz_to_mat, kabsch, np_mat_to_euler_xyz
 from quasisim.sim.kinematics import HandGeometry, forward_kinematics, geometry_arrays, keypoints
+from quasisim.tracecache import cached_jit
 
 
 @dataclass(frozen=True)
@@ -60,8 +60,8 @@ class RetargetResult:
 def rigid_root_fit(hand: HandModel, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Root rotations (T, 3, 3) and positions (T, 3) from a rigid fit of the rest-pose wrist/knuckles."""
     idx = [int(np.flatnonzero(hand.kp_human == h)[0]) for h in hand.config.wrist_fit_human]
-    P = forward_kinematics(hand, jnp.zeros(3), jnp.eye(3), jnp.asarray(hand.rest_q()))
-    src = np.asarray(keypoints(hand, P))[idx]
+    rest = jnp.asarray(np.concatenate([np.zeros((1, 6)), hand.rest_q()[None]], axis=1), dtype=jnp.float32)
+    src = np.asarray(keypoints_of(hand, rest, jnp.eye(3), None))[0, idx]  # one compiled program, not op by op
     w = hand.kp_weight[idx]
     Rs, ps = [], []
     for Jt in joints:
@@ -74,17 +74,22 @@ def rigid_root_fit(hand: HandModel, joints: np.ndarray) -> tuple[np.ndarray, np.
 # the clip-length warning's estimate of the retarget, per frame (2-core machine; bench long)
 RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME = 0.008, 0.03
 
-# compiled solvers per hand object and options; entries live and die with their hand
-_SOLVERS: weakref.WeakKeyDictionary[HandModel, dict[RetargetOptions, tuple]] = weakref.WeakKeyDictionary()
+
+def _keypoints(hand: HandModel, q: jnp.ndarray, base_rot: jnp.ndarray, geom: HandGeometry | None) -> jnp.ndarray:
+    """The robot keypoints (K, 3) at ``q`` (6 + J,): base position, base angles about ``base_rot``, joints."""
+    poses = forward_kinematics(hand, q[:3], base_rot @ euler_xyz_to_mat(q[3:6]), q[6:], geom)
+    return keypoints(hand, poses, geom)
 
 
-def _solver(hand: HandModel, opts: RetargetOptions) -> tuple:
-    """jit-compiled (per hand and options) single-frame solver and keypoint function; both take the hand's
-    geometry (:func:`~quasisim.sim.kinematics.geometry_arrays` for a hand built per demo, else None) as
-    their last argument."""
-    known = _SOLVERS.setdefault(hand, {})
-    if opts in known:
-        return known[opts]
+@cached_jit(static_argnames=("hand", "opts"))
+def solve_frame(
+    hand: HandModel, opts: RetargetOptions, q_init: jnp.ndarray, q_prev: jnp.ndarray, target: jnp.ndarray,
+    base_rot: jnp.ndarray, geom: HandGeometry | None,
+) -> jnp.ndarray:  # fmt: skip
+    """One frame's IK (module docstring): ``opts.iters`` projected Adam steps from ``q_init`` (6 + J,) towards
+    the human keypoints ``target`` (21, 3), smooth against ``q_prev``; ``geom``: the hand's geometry
+    (:func:`~quasisim.sim.kinematics.geometry_arrays` for a hand built per demo, else None). A traced program
+    kept on disk (:mod:`quasisim.tracecache`): a fresh process does not trace it again."""
     kp_human = np.asarray(hand.kp_human)
     w = jnp.asarray(hand.kp_weight, dtype=jnp.float32)
     lo = np.concatenate([np.full(6, -np.inf), np.where(hand.joint_limited, hand.joint_range[:, 0], -np.inf)])
@@ -92,35 +97,25 @@ def _solver(hand: HandModel, opts: RetargetOptions) -> tuple:
     smooth_w = np.concatenate([np.zeros(3), np.ones(3 + hand.n_joints)]) * opts.smooth
     q_rest = hand.rest_q()
 
-    def kp_fn(q: jnp.ndarray, base_rot: jnp.ndarray, geom: HandGeometry | None) -> jnp.ndarray:
-        poses = forward_kinematics(hand, q[:3], base_rot @ euler_xyz_to_mat(q[3:6]), q[6:], geom)
-        return keypoints(hand, poses, geom)
-
-    def loss(
-        q: jnp.ndarray, q_prev: jnp.ndarray, target: jnp.ndarray, base_rot: jnp.ndarray, geom: HandGeometry | None
-    ) -> jnp.ndarray:
-        err = jnp.sum(w * jnp.sum((kp_fn(q, base_rot, geom) - target[kp_human]) ** 2, axis=-1))
+    def loss(q: jnp.ndarray) -> jnp.ndarray:
+        err = jnp.sum(w * jnp.sum((_keypoints(hand, q, base_rot, geom) - target[kp_human]) ** 2, axis=-1))
         return err + jnp.sum(smooth_w * (q - q_prev) ** 2) + opts.rest * jnp.sum((q[6:] - q_rest) ** 2)
 
-    grad = jax.grad(loss)
     tx = optax.adam(optax.exponential_decay(opts.lr, transition_steps=opts.iters, decay_rate=0.05))
 
-    @jax.jit
-    def solve(
-        q_init: jnp.ndarray, q_prev: jnp.ndarray, target: jnp.ndarray, base_rot: jnp.ndarray,
-        geom: HandGeometry | None,
-    ) -> jnp.ndarray:  # fmt: skip
-        def body(_: int, carry: tuple) -> tuple:
-            q, st = carry
-            upd, st = tx.update(grad(q, q_prev, target, base_rot, geom), st, q)
-            return jnp.clip(optax.apply_updates(q, upd), lo, hi), st
+    def body(_: int, carry: tuple) -> tuple:
+        q, st = carry
+        upd, st = tx.update(jax.grad(loss)(q), st, q)
+        return jnp.clip(optax.apply_updates(q, upd), lo, hi), st
 
-        q, _ = jax.lax.fori_loop(0, opts.iters, body, (q_init, tx.init(q_init)))
-        return q
+    q, _ = jax.lax.fori_loop(0, opts.iters, body, (q_init, tx.init(q_init)))
+    return q
 
-    out = (solve, jax.jit(jax.vmap(kp_fn, in_axes=(0, None, None))))
-    known[opts] = out
-    return out
+
+@cached_jit(static_argnames=("hand",))
+def keypoints_of(hand: HandModel, q: jnp.ndarray, base_rot: jnp.ndarray, geom: HandGeometry | None) -> jnp.ndarray:
+    """The robot keypoints (T, K, 3) of every frame of ``q`` (T, 6 + J)."""
+    return jax.vmap(lambda x: _keypoints(hand, x, base_rot, geom))(q)
 
 
 def retarget(
@@ -133,22 +128,21 @@ def retarget(
     base_rot = chordal_mean_rotation(Rs)
     eul = np.unwrap(np_mat_to_euler_xyz(np.einsum("ji,tjk->tik", base_rot, Rs)), axis=0)
     base_init = np.concatenate([ps, eul], axis=1)
-    solve, kp_fn = _solver(hand, opts)
     geom = geometry_arrays(hand) if hand.config.per_demo else None
     R0 = jnp.asarray(base_rot, dtype=jnp.float32)
     targets = jnp.asarray(J, dtype=jnp.float32)
     q = jnp.asarray(np.concatenate([base_init[0], hand.rest_q()]), dtype=jnp.float32)
     for _ in range(4):  # the first frame has no warm start: give it more iterations
-        q = solve(q, q, targets[0], R0, geom)
+        q = solve_frame(hand, opts, q, q, targets[0], R0, geom)
     qs = [q]
     for t in tqdm(range(1, len(J)), desc="retarget", unit="frame", disable=not progress, leave=False):
         # warm start: previous solution with the root moved by the rigid fit
         q0 = qs[-1].at[:6].set(jnp.asarray(base_init[t], dtype=jnp.float32))
-        qs.append(solve(q0, qs[-1], targets[t], R0, geom))
+        qs.append(solve_frame(hand, opts, q0, qs[-1], targets[t], R0, geom))
         if t % 64 == 0:  # bounded queue of dispatched solves: memory and time stay linear in the frames
             qs[-1].block_until_ready()
     q_all = np.asarray(jnp.stack(qs), dtype=np.float64)
-    kp = np.asarray(kp_fn(jnp.asarray(q_all, dtype=jnp.float32), R0, geom), dtype=np.float64)
+    kp = np.asarray(keypoints_of(hand, jnp.asarray(q_all, dtype=jnp.float32), R0, geom), dtype=np.float64)
     err = np.linalg.norm(kp - J[:, hand.kp_human], axis=-1)
     return RetargetResult(
         q=q_all, base_rot=base_rot, keypoint_error=err, mean_metric_error_mm=float(err[:, hand.kp_metric].mean() * 1e3)

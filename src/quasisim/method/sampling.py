@@ -121,17 +121,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
+from quasisim.assets.hand import HandModel
 from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
 from quasisim.files import save_npz_atomic
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
+from quasisim.sim.kinematics import fk_full, keypoints
 from quasisim.targets import Observation, Prediction, Prune, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
+from quasisim.tracecache import cached_jit
 
 MODES = ("predictive", "mppi")
 UNSTABLE_COST = 1.0e3  # a window cost for a copy's rollout that went unstable (finite costs are ~0.01-1)
@@ -334,24 +339,31 @@ def scene_sampler(opts: SamplingOptions, scene: Scene) -> Callable[[np.random.Ge
 def kinematic_keypoints(scene: Scene) -> Callable[[np.ndarray], np.ndarray]:
     """``f(q)``: the metric keypoints (..., K_metric, 3) (m, world) of the scene's hands at ``q`` (..., D) by
     forward kinematics of the hand models: the sites the target reports (tested against MuJoCo)."""
-    import jax
-    import jax.numpy as jnp
-
-    from quasisim.sim.kinematics import fk_full, keypoints
-
-    metric = np.flatnonzero(scene.kp_metric)
-    parts = list(zip(scene.hands, [jnp.asarray(R) for R in scene.base_rots], scene.dof_slices, strict=True))
-
-    @jax.jit
-    def fk(q: jax.Array) -> jax.Array:
-        one = lambda x: jnp.concatenate([keypoints(h, fk_full(h, R, x[sl])) for h, R, sl in parts])[metric]  # noqa: E731
-        return jax.vmap(one)(q)
+    metric = tuple(int(i) for i in np.flatnonzero(scene.kp_metric))
+    cols = tuple((sl.start, sl.stop) for sl in scene.dof_slices)
+    rots = tuple(jnp.asarray(R, jnp.float32) for R in scene.base_rots)
 
     def f(q: np.ndarray) -> np.ndarray:
-        flat = np.asarray(q, np.float32).reshape(-1, q.shape[-1])
-        return np.asarray(fk(flat), np.float64).reshape(*q.shape[:-1], len(metric), 3)
+        flat = jnp.asarray(np.asarray(q, np.float32).reshape(-1, q.shape[-1]))
+        out = _metric_keypoints(scene.hands, cols, metric, rots, flat)
+        return np.asarray(out, np.float64).reshape(*q.shape[:-1], len(metric), 3)
 
     return f
+
+
+@cached_jit(static_argnames=("hands", "cols", "metric"))
+def _metric_keypoints(
+    hands: tuple[HandModel, ...], cols: tuple[tuple[int, int], ...], metric: tuple[int, ...],
+    rots: tuple[jax.Array, ...], q: jax.Array,
+) -> jax.Array:  # fmt: skip
+    """(N, K_metric, 3) the hands' metric keypoints at ``q`` (N, D), hand ``i`` in columns ``cols[i]`` with
+    base rotation ``rots[i]``; a traced program kept on disk (:mod:`quasisim.tracecache`)."""
+
+    def one(x: jax.Array) -> jax.Array:
+        kp = [keypoints(h, fk_full(h, R, x[a:b])) for h, R, (a, b) in zip(hands, rots, cols, strict=True)]
+        return jnp.concatenate(kp)[np.asarray(metric)]
+
+    return jax.vmap(one)(q)
 
 
 def kinematic_costs(

@@ -16,6 +16,7 @@ from quasisim.assets.hand import Geom, HandModel
 from quasisim.assets.object import quiet_trimesh
 from quasisim.rotations import np_quat_to_mat
 from quasisim.sim.kinematics import fk_full, points_world
+from quasisim.tracecache import cached_jit
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,11 +115,15 @@ def _sample(hand: HandModel, spacing: float, offset: float, seed: int) -> HandPo
 
 def surface_points_over_time(hand: HandModel, base_rot: np.ndarray, qpos: np.ndarray, pts: HandPoints) -> np.ndarray:
     """(T, N, 3) world positions of ``pts`` for hand configurations ``qpos`` (T, 6 + J)."""
-    R0 = jnp.asarray(base_rot, dtype=jnp.float32)
+    f32 = lambda x: jnp.asarray(x, dtype=jnp.float32)  # noqa: E731
+    out = _points_over_frames(hand, f32(base_rot), f32(qpos), jnp.asarray(pts.body, jnp.int32), f32(pts.local))
+    return np.asarray(out, dtype=np.float64)
 
-    @jax.jit
-    @jax.vmap
-    def f(q: jnp.ndarray) -> jnp.ndarray:
-        return points_world(fk_full(hand, R0, q), pts.body, jnp.asarray(pts.local, dtype=jnp.float32))
 
-    return np.asarray(f(jnp.asarray(qpos, dtype=jnp.float32)), dtype=np.float64)
+@cached_jit(static_argnames=("hand",))
+def _points_over_frames(
+    hand: HandModel, base_rot: jax.Array, qpos: jax.Array, body: jax.Array, local: jax.Array
+) -> jax.Array:
+    """(T, N, 3) points attached to ``body`` (N,) at offsets ``local`` (N, 3) for every frame of ``qpos``; a
+    traced program kept on disk (:mod:`quasisim.tracecache`), compiled once per hand and shapes."""
+    return jax.vmap(lambda q: points_world(fk_full(hand, base_rot, q), body, local))(qpos)
