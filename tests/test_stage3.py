@@ -67,12 +67,14 @@ def test_fit_lowers_the_prediction_loss_and_residuals_start_at_zero(setup) -> No
     # measured on all training windows (the fit saw minibatches): lower than the nominal simulator
     assert len(losses) == opts.steps and fitted < nominal, (nominal, fitted, f.describe(obj.mass))
 
-    # the residual networks start at zero: attached, they predict exactly what the analytical model does
+    # the residual networks start at zero: attached, they predict what the analytical model does, to the
+    # rounding of another compiled program (up to 1.3e-6 measured under the tests' XLA flags; a residual force
+    # of 0.1 N would move the object by millimetres over these 3-frame windows)
     m2, p2 = attach_residual(m, p0, ResidualNets(ResidualConfig(), seed=0))
     a = predict(m, p0, train, demo.fps, bq)
     b = predict(m2, p2, train, demo.fps, bq)
     for x, y in zip(a, b, strict=True):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-5)
 
 
 @pytest.mark.slow

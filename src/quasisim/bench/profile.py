@@ -25,6 +25,7 @@ from quasisim import pipeline, tracecache
 from quasisim.bench.tables import header, publish
 from quasisim.method.config import TransferConfig
 from quasisim.method.spec import TransferSpec
+from quasisim.runtime import free_compiled_programs
 
 COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_trace_duration",
@@ -73,12 +74,14 @@ GLUE = "setup, outputs, judging, glue"
 
 
 def run_profile(demo: Path, spec: TransferSpec, cfg: TransferConfig, out: Path, cold: bool, cprofile: bool) -> str:
-    """Profile one transfer of ``demo`` into ``out/run`` (from scratch; ``cold``: empty XLA and trace caches;
-    ``cprofile``: also measure MuJoCo's share, under cProfile, which slows Python-heavy code such as tracing)."""
+    """Profile one transfer of ``demo`` into ``out/run`` (from scratch; ``cold``: empty XLA and trace caches and
+    no program in memory, as in a fresh process; ``cprofile``: also measure MuJoCo's share, under cProfile, which
+    slows Python-heavy code such as tracing)."""
     w = _Windows(cprofile)
     jax.monitoring.register_event_duration_secs_listener(w.on_event)
     cache_dir, traces = jax.config.jax_compilation_cache_dir, contextlib.nullcontext()
     if cold:
+        free_compiled_programs(force=True)  # what this process compiled before (jax.jit's and cached_jit's)
         cache = Path(tempfile.mkdtemp(prefix="quasisim-cold-cache-"))
         jax.config.update("jax_compilation_cache_dir", str(cache / "jax"))
         traces = tracecache.use_folder(cache / "traces")
