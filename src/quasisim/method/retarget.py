@@ -27,8 +27,8 @@ from tqdm import tqdm
 from quasisim.assets.hand import HandModel
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash
-from quasisim.rotations import chordal_mean_rotation, euler_xyz_to_mat, kabsch, np_mat_to_euler_xyz
-from quasisim.sim.kinematics import HandGeometry, forward_kinematics, geometry_arrays, keypoints
+from quasisim.rotations import chordal_mean_rotation, kabsch, np_mat_to_euler_xyz
+from quasisim.sim.kinematics import HandGeometry, fk_full, geometry_arrays, keypoints
 from quasisim.tracecache import cached_jit
 
 
@@ -77,8 +77,7 @@ RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME = 0.008, 0.03
 
 def _keypoints(hand: HandModel, q: jnp.ndarray, base_rot: jnp.ndarray, geom: HandGeometry | None) -> jnp.ndarray:
     """The robot keypoints (K, 3) at ``q`` (6 + J,): base position, base angles about ``base_rot``, joints."""
-    poses = forward_kinematics(hand, q[:3], base_rot @ euler_xyz_to_mat(q[3:6]), q[6:], geom)
-    return keypoints(hand, poses, geom)
+    return keypoints(hand, fk_full(hand, base_rot, q, geom), geom)
 
 
 @cached_jit(static_argnames=("hand", "opts"))
