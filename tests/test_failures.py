@@ -53,9 +53,10 @@ def run(tmp_path_factory):
     return demo, out
 
 
-def _edited(run, tmp_path, pos_fn, quat_fn):
+def _edited(run, tmp_path, pos_fn, quat_fn, sample=None):
     """A copy of the run whose object poses (rollout and exported trajectory alike) are those of the demo
-    changed by ``pos_fn`` (T, 3) -> (T, 3) and ``quat_fn`` (T, 4) -> (T, 4)."""
+    changed by ``pos_fn`` (T, 3) -> (T, 3) and ``quat_fn`` (T, 4) -> (T, 4); ``sample``: arrays of a sampling
+    checkpoint to give it."""
     from quasisim.data.demo import load_demo
 
     demo_path, src = run
@@ -70,6 +71,9 @@ def _edited(run, tmp_path, pos_fn, quat_fn):
         t = dict(z)
     t["qpos"][:, -7:-4], t["qpos"][:, -4:] = pos, quat  # the object's free joint comes last
     np.savez(dst / "trajectory.npz", **t)
+    if sample is not None:
+        (dst / "checkpoints").mkdir(exist_ok=True)
+        np.savez(dst / "checkpoints" / "sample.npz", **sample)
     mesh = trimesh.creation.box(extents=(0.05, 0.05, 0.05))
     return classify(demo, dst, "edited", mesh, mesh.sample(400))
 
@@ -95,6 +99,23 @@ def test_each_label_on_a_run_edited_into_a_known_failure(run, tmp_path) -> None:
 
     away = _edited(run, tmp_path / "d", lambda p: p + np.array([0.0, 0.4, 0.0]), lambda q: q)  # 40 cm off, untouched
     assert away.label == "never grasped" and away.frame == 0 and away.contacts == 0
+
+
+def test_a_failure_reports_the_sampling_stages_back_ups(run, tmp_path) -> None:
+    """The back-ups recorded in the run's sampling checkpoint (frame left from, frame gone back to) show in the
+    failure and its table row; a run without a sampling stage has none to report."""
+    from quasisim.eval.failures import markdown
+
+    def dropped(p):
+        p[14:, 2] -= np.linspace(0.01, 0.3, 10)
+        return p
+
+    plain = _edited(run, tmp_path / "a", dropped, lambda q: q)
+    assert plain.backups is None and plain.backed_up_from is None and "| - |" in markdown([plain])
+    ck = {"backups": np.array(3), "backup_frames": np.array([[16, 11], [15, 10], [17, 12]])}
+    sampled = _edited(run, tmp_path / "b", dropped, lambda q: q, sample=ck)
+    assert sampled.label == "drop" and sampled.backups == 3 and sampled.backed_up_from == (15, 17)
+    assert "| 3 (15-17) |" in markdown([sampled])
 
 
 def test_the_command_finds_the_runs_and_tabulates_them(run, tmp_path) -> None:

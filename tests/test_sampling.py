@@ -436,6 +436,11 @@ def test_no_back_up_once_a_frame_stayed_outside_the_limits(real) -> None:
     stop = run_sampling(demo, scene, plan, dataclasses.replace(opts, backtrack_after_lost=False), W, progress=False)
     more = run_sampling(demo, scene, plan, opts, W, progress=False)
     assert stop.backups == 1 and more.backups == 4
+    assert stop.backup_frames.shape == (1, 2) and more.backup_frames.shape == (4, 2)
+    # each back-up goes 3 frames back from the frame that left the limits (at least to frame 1), in order
+    left, to = more.backup_frames.T
+    np.testing.assert_array_equal(to, np.maximum(1, left - 3))
+    assert stop.backup_frames[0, 0] == left[0] and np.all(np.diff(left) > 0)
     np.testing.assert_array_equal(stop.q_targets, plan)
     np.testing.assert_array_equal(more.q_targets, plan)
     assert stop.n_physics_steps < more.n_physics_steps

@@ -11,6 +11,10 @@ Labels, the first that applies at the first failing frame ``f``:
 * ``lost contact``: no hand contact at ``f`` (the object was pushed or left behind);
 * ``never grasped``: no hand contact at any frame up to ``f``;
 * ``slip``: the hand touches the object at ``f``, yet the object drifts off the demo's pose.
+
+Where the run has a sampling stage whose checkpoint recorded its back-ups (``checkpoints/sample.npz``,
+``backup_frames``), the failure also says how many back-ups it made and from which frames: a clip that spent
+its budget on one stretch of near misses has none left when the object falls later.
 """
 
 from __future__ import annotations
@@ -49,6 +53,8 @@ class Failure:
     failing_frames: int  # frames over a limit
     max_rot_deg: float
     max_trans_cm: float
+    backups: int | None = None  # the sampling stage's back-ups (None: no sampling stage, or not recorded)
+    backed_up_from: tuple[int, int] | None = None  # first and last frame a back-up left from
 
 
 def hand_contacts(scene_xml: Path, qpos: np.ndarray) -> np.ndarray:
@@ -71,6 +77,20 @@ def hand_contacts(scene_xml: Path, qpos: np.ndarray) -> np.ndarray:
     return out
 
 
+def backups_of(run_dir: Path) -> dict[str, Any]:
+    """``{"backups": n, "backed_up_from": (first, last)}`` from the run's sampling checkpoint (its
+    ``backup_frames``: the frame each back-up left from, the frame it went back to), or ``{}`` without one."""
+    f = run_dir / "checkpoints" / "sample.npz"
+    if not f.is_file():
+        return {}
+    with np.load(f) as z:
+        if "backup_frames" not in z:
+            return {}
+        left = np.asarray(z["backup_frames"]).reshape(-1, 2)[:, 0]
+    span = (int(left.min()), int(left.max())) if len(left) else None
+    return {"backups": len(left), "backed_up_from": span}
+
+
 def rotation_distance(mesh: Any, points: np.ndarray, quat_a: np.ndarray, quat_b: np.ndarray) -> float:
     """Mean distance (mm) of the object's surface ``points`` (P, 3; object frame) turned by the rotation from
     pose a to pose b (quaternions w x y z, the same origin) to the object's surface ``mesh`` (a trimesh):
@@ -89,7 +109,7 @@ def classify(demo: Demo, run_dir: Path, method: str, mesh: Any, surface: np.ndar
     rot, trans = object_errors(demo.object_pos, demo.object_quat, pos, quat)
     bad = (rot > STRICT_DEG) | (trans > STRICT_CM)
     common = {"clip": demo.name, "method": method, "frames": demo.n_frames, "failing_frames": int(bad.sum()),
-              "max_rot_deg": float(rot.max()), "max_trans_cm": float(trans.max())}  # fmt: skip
+              "max_rot_deg": float(rot.max()), "max_trans_cm": float(trans.max()), **backups_of(run_dir)}  # fmt: skip
     if not bad.any():
         return Failure(label="pass", frame=-1, over="", rot_deg=0.0, trans_cm=0.0, surface_mm=0.0, contacts=0,
                        **common)  # fmt: skip
@@ -139,15 +159,15 @@ def markdown(failures: list[Failure]) -> str:
     """Per clip (failures only) and a count of the labels per method."""
     lines = [
         "| clip | method | label | first failing frame | over | rot (deg) | trans (cm) | rot moves surface (mm) | contacts "
-        "| frames over | max rot (deg) | max trans (cm) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| frames over | max rot (deg) | max trans (cm) | back-ups (from frames) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for f in failures:
         if f.label != "pass":
             lines.append(
                 f"| {f.clip} | {f.method} | {f.label} | {f.frame} of {f.frames} | {f.over} | {f.rot_deg:.1f} | "
                 f"{f.trans_cm:.2f} | {f.surface_mm:.1f} | {f.contacts} | {f.failing_frames} | {f.max_rot_deg:.1f} | "
-                f"{f.max_trans_cm:.2f} |"
+                f"{f.max_trans_cm:.2f} | {_backups_cell(f)} |"
             )
     lines += ["", "| method | runs | strict passes | " + " | ".join(LABELS) + " |", "|---" * (3 + len(LABELS)) + "|"]
     for m in sorted({f.method for f in failures}):
@@ -157,6 +177,12 @@ def markdown(failures: list[Failure]) -> str:
             f"| {m} | {len(fs)} | {sum(f.label == 'pass' for f in fs)} | " + " | ".join(map(str, counts)) + " |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _backups_cell(f: Failure) -> str:
+    if f.backups is None:
+        return "-"
+    return f"{f.backups}" + (f" ({f.backed_up_from[0]}-{f.backed_up_from[1]})" if f.backed_up_from else "")
 
 
 LABELS = ("symmetric", "drop", "never grasped", "lost contact", "slip")

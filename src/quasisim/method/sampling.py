@@ -273,6 +273,8 @@ class SampleResult:
             candidate's predicted and the measured hand qpos / object position (m, rad); 0 when the target
             is deterministic and its state is copied exactly; NaN in ``mppi`` mode (no candidate applied).
         backups: times the loop backed up to re-plan frames that left the strict limits (step 6).
+        backup_frames: (backups, 2) int, each back-up's frame that left the limits and the frame it went back
+            to, in the order they happened.
     """
 
     q_targets: np.ndarray
@@ -282,6 +284,7 @@ class SampleResult:
     n_physics_steps: int
     prediction_error: np.ndarray
     backups: int = 0
+    backup_frames: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2), np.int64))
 
 
 # ---- sampling and scoring -------------------------------------------------------------
@@ -610,6 +613,7 @@ def _control_loop(
     saved: dict[int, list[object]] = {}  # frame -> the target's and the copies' states after it (for backing up)
     widened = np.zeros(T, bool)  # frames planned again with more samples after a back-up
     backed_from: dict[int, int] = {}  # frame -> back-ups from it
+    events: list[tuple[int, int]] = []  # (frame that left the limits, frame gone back to), per back-up
     lost = False  # a frame stayed outside the strict limits: the clip cannot pass strict any more
     behind = opts.backtrack * (2 + opts.backtrack_retries)  # frames of saved states kept behind the current one
     rehinge = (
@@ -690,6 +694,7 @@ def _control_loop(
             bar.update(1)
             if back is not None:
                 backed_from[t] = backed_from.get(t, 0) + 1
+                events.append((t, back))
                 for tg, state in zip(every, saved[back], strict=True):
                     tg.restore_state(state)
                 del frames[back + 1 :]
@@ -703,9 +708,8 @@ def _control_loop(
     wall = time.perf_counter() - t0
     if transitions is not None:
         transitions.finish(applied, frames)
-    return SampleResult(
-        applied, target.recorded(frames, wall), losses, wall, steps, pred_err, sum(backed_from.values())
-    )
+    events_arr = np.array(events, np.int64).reshape(-1, 2)
+    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(events), events_arr)
 
 
 def _draw(

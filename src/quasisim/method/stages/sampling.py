@@ -30,6 +30,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
         return {
             "q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s),
             "n_physics_steps": np.array(r.n_physics_steps), "backups": np.array(r.backups),
+            "backup_frames": r.backup_frames,
         }  # fmt: skip
 
     d = ctx.ck.get("sample", sample, q_expect(prob))
