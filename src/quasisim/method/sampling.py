@@ -78,7 +78,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
 
     sampling:
       samples: 24              # candidate windows per frame (the nominal + 23 perturbations)
-      horizon: 6               # frames per window
+      horizon: 10              # frames per window
       knots: 3                 # noise knots per window, linear in between
       noise_base_pos: 0.004    # m
       noise_base_rot: 0.04     # rad
