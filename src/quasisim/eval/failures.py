@@ -13,8 +13,8 @@ Labels, the first that applies at the first failing frame ``f``:
 * ``slip``: the hand touches the object at ``f``, yet the object drifts off the demo's pose.
 
 Where the run has a sampling stage whose checkpoint recorded its back-ups (``checkpoints/sample.npz``,
-``backup_frames``), the failure also says how many back-ups it made and from which frames: a clip that spent
-its budget on one stretch of near misses has none left when the object falls later.
+``backup_frames``), the failure also says how many back-ups it made and the first and last frame they left
+from.
 """
 
 from __future__ import annotations
