@@ -272,9 +272,8 @@ class SampleResult:
         prediction_error: (T - 1,) after each applied frame, the largest difference between the chosen
             candidate's predicted and the measured hand qpos / object position (m, rad); 0 when the target
             is deterministic and its state is copied exactly; NaN in ``mppi`` mode (no candidate applied).
-        backups: times the loop backed up to re-plan frames that left the strict limits (step 6).
-        backup_frames: (backups, 2) int, each back-up's frame that left the limits and the frame it went back
-            to, in the order they happened.
+        backup_frames: (B, 2) int, each time the loop backed up to re-plan frames that left the strict limits
+            (step 6): the frame that left them and the frame it went back to, in the order they happened.
     """
 
     q_targets: np.ndarray
@@ -283,8 +282,12 @@ class SampleResult:
     wall_s: float
     n_physics_steps: int
     prediction_error: np.ndarray
-    backups: int = 0
     backup_frames: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2), np.int64))
+
+    @property
+    def backups(self) -> int:
+        """Times the loop backed up (step 6)."""
+        return len(self.backup_frames)
 
 
 # ---- sampling and scoring -------------------------------------------------------------
@@ -708,8 +711,8 @@ def _control_loop(
     wall = time.perf_counter() - t0
     if transitions is not None:
         transitions.finish(applied, frames)
-    events_arr = np.array(events, np.int64).reshape(-1, 2)
-    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, len(events), events_arr)
+    backups = np.array(events, np.int64).reshape(-1, 2)
+    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, backups)
 
 
 def _draw(
