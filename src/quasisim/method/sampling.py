@@ -28,6 +28,11 @@ At every control frame ``t`` of a clip with ``T`` frames:
    at 0) run the rest, continued from their own states (MuJoCo: with the step's solver warm start, which
    ``mujoco.rollout`` does not return); the others are never chosen. A recorded run (``--record-transitions``)
    rolls every window out in full;
+   With ``grip`` > 0 every window is driven pressing harder where the object holds fingers back: each finger
+   joint whose measured position at the step's start is more than ``grip_gap`` from its PD target (rad, or m
+   for slide joints) gets ``grip * sign(q* - q)`` added to its targets on the window's frames (``kp grip``
+   more torque; :func:`grip_bias`). The plan the loop keeps is without it, so the bias does not add up over
+   steps; the applied frames (the run's result) are the chosen window plus its step's bias;
 4. score each window with the MPC window objective (:func:`quasisim.optim.objective.window_costs`),
    evaluated on the target's states: mean over the window's frames of ``obj_pos |p - p_ref|`` (m),
    ``obj_rot (1 - |q . q_ref|)`` and ``hand`` x mean metric-keypoint distance (m), plus ``smooth`` x the
@@ -107,6 +112,8 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       widen_margin: null       # steps starting with the object beyond this fraction of the limits: more samples
       prune_frames: 0          # frames every candidate runs before only the cheapest bounds go on (0: all run)
       prune_keep: 0.5          # ... the fraction that goes on
+      grip: 0.0                # extra closure of finger joints the object holds back (0: none)
+      grip_gap: 0.02           # ... held back: more than this from their targets (rad)
 """
 
 from __future__ import annotations
@@ -174,6 +181,8 @@ class SamplingOptions:
         prune_frames, prune_keep: every candidate runs the first ``prune_frames`` frames of its window, then
             only the ``prune_keep`` fraction (at least ``samples``) with the lowest cost bound goes on (step 3;
             0 frames: no pruning).
+        grip, grip_gap: the extra closure (rad or m) of finger joints held more than ``grip_gap`` from their
+            targets at a step's start, added to every window's frames (step 3; 0: none).
     """
 
     samples: int
@@ -206,6 +215,8 @@ class SamplingOptions:
     prune_frames: int = 0
     prune_keep: float = 0.5
     backtrack_after_lost: bool = True
+    grip: float = 0.0
+    grip_gap: float = 0.02
 
     def __post_init__(self) -> None:
         self.validate()
@@ -223,7 +234,8 @@ class SamplingOptions:
         for name in ("seed", "robust_seed"):
             if not _is_int(getattr(self, name)):
                 raise QuasisimError(f"sampling option '{name}' must be an integer, got {getattr(self, name)!r}")
-        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin"):
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "grip",
+                     "grip_gap"):  # fmt: skip
             v = getattr(self, name)
             if not (_is_number(v) and v >= 0):
                 raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
@@ -606,7 +618,10 @@ def _control_loop(
     wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
     base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
     base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
-    work = padded(plan, H)  # the plan, shifted as we go
+    fingers = np.zeros(plan.shape[1], bool)  # the hands' joints (not their 6 base dofs)
+    for sl in scene.dof_slices:
+        fingers[sl.start + 6 : sl.stop] = True
+    work = padded(plan, H)  # the plan, shifted as we go (without the grip bias)
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
     losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0
@@ -645,30 +660,32 @@ def _control_loop(
             wins = np.concatenate([wins, _draw(sample, rng, nominal, step_opts, opts.screen, pre)])
         qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
         # the state the windows start from: the frame just observed (before the first step, the reset state)
-        start = (frames[-1] if frames else target.observe()) if transitions is not None else None
+        start = frames[-1] if frames else target.observe()
+        bias = grip_bias(work[t], start["qpos"], fingers, opts.grip, opts.grip_gap)
+        run_wins = wins if bias is None else biased(wins, bias, applied[t])  # what the target is driven with
         bound = functools.partial(cost_bounds, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], cost=cost)
         prune = pruner(opts, wins, bound) if transitions is None else None  # a recording keeps every frame
-        pred = target.rollout_windows(wins, qd0, prune)
+        pred = target.rollout_windows(run_wins, qd0, prune)
         costs = cost(wins, pred)
         if prune is not None:  # the candidates that stopped early are never chosen
             costs = np.where(np.isnan(pred.obj_pos[:, -1, 0]), np.inf, costs)
         live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
-        score, n_copy_steps = _score_in_copies(live, wins, qd0, costs, cost, opts.robust_top)
+        score, n_copy_steps = _score_in_copies(live, run_wins, qd0, costs, cost, opts.robust_top)
         steps += n_copy_steps
         win, best = next_plan_window(wins, score, opts)
-        if transitions is not None and start is not None:  # (start is set whenever transitions is)
+        if transitions is not None:
             keep = _recorded(step_opts.samples, opts.samples, 1 + len(alts), best)
             chosen = None if best is None else int(np.flatnonzero(keep == best)[0])
             kept = {k: getattr(pred, k) for k in (*STATE_KEYS, "keypoints")}
             sub = dataclasses.replace(pred, **{k: v[keep] for k, v in kept.items() if v is not None})
-            transitions.add(t, start, wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
+            transitions.add(t, start, run_wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
         work[t : t + H + 1] = win
         steps += pred.n_steps
         # apply the window's first `replan` frames (one where frames are re-planned after a back-up)
         for j in range(1, 1 + (1 if widened[t] else min(opts.replan, H, T - 1 - t))):
             if j > 1 and not _calm(pred, best, j, ref_pos[t + 1], ref_quat[t + 1], opts.replan_margin):
                 break  # the frame's predicted object error is not well inside the limits: plan it afresh
-            applied[t + 1] = win[j]
+            applied[t + 1] = win[j] if bias is None else win[j] + bias
             if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
                 for tg in every:
                     tg.reset(applied[0], (applied[1] - applied[0]) * fps)
@@ -713,6 +730,24 @@ def _control_loop(
         transitions.finish(applied, frames)
     backups = np.array(events, np.int64).reshape(-1, 2)
     return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, backups)
+
+
+def grip_bias(q: np.ndarray, qpos: np.ndarray, fingers: np.ndarray, grip: float, gap: float) -> np.ndarray | None:
+    """(D,) step 3's grip bias: ``grip * sign(q - qpos)`` on the ``fingers`` columns whose measured position
+    ``qpos`` is more than ``gap`` from its PD target ``q`` (a joint that the object holds back is pressed
+    further, ``kp grip`` more torque), 0 elsewhere; None without a grip (``grip`` 0)."""
+    if grip == 0:
+        return None
+    g = np.where(fingers, q - qpos, 0.0)
+    return np.where(np.abs(g) > gap, grip * np.sign(g), 0.0)
+
+
+def biased(wins: np.ndarray, bias: np.ndarray, q_now: np.ndarray) -> np.ndarray:
+    """(N, H + 1, D) windows ``wins`` as the target runs them: frame 0 the targets applied last (``q_now``,
+    with their own bias), the later frames plus ``bias``."""
+    out = wins + bias
+    out[:, 0] = q_now
+    return out
 
 
 def _draw(
