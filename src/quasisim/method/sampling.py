@@ -616,11 +616,10 @@ def _control_loop(
     sample = scene_sampler(opts, scene)
     kp = kinematic_keypoints(scene) if opts.screen > 1 else None  # step 2's pre-screen
     wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
-    base_cols = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
-    base_cols = base_cols if len(scene.hands) > 1 else None  # one hand: the first 6 columns
-    fingers = np.zeros(plan.shape[1], bool)  # the hands' joints (not their 6 base dofs)
-    for sl in scene.dof_slices:
-        fingers[sl.start + 6 : sl.stop] = True
+    base = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
+    base_cols = base if len(scene.hands) > 1 else None  # one hand: the first 6 columns
+    fingers = np.ones(plan.shape[1], bool)  # the hands' joints: every column but the base dofs
+    fingers[base] = False
     work = padded(plan, H)  # the plan, shifted as we go (without the grip bias)
     applied = plan.copy()
     rng = np.random.default_rng(opts.seed)
