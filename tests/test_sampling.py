@@ -110,6 +110,8 @@ def _replay(scene, q):
         ("prune_frames", -1, "prune_frames"),
         ("prune_keep", 0.0, "prune_keep"),
         ("prune_keep", 1.5, "prune_keep"),
+        ("backtrack_limit", 0.0, "backtrack_limit"),
+        ("backtrack_limit", 1.2, "backtrack_limit"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:
@@ -446,6 +448,36 @@ def test_no_back_up_once_a_frame_stayed_outside_the_limits(real) -> None:
     np.testing.assert_array_equal(stop.q_targets, plan)
     np.testing.assert_array_equal(more.q_targets, plan)
     assert stop.n_physics_steps < more.n_physics_steps
+
+
+def test_a_tighter_back_up_limit_backs_up_inside_the_limits_and_loses_only_outside(data_dir: Path) -> None:
+    """``backtrack_limit`` L < 1: a frame backs up as soon as the object passes L x the strict limits. With
+    zero noise every re-planned frame is the plan again, so from the plain replay's per-frame fraction f of
+    the limits: every frame t >= 2 with f > L backs up once (no retries) in order, from the first with f > L
+    to the first with f > 1, which stays outside and is lost (no back-up after it without
+    ``backtrack_after_lost``); frames between L and 1 that come back the same are not lost. L = 1 is the old
+    rule: the first back-up leaves from the first frame outside the limits."""
+    from quasisim.data.demo import load_demo
+    from quasisim.method.sampling import strict_fractions
+
+    # 12 frames before the lift-off, where the plan's replay creeps towards the limits, then leaves them
+    demo, plan, scene = _inputs(load_demo(data_dir / "grab_s1_cubesmall_lift.npz").slice(20, 32))
+    rep = _replay(scene, plan)
+    trans, rot = strict_fractions(rep.object_pos, rep.object_quat, demo.object_pos, demo.object_quat)
+    f = np.maximum(trans, rot)
+    limit = 0.5
+    first_out = int(np.flatnonzero((f > 1.0) & (np.arange(len(f)) >= 2))[0])
+    near = np.flatnonzero((f > limit) & (np.arange(len(f)) >= 2) & (np.arange(len(f)) <= first_out))
+    assert near[0] < first_out  # the fixture has frames between the margin and the limits
+    opts = dataclasses.replace(
+        ZERO, backtrack=3, backtrack_budget=20, backtrack_retries=0, backtrack_after_lost=False, backtrack_limit=limit
+    )
+    margin = run_sampling(demo, scene, plan, opts, W, progress=False)
+    np.testing.assert_array_equal(margin.backup_frames[:, 0], near)
+    np.testing.assert_array_equal(margin.q_targets, plan)
+    old = run_sampling(demo, scene, plan, dataclasses.replace(opts, backtrack_limit=1.0), W, progress=False)
+    np.testing.assert_array_equal(old.backup_frames[:, 0], [first_out])
+    assert margin.n_physics_steps > old.n_physics_steps
 
 
 def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:

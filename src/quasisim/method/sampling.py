@@ -64,6 +64,10 @@ At every control frame ``t`` of a clip with ``T`` frames:
    A frame that stays outside the limits (its retries or the budget spent) fails strict success for the
    clip, unless a later back-up reaches back past it: without ``backtrack_after_lost`` no back-up follows
    it (less time, but back-ups after it also keep the object near its path and can re-plan the lost frame).
+   With ``backtrack_limit`` < 1 a frame backs up already when it comes closer to the limits than that
+   fraction of them (e.g. 0.75: beyond 1.5 cm or 22.5 deg), with the same retries and budget, so the run keeps
+   a margin that a slightly different target (robust success) does not eat; only a frame outside the limits
+   themselves is lost;
 7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
    (:func:`quasisim.eval.robust.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
    ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
@@ -114,6 +118,7 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       prune_keep: 0.5          # ... the fraction that goes on
       grip: 0.0                # extra closure of finger joints the object holds back (0: none)
       grip_gap: 0.02           # ... held back: more than this from their targets (rad)
+      backtrack_limit: 1.0     # back up when a frame comes closer to the strict limits than this fraction
 """
 
 from __future__ import annotations
@@ -167,7 +172,8 @@ class SamplingOptions:
             limits again, each ``backtrack`` frames further back (step 6; 0: none).
             backtrack_strict_weight: the hinge's weight on frames re-planned after a back-up (step 6;
             None: ``strict_weight``).  backtrack_after_lost: go on backing up after a frame has stayed
-            outside the limits (step 6).
+            outside the limits (step 6).  backtrack_limit: the fraction of the strict limits whose crossing
+            backs up (step 6; 1: the limits themselves).
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
@@ -217,6 +223,7 @@ class SamplingOptions:
     backtrack_after_lost: bool = True
     grip: float = 0.0
     grip_gap: float = 0.02
+    backtrack_limit: float = 1.0
 
     def __post_init__(self) -> None:
         self.validate()
@@ -254,6 +261,10 @@ class SamplingOptions:
             m = getattr(self, name)
             if m is not None and not (_is_number(m) and m > 0):
                 raise QuasisimError(f"sampling option '{name}' must be null or a finite number > 0, got {m!r}")
+        if not (_is_number(self.backtrack_limit) and 0 < self.backtrack_limit <= 1):
+            raise QuasisimError(
+                f"sampling option 'backtrack_limit' must be a number in (0, 1], got {self.backtrack_limit!r}"
+            )
         if not (_is_number(self.prune_keep) and 0 < self.prune_keep <= 1):
             raise QuasisimError(f"sampling option 'prune_keep' must be a number in (0, 1], got {self.prune_keep!r}")
         if self.mode not in MODES:
@@ -700,10 +711,12 @@ def _control_loop(
                     np.abs(pred.qpos[best, j - 1] - q_now).max(), np.abs(pred.obj_pos[best, j - 1] - p_now).max()
                 )
             t += 1
-            off = not _within_limits(frames[-1], ref_pos[t], ref_quat[t])
+            over = _limit_fraction(frames[-1], ref_pos[t], ref_quat[t])
+            off = not over <= 1.0  # outside the strict limits (or not finite)
             if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
                 off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
-            back = None if lost and not opts.backtrack_after_lost else _back_up_to(t, off, opts, backed_from)
+            near = off or over > opts.backtrack_limit  # inside the limits, but by less than the margin asked
+            back = None if lost and not opts.backtrack_after_lost else _back_up_to(t, near, opts, backed_from)
             lost = lost or (off and back is None)
             if opts.backtrack > 0:  # the states a back-up may return to
                 saved[t] = [tg.save_state() for tg in every]
