@@ -715,7 +715,7 @@ def _control_loop(
             off = not over <= 1.0  # outside the strict limits (or not finite)
             if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
                 off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
-            near = off or over > opts.backtrack_limit  # inside the limits, but by less than the margin asked
+            near = off or over > opts.backtrack_limit  # outside, or inside by less than the margin asked
             back = None if lost and not opts.backtrack_after_lost else _back_up_to(t, near, opts, backed_from)
             lost = lost or (off and back is None)
             if opts.backtrack > 0:  # the states a back-up may return to
