@@ -465,9 +465,9 @@ def test_a_tighter_back_up_limit_backs_up_inside_the_limits_and_loses_only_outsi
     rep = _replay(scene, plan)
     trans, rot = strict_fractions(rep.object_pos, rep.object_quat, demo.object_pos, demo.object_quat)
     f = np.maximum(trans, rot)
-    limit = 0.5
-    first_out = int(np.flatnonzero((f > 1.0) & (np.arange(len(f)) >= 2))[0])
-    near = np.flatnonzero((f > limit) & (np.arange(len(f)) >= 2) & (np.arange(len(f)) <= first_out))
+    limit, frame = 0.5, np.arange(len(f))
+    first_out = int(np.flatnonzero((f > 1.0) & (frame >= 2))[0])
+    near = np.flatnonzero((f > limit) & (frame >= 2) & (frame <= first_out))
     assert near[0] < first_out  # the fixture has frames between the margin and the limits
     opts = dataclasses.replace(
         ZERO, backtrack=3, backtrack_budget=20, backtrack_retries=0, backtrack_after_lost=False, backtrack_limit=limit
