@@ -94,3 +94,20 @@ def chromium_check(page, fragment: str = "") -> dict | None:
         "readout": re.search(r'<div id="qs-readout">(.*?)</div>', dom, re.S)[1],
         "cursors": [float(x) for x in re.findall(r'<line class="cursor" x1="([^"]+)"', dom)],
     }
+
+
+def cube_example(folder, n_frames: int = 20) -> tuple:
+    """The bundled example ``cube_lift`` written to ``folder`` (``n_frames`` frames), its kinematic retarget
+    (saved as ``folder/kinematic.npz``) and their scene: ``(path, demo, controls, scene)``."""
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    path = write_example("cube_lift", folder, n_frames=n_frames)
+    demo, hand = load_demo(path), load_hand("shadow")
+    controls = kinematic_controls(hand, demo, "shadow")
+    controls.save(folder / "kinematic.npz")
+    return path, demo, controls, scene_for(demo, place_hands((hand,), controls.base_rots))

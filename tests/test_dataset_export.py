@@ -268,3 +268,40 @@ def test_unreproduced_run_is_refused_and_no_partial_file(root, tmp_path) -> None
 def test_import_stays_light() -> None:
     code = "import sys, quasisim.data.dataset; sys.exit(bool({'h5py', 'mujoco', 'jax'} & set(sys.modules)))"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_closed_loop_episodes_are_marked_and_replay_exactly(root, tmp_path) -> None:
+    """``--closed-loop 2``: after each run's episode, two episodes of the tracker in robust replays 0 and 1's
+    perturbed worlds, each replaying in its own MJCF (the perturbed world's) to its stored states, marked with
+    its world's parameters, holding the targets the tracker applied."""
+    import h5py
+    import mujoco
+
+    from quasisim.data.controls import load_controls
+    from quasisim.data.dataset import REPLAY_TOL, load_episodes, replay_check
+    from quasisim.eval.robust import replays
+
+    out = tmp_path / "cl.hdf5"
+    run = root / "runs" / "cube_lift" / "kinematic"
+    r = _cli("export", run, "--out", out, "--data", root / "demos", "--closed-loop", "2")
+    assert r.exit_code == 0, r.output
+    eps = list(load_episodes(out))
+    assert [ep.attrs["closed_loop"] for ep in eps] == [False, True, True]
+    devs = replay_check(out)
+    assert max(devs.values()) <= REPLAY_TOL, devs
+
+    def object_mass(ep) -> float:
+        m = mujoco.MjModel.from_xml_string(ep.model_file)
+        return float(m.body_mass[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")])
+
+    cfg, m0 = replays(2), object_mass(eps[0])
+    plan = load_controls(run / "controls.npz").q_targets
+    for i, ep in enumerate(eps[1:]):
+        u = np.random.default_rng([cfg.seed, i]).uniform(-1.0, 1.0, size=5)
+        assert ep.attrs["world_index"] == i and ep.attrs["world_ranges"] == "robust"
+        assert ep.attrs["world"]["object_mass"] == pytest.approx(m0 * (1 + cfg.mass * u[0]))
+        assert object_mass(ep) == pytest.approx(ep.attrs["world"]["object_mass"])  # the MJCF is the world's
+        assert ep.attrs["tracker"]["every"] >= 1 and ep.actions.shape == eps[0].actions.shape
+        assert np.abs(ep.actions - plan[1:]).max() > 1e-4  # the tracker's targets (shifted at least)
+    with h5py.File(out) as f:
+        assert sorted(f["mask/closed_loop"][:].astype(str).tolist()) == ["demo_1", "demo_2"]

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 import pytest
 
+from helpers import cube_example
 from quasisim.errors import InputError
 from quasisim.eval.robust import ROBUST_PATH, RobustConfig, perturbed_scene, robust_success
 
@@ -19,19 +20,7 @@ from quasisim.eval.robust import ROBUST_PATH, RobustConfig, perturbed_scene, rob
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
     """The bundled example (20 frames), its kinematic retarget and their scene."""
-    from quasisim.assets.hand import load_hand
-    from quasisim.data.demo import load_demo
-    from quasisim.data.synthetic import write_example
-    from quasisim.method.retarget import kinematic_controls
-    from quasisim.targets.build import scene_for
-    from quasisim.targets.scene import place_hands
-
-    folder = tmp_path_factory.mktemp("robust")
-    path = write_example("cube_lift", folder, n_frames=20)
-    demo, hand = load_demo(path), load_hand("shadow")
-    controls = kinematic_controls(hand, demo, "shadow")
-    controls.save(folder / "kinematic.npz")
-    return path, demo, controls, scene_for(demo, place_hands((hand,), controls.base_rots))
+    return cube_example(tmp_path_factory.mktemp("robust"))
 
 
 def test_the_shipped_settings_load_and_bad_ones_name_the_field(tmp_path) -> None:

@@ -92,6 +92,34 @@ _ROBUST = click.option(
     "--robust", type=click.IntRange(0, 1000), default=None,
     help="Perturbed replays for robust success (default: n of configs/robust.yaml; 0: none).",
 )  # fmt: skip
+_CLOSED_LOOP = click.option(
+    "--closed-loop", is_flag=True,
+    help="Also replay the perturbed worlds of robust success closed loop: a tracker observes each world's state "
+    "and re-plans around the result in the nominal target (configs/track.yaml; docs/transfer.md).",
+)  # fmt: skip
+_TRACK_SET = click.option(
+    "--track-set", "track_sets", multiple=True,
+    help="With --closed-loop: override a tracker setting of configs/track.yaml, e.g. --track-set every=1.",
+)  # fmt: skip
+_RANGES = click.option(
+    "--ranges", default="default", show_default=True,
+    help="Perturbation sets of robust success, comma-separated: default (configs/robust.yaml), wide "
+    "(configs/robust_wide.yaml: about 2x the ranges and a push on the object mid-clip).",
+)  # fmt: skip
+
+
+def _ranges(text: str) -> tuple[str, ...]:
+    """``--ranges`` as a tuple of set names, each one of :data:`quasisim.eval.robust.RANGES`."""
+    from quasisim.errors import choice_error
+    from quasisim.eval.robust import RANGES
+
+    names = tuple(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
+    for n in names or ("",):
+        if n not in RANGES:
+            raise choice_error("--ranges", n, tuple(RANGES))
+    return names
+
+
 _LEAD_CLIP = click.option(
     "--lead-clip/--no-lead-clip", default=True, show_default=True,
     help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
@@ -195,11 +223,14 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
 @click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
 @click.option("--force", is_flag=True, help="Replay controls made for another demo (a different content hash).")
 @_ROBUST
+@_CLOSED_LOOP
+@_TRACK_SET
+@_RANGES
 @_OVERWRITE
 @_friendly
 def evaluate(
     demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, robust: int | None,
-    overwrite: bool,
+    closed_loop: bool, track_sets: tuple[str, ...], ranges: str, overwrite: bool,
 ) -> None:  # fmt: skip
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
@@ -221,9 +252,18 @@ def evaluate(
             click.echo(f"warning: {note}", err=True)
         from quasisim.eval.robust import replays
 
-        robust_cfg = replays(robust)
-        warn_long_clip(d, *judging_cost(render, robust_cfg), "evaluation" + (" with rendering" if render else ""))
-        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg)
+        robust_cfg = [replays(robust, r) for r in _ranges(ranges)]
+        if closed_loop and not any(r.n for r in robust_cfg):
+            raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+        cost = judging_cost(render, robust_cfg, closed_loop)
+        warn_long_clip(d, *cost, "evaluation" + (" with rendering" if render else ""))
+        tracker = None
+        if closed_loop:
+            from quasisim.method.track import TrackOptions
+            from quasisim.method.track import closed_loop as make_tracker
+
+            tracker = make_tracker(TrackOptions.from_yaml(None, _parse_sets(track_sets)))
+        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg, closed_loop=tracker)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
     _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")
@@ -426,21 +466,40 @@ def _ablation_flags(f: Any) -> Any:
     "DIR/<demo>.<method>.npz (data for fitting a simulator to the target; docs/transfer.md).",
 )  # fmt: skip
 @_ROBUST
+@_CLOSED_LOOP
+@_RANGES
 @_ablation_flags
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
     resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, record: Path | None,
-    robust: int | None, no_residual: bool, no_local_residual: bool, no_control_transform: bool,
+    robust: int | None, closed_loop: bool, ranges: str, no_residual: bool, no_local_residual: bool,
+    no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
     _setup_runtime()
+    from quasisim.eval.robust import replays
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.pipeline import run_transfer
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
-    spec = TransferSpec(hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets, robust)
+    spec = TransferSpec(
+        hand,
+        target,
+        curriculum,
+        parse_stages(stages),
+        budget,
+        method,
+        render,
+        True,
+        nets,
+        robust,
+        closed_loop,
+        _ranges(ranges),
+    )
+    if closed_loop and not any(replays(robust, r).n for r in spec.ranges):
+        raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     if resume and overwrite:
@@ -549,12 +608,17 @@ def batch(
     "--data", "data_dirs", multiple=True, type=click.Path(path_type=Path, exists=True, file_okay=False),
     help="Folder of the runs' demos (repeatable; default: the batch's data_dir, then $QUASISIM_DATA).",
 )  # fmt: skip
+@click.option(
+    "--closed-loop", "closed_loop", type=click.IntRange(0, 1000), default=0, show_default=True,
+    help="Per run, also N closed-loop episodes: the tracker driving the perturbed worlds of robust success "
+    "(configs/robust.yaml, replays 0..N-1), each marked with its world's parameters (docs/dataset.md).",
+)  # fmt: skip
 @click.option("--check", is_flag=True, help="Then replay every episode in MuJoCo; exit 1 if one deviates > 1e-9.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @_friendly
 def export_cmd(
-    batch_dir: Path, out: Path, only: str, min_robust: float | None, data_dirs: tuple[Path, ...], check: bool,
-    overwrite: bool,
+    batch_dir: Path, out: Path, only: str, min_robust: float | None, data_dirs: tuple[Path, ...], closed_loop: int,
+    check: bool, overwrite: bool,
 ) -> None:  # fmt: skip
     """Finished runs under BATCH_DIR (batch, transfer or bench transfer outputs) as one HDF5 training set in
     robomimic's layout: observations, PD-target actions, MuJoCo states, the scene (docs/dataset.md)."""
@@ -569,7 +633,7 @@ def export_cmd(
     _setup_runtime()
     from quasisim.data.dataset_export import export_dataset
 
-    res = export_dataset(batch_dir, out, only, min_robust, data_dirs)
+    res = export_dataset(batch_dir, out, only, min_robust, data_dirs, closed_loop=closed_loop)
     mb = out.stat().st_size / 1e6
     click.echo(f"wrote {out}: {len(res.episodes)} episodes, {res.total} samples, {mb:.1f} MB in {res.seconds:.1f} s")
     if res.skipped:
@@ -757,12 +821,19 @@ def bench_sim(
     help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
     "finished before keep their judging: use a new OUT.",
 )  # fmt: skip
+@click.option(
+    "--closed-loop", is_flag=True,
+    help="After the batch, replay every finished run in the perturbed worlds of --ranges open and closed loop "
+    "(--robust N replays each; cached per run, resumable) and add the closed-loop tables.",
+)  # fmt: skip
+@_TRACK_SET
+@_RANGES
 @_LEAD_CLIP
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
-    record: bool, robust: int | None, lead_clip: bool,
+    record: bool, robust: int | None, closed_loop: bool, track_sets: tuple[str, ...], ranges: str, lead_clip: bool,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -782,7 +853,17 @@ def bench_transfer(
     s = Settings(
         ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record, lead_clip=lead_clip
     )
-    run_transfer_bench(data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust)
+    loop = None
+    if closed_loop:
+        if not robust:
+            raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+        from quasisim.method.track import TrackOptions
+
+        TrackOptions.from_yaml(None, _parse_sets(track_sets))  # a bad setting fails here, before any clip runs
+        loop = (_ranges(ranges), _parse_sets(track_sets))
+    run_transfer_bench(
+        data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust, closed_loop=loop
+    )
 
 
 @bench.command("compare")

@@ -166,8 +166,8 @@ def cost_per_frame(
     def scale(st: Stage) -> float:
         return sub * steps(budget, st.budget_parts) / max(1, steps(f, st.budget_parts)) if st.budget_parts else 1.0
 
-    robust = replays(spec.robust)
-    judge_s, judge_mb = judging_cost(spec.render, robust)
+    robust = [replays(spec.robust, r) for r in spec.ranges]
+    judge_s, judge_mb = judging_cost(spec.render, robust, spec.closed_loop)
     s = RETARGET_S_PER_FRAME + sum(st.s_per_frame * scale(st) for st in stages) + judge_s
     return s, max(MB_PER_FRAME * sub, judge_mb)
 

@@ -62,12 +62,20 @@ def clips(data_dir: Path, pattern: str, names: tuple[str, ...] = ()) -> list[Pat
 ROBUST_KEYS = ("strict", "20deg_20cm")  # the robust-success columns (fractions of perturbed replays)
 
 
-def robust_cells(rs: list[dict[str, Any]]) -> str:
+def robust_cells(rs: list[dict[str, Any]], key: str = "robust") -> str:
     """``robust strict | robust 20`` (%): the mean over ``rs`` of the fraction of perturbed replays that pass
-    (metrics ``robust``, :mod:`quasisim.eval.robust`); ``-`` where a row has none (runs made before it)."""
-    if not rs or any(not r.get("robust") for r in rs):
+    (metrics ``key``, :mod:`quasisim.eval.robust`), as ``open / closed`` where every row also has the closed-loop
+    replays (``key + "_closed_loop"``); ``-`` where a row has none (runs made before it)."""
+    if not rs or any(not r.get(key) for r in rs):
         return " | ".join("-" for _ in ROBUST_KEYS)
-    return " | ".join(f"{100.0 * np.mean([r['robust'][k] for r in rs]):.0f}" for k in ROBUST_KEYS)
+    closed = key + "_closed_loop"
+    has_closed = all(r.get(closed) for r in rs)
+
+    def cell(k: str) -> str:
+        text = f"{100.0 * np.mean([r[key][k] for r in rs]):.0f}"
+        return text + (f" / {100.0 * np.mean([r[closed][k] for r in rs]):.0f}" if has_closed else "")
+
+    return " | ".join(cell(k) for k in ROBUST_KEYS)
 
 
 def summary_rows(rows: list[dict[str, Any]], group: str) -> list[str]:

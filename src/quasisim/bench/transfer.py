@@ -89,12 +89,16 @@ def run_transfer_bench(
     data_dir: Path, clip_names: tuple[str, ...], pattern: str, runs: tuple[str, ...], stages: tuple[str, ...],
     budget: str, target: str, hand_name: str, out: Path, report_only: bool = False, judge: str | None = None,
     settings: Settings | None = None, robust: int | None = None,
+    closed_loop: tuple[tuple[str, ...], dict[str, Any]] | None = None,
 ) -> str:  # fmt: skip
     """Each run of ``runs`` on each clip into ``out/<clip>/<run>`` with :func:`quasisim.batch.run_batch`
     (resumable; ``report_only``: nothing is run, the finished runs are tabulated), beside the kinematic
     replay in the same target; with ``judge`` (another simulator) every run's controls and the kinematic
     retarget are judged open loop there instead (cached as ``metrics_<judge>.json`` beside each run).
     ``robust``: perturbed replays per run for robust success (None: ``configs/robust.yaml``'s ``n``).
+    ``closed_loop``: perturbation sets (:data:`quasisim.eval.robust.RANGES`) whose ``robust`` worlds every
+    finished run is then replayed in, open and closed loop (:mod:`quasisim.bench.closed_loop`), and overrides
+    of the tracker's settings (``configs/track.yaml``).
     Prints and writes the markdown tables."""
     base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=False, robust=robust)
     paths = clips(data_dir, pattern, clip_names)
@@ -116,11 +120,18 @@ def run_transfer_bench(
         rows.append(row)
     for r in rows:
         r["lifted"] = lifted_as_demo(r)
+    lines = []
+    if closed_loop:
+        from quasisim.bench import closed_loop as cl
+
+        sets, track = closed_loop
+        rows = cl.add_closed_loop(rows, out, by_clip, robust or 0, sets, judge or target, s.workers or 2, track)
+        lines = ["", *cl.markdown(rows, runs, sets, track)]
     return publish(
         out,
         "transfer" if (judge or target) == target else f"transfer_{judge}",
         rows,
-        _markdown(rows, runs, hand_name, target, judge or target, budget),
+        _markdown(rows, runs, hand_name, target, judge or target, budget) + lines,
     )
 
 

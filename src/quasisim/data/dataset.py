@@ -36,6 +36,8 @@ JSON_ATTRS = (
     "state_layout",
     "success",
     "env_args",
+    "world",
+    "tracker",
 )
 
 

@@ -10,6 +10,7 @@ to 6 digits, and a replay in it drifts off the run by millimetres.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import hashlib
 import json
@@ -160,7 +161,8 @@ def check_robust(run: RunInput) -> None:
 
 
 def _recorder(scene: Scene) -> MujocoTarget:
-    """The MuJoCo target of ``scene`` that also keeps, at every :meth:`observe`, the observation and the state."""
+    """The MuJoCo target of ``scene`` that also keeps, at every :meth:`observe`, the observation and the state
+    (a :meth:`sync` replaces the state just observed: its record is dropped, the next observation keeps it)."""
 
     class Recording(MujocoTarget):
         frames: list[dict[str, np.ndarray]]
@@ -173,6 +175,11 @@ def _recorder(scene: Scene) -> MujocoTarget:
             self.frames.append(o)
             self.states.append(s)
             return o
+
+        def sync(self, obs: dict[str, np.ndarray]) -> None:
+            super().sync(obs)
+            self.frames.pop()
+            self.states.pop()
 
     tgt = Recording(scene)
     tgt.frames, tgt.states = [], []
@@ -210,7 +217,20 @@ def _reproduced(run: RunInput, rollout: Any, scene_matches: bool) -> None:
 def record_episode(run: RunInput, demo: Demo) -> dict[str, Any]:
     """The episode of ``run`` (made from ``demo``): ``obs``, ``next_obs`` (dicts), the arrays of
     :data:`~quasisim.data.dataset.ARRAYS` and ``attrs``, from a rollout of its controls in the MuJoCo target."""
-    from quasisim.data.mjcf import exact_mjcf
+    c = run.controls
+    scene = run_scene(run, demo)
+    spec = build_spec(scene, visual=True)
+    model = spec.compile()
+    run_xml, xml6 = (run.path / "scene.xml").read_text(), spec.to_xml()
+    with _recorder(scene) as tgt:
+        rollout = tgt.rollout(c.q_targets)
+        frames, states = tgt.frames, np.array(tgt.states)  # type: ignore[attr-defined]
+    _reproduced(run, rollout, xml6 == run_xml)
+    return _episode(run, demo, scene, spec, model, c.q_targets, rollout, frames, states, run.metrics, {})
+
+
+def run_scene(run: RunInput, demo: Demo) -> Scene:
+    """The nominal scene of ``run`` rebuilt from its demo (its controls checked against both)."""
     from quasisim.eval.evaluate import check_controls, hands_of
     from quasisim.targets.build import scene_for
     from quasisim.targets.scene import place_hands
@@ -218,17 +238,71 @@ def record_episode(run: RunInput, demo: Demo) -> dict[str, Any]:
     c, cpath = run.controls, run.path / "controls.npz"
     hands = hands_of(c, cpath)
     check_controls(demo, c, hands, cpath)
-    scene = scene_for(demo, place_hands(hands, c.base_rots))
-    spec = build_spec(scene, visual=True)
-    model = spec.compile()
-    run_xml, xml6 = (run.path / "scene.xml").read_text(), spec.to_xml()
-    with _recorder(scene) as tgt:
-        rollout = tgt.rollout(c.q_targets)
-        frames, states, mm, n = tgt.frames, np.array(tgt.states), tgt.mm, tgt.substeps  # type: ignore[attr-defined]
-    _reproduced(run, rollout, xml6 == run_xml)
+    return scene_for(demo, place_hands(hands, c.base_rots))
+
+
+def record_closed_loop_episode(
+    run: RunInput, demo: Demo, scene: Scene, cfg: Any, i: int, policy: Any
+) -> dict[str, Any]:
+    """Closed-loop episode ``i`` of ``run``: the tracker ``policy()`` (:func:`quasisim.method.track.closed_loop`,
+    built from the nominal ``scene``) drives robust replay ``i``'s perturbed world (``cfg``, a
+    :class:`~quasisim.eval.robust.RobustConfig` without a push); the actions are the targets it applied. Checked:
+    the applied targets replayed open loop in the same world reproduce the episode's states."""
+    from quasisim.eval.evaluate import mark_stability
+    from quasisim.eval.metrics import evaluate_rollout
+    from quasisim.eval.robust import perturbed_scene, replay
+
+    world = perturbed_scene(scene, cfg, i)
+    q, fps = run.controls.q_targets, scene.fps
+    logged = _Logged(policy(), q[0])
+    with _recorder(world) as tgt:
+        rollout = replay(tgt, q, logged)
+        frames, states = tgt.frames, np.array(tgt.states)  # type: ignore[attr-defined]
+    logged.inner.close()
+    applied = np.array(logged.actions)
+    with _recorder(world) as again:
+        replay(again, applied, qd0=(q[1] - q[0]) * fps)
+        dev = np.abs(np.array(again.states) - states).max()  # type: ignore[attr-defined]
+    if not dev <= REPRODUCE_TOL:
+        raise QuasisimError(f"{run.path}: closed-loop episode {i} does not replay open loop in its world ({dev:.3g})")
+    metrics, _ = evaluate_rollout(demo, rollout, None)
+    metrics = mark_stability(metrics, rollout.instability, f"{demo.name} closed-loop episode {i}")
+    spec = build_spec(world, visual=True)
+    extra = {
+        "closed_loop": True, "world_index": i, "world_seed": cfg.seed, "world_ranges": cfg.name,
+        "world": {"object_mass": float(world.obj.mass), "friction": float(world.physics.friction),
+                  "gain_scale": float(world.physics.gain_scale), "object_pos0": world.object_pos0.tolist()},
+        "tracker": {k: v for k, v in dataclasses.asdict(logged.inner.opts).items() if k != "path"},
+    }  # fmt: skip
+    return _episode(run, demo, world, spec, spec.compile(), applied, rollout, frames, states, metrics, extra)
+
+
+class _Logged:
+    """A policy that keeps the PD targets it applied (frame 0: the plan's first)."""
+
+    def __init__(self, inner: Any, q0: np.ndarray) -> None:
+        self.inner, self.actions = inner, [np.asarray(q0, np.float64)]
+
+    def start(self, obs: dict[str, np.ndarray]) -> None:
+        self.inner.start(obs)
+
+    def act(self, t: int, obs: dict[str, np.ndarray]) -> np.ndarray:
+        self.actions.append(np.asarray(self.inner.act(t, obs), np.float64).copy())
+        return self.actions[-1]
+
+
+def _episode(
+    run: RunInput, demo: Demo, scene: Scene, spec: Any, model: Any, q: np.ndarray, rollout: Any,
+    frames: list[dict[str, np.ndarray]], states: np.ndarray, metrics: dict[str, Any], extra: dict[str, Any],
+) -> dict[str, Any]:  # fmt: skip
+    """An episode's arrays and attributes from a recorded rollout of the PD targets ``q`` (T, D) in ``scene``."""
+    from quasisim.data.mjcf import exact_mjcf
+
+    with MujocoTarget(scene) as tgt:
+        mm, n = tgt.mm, tgt.substeps
     if (model.nq, model.nv, model.na, model.nu) != (mm.model.nq, mm.model.nv, mm.model.na, mm.model.nu):
         raise QuasisimError(f"{run.path}: the exported scene's layout differs from the target's model")
-    q, fps = c.q_targets, scene.fps
+    fps = scene.fps
     substep, velocity = pd_schedule(q[:-1], q[1:], n, fps)
     per_frame = {
         "hand_qpos": rollout.qpos, "hand_qvel": np.array([f["qvel"] for f in frames]), "pd_target": q,
@@ -238,14 +312,29 @@ def record_episode(run: RunInput, demo: Demo) -> dict[str, Any]:
         "ref_hand_keypoints": demo.human_joints, "ref_object_pos": demo.object_pos, "ref_object_quat": demo.object_quat,
     }  # fmt: skip
     N = len(q) - 1
+    run_xml = (run.path / "scene.xml").read_text()
+    attrs = _episode_attrs(run, demo, scene, model, mm, n, exact_mjcf(spec, model), run_xml, N, metrics)
     return {
         "obs": {k: per_frame[k][:-1] for k in OBS_KEYS},
         "next_obs": {k: per_frame[k][1:] for k in OBS_KEYS},
         "actions": q[1:], "actions_substep": substep, "actions_velocity": velocity,
         "states": states[:-1], "final_state": states[-1],
         "rewards": np.zeros(N), "dones": (np.arange(N) == N - 1).astype(np.int64),
-        "attrs": _episode_attrs(run, demo, scene, model, mm, n, exact_mjcf(spec, model, xml6), run_xml, N),
+        "attrs": attrs | extra,
     }  # fmt: skip
+
+
+def _run_episodes(run: RunInput, demo: Demo, closed_loop: int) -> Any:
+    """``run``'s episode, then its ``closed_loop`` closed-loop episodes (a generator: one in memory at a time)."""
+    yield record_episode(run, demo)
+    if closed_loop:
+        from quasisim.eval.robust import replays
+        from quasisim.method.track import closed_loop as tracker
+
+        scene = run_scene(run, demo)
+        policy = tracker()(demo, scene, run.controls.q_targets, "mujoco")
+        for i in range(closed_loop):
+            yield record_closed_loop_episode(run, demo, scene, replays(closed_loop), i, policy)
 
 
 def _state_layout(model: Any) -> list[list[Any]]:
@@ -259,10 +348,11 @@ def _state_layout(model: Any) -> list[list[Any]]:
 
 
 def _episode_attrs(
-    run: RunInput, demo: Demo, scene: Scene, model: Any, mm: Any, n: int, xml: str, run_xml: str, N: int
-) -> dict[str, Any]:
-    """The attributes of an episode's group (docs/dataset.md)."""
-    m, c = run.metrics, run.controls
+    run: RunInput, demo: Demo, scene: Scene, model: Any, mm: Any, n: int, xml: str, run_xml: str, N: int,
+    m: dict[str, Any],
+) -> dict[str, Any]:  # fmt: skip
+    """The attributes of an episode's group (docs/dataset.md); ``m``: the episode's metrics."""
+    c = run.controls
     names = dof_names(scene)
     pd = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, f"pd/{j}") for j in names]
     ff = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff/{j}") for j in names]
@@ -272,6 +362,7 @@ def _episode_attrs(
     attrs: dict[str, Any] = {
         "num_samples": N, "clip": demo.name, "run": run.rel, "hand": c.hand, "hands": [h.name for h in scene.hands],
         "sides": list(scene.sides), "method": c.method, "target": "mujoco", "metrics": m, "settings": run.settings,
+        "closed_loop": False,
         "success": m["success"], **{f"success_{k}": bool(m["success"][k]) for k in SUCCESS_FLAGS},
         **{f"robust_{k}": float(robust[k]) for k in SUCCESS_FLAGS if k in robust},
         "unstable": bool(m.get("unstable", False)), "fps": float(scene.fps), "dt": float(model.opt.timestep),
@@ -313,7 +404,9 @@ def _batch_meta(root: Path) -> dict[str, Any]:
     return {k: v for k, v in _json(b).items() if k not in ("rows", "failures")} if b.is_file() else {}
 
 
-def _root_attrs(root: Path, only: str, min_robust: float | None, fps: list[float], dts: list[float]) -> dict[str, Any]:
+def _root_attrs(
+    root: Path, only: str, min_robust: float | None, fps: list[float], dts: list[float], closed_loop: int
+) -> dict[str, Any]:
     from quasisim import __version__
 
     env_kwargs = {"target": "mujoco", "scene": "per episode: attribute model_file (MJCF)",
@@ -326,7 +419,7 @@ def _root_attrs(root: Path, only: str, min_robust: float | None, fps: list[float
         "file": {
             "format": FORMAT, "quasisim_version": __version__, "mujoco_version": mujoco.__version__,
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"), "source": str(root),
-            "settings": {"only": only, "min_robust": min_robust, "batch": _batch_meta(root)},
+            "settings": {"only": only, "min_robust": min_robust, "closed_loop": closed_loop, "batch": _batch_meta(root)},
         },
         "data": {"env_args": {"env_name": "quasisim-mujoco", "type": None, "env_kwargs": env_kwargs}},
     }  # fmt: skip
@@ -334,10 +427,12 @@ def _root_attrs(root: Path, only: str, min_robust: float | None, fps: list[float
 
 def export_dataset(
     root: Path, out: Path, only: str = "any", min_robust: float | None = None, data_dirs: tuple[Path, ...] = (),
-    progress: bool = True,
+    progress: bool = True, closed_loop: int = 0,
 ) -> ExportResult:  # fmt: skip
     """Write the finished runs at or below ``root`` that pass the filters (``only``: a key of :data:`ONLY`;
-    ``min_robust``: a minimum robust success) to the HDF5 file ``out``, atomically (a failure leaves no file)."""
+    ``min_robust``: a minimum robust success) to the HDF5 file ``out``, atomically (a failure leaves no file).
+    ``closed_loop``: per run, also that many closed-loop episodes in the perturbed worlds of robust success
+    (``configs/robust.yaml``'s ranges, replays 0..N-1; :func:`record_closed_loop_episode`)."""
     import h5py
     from tqdm import tqdm
 
@@ -370,22 +465,24 @@ def export_dataset(
     fps, dts = [], []
     bar = tqdm(total=len(keep), desc="export", unit="run", disable=None if progress else True, leave=False)
     with bar, atomic_path(out) as tmp, h5py.File(tmp, "w", libver="v108") as f:
-        data, mask = f.create_group("data"), {k: [] for k in SUCCESS_FLAGS}
-        for i, r in enumerate(keep):
+        data, mask = f.create_group("data"), {k: [] for k in (*SUCCESS_FLAGS, "closed_loop")}
+        for r in keep:
             bar.set_postfix_str(r.label)
-            ep = record_episode(r, demos.find(r.path))
+            for ep in _run_episodes(r, demos.find(r.path), closed_loop):
+                name = f"demo_{len(res.episodes)}"
+                _write_episode(data.create_group(name), ep)
+                res.episodes.append((name, r.label, ep["attrs"]["num_samples"]))
+                fps.append(ep["attrs"]["fps"])
+                dts.append(ep["attrs"]["dt"])
+                for k in SUCCESS_FLAGS:
+                    if ep["attrs"][f"success_{k}"]:
+                        mask[k].append(name)
+                if ep["attrs"]["closed_loop"]:
+                    mask["closed_loop"].append(name)
             bar.update(1)
-            name = f"demo_{i}"
-            _write_episode(data.create_group(name), ep)
-            res.episodes.append((name, r.label, ep["attrs"]["num_samples"]))
-            fps.append(ep["attrs"]["fps"])
-            dts.append(ep["attrs"]["dt"])
-            for k in SUCCESS_FLAGS:
-                if ep["attrs"][f"success_{k}"]:
-                    mask[k].append(name)
         for k, names in mask.items():
             f.create_dataset(f"mask/{k}", data=np.array(names, dtype="S"))
-        attrs = _root_attrs(root, only, min_robust, fps, dts)
+        attrs = _root_attrs(root, only, min_robust, fps, dts, closed_loop)
         for k, v in attrs["file"].items():
             f.attrs[k] = _attr(v)
         data.attrs["total"] = res.total

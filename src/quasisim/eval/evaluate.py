@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import weakref
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from quasisim.eval.export import export_mujoco
 from quasisim.eval.metrics import PerFrame, evaluate_rollout
 from quasisim.eval.render import RenderedFrames
 from quasisim.eval.report import write_report
-from quasisim.eval.robust import ROBUST_KEY, RobustConfig, robust_success
+from quasisim.eval.robust import Policy, RobustConfig, robust_success
 from quasisim.files import output_set, save_json_atomic
 from quasisim.sim.pointset import HandPoints, sample_hand_points, surface_points_over_time
 from quasisim.targets import TargetRollout, make_target
@@ -31,10 +32,27 @@ CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
 JUDGE_S_PER_FRAME, REPLAY_S_PER_FRAME, RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME = 0.004, 0.002, 0.2, 0.15
 
 
-def judging_cost(render: bool, robust: RobustConfig | None) -> tuple[float, float]:
+# a closed-loop replay re-plans every 2 frames (configs/track.yaml): about this many seconds per frame
+CLOSED_LOOP_S_PER_FRAME = 0.07
+
+PolicyMaker = Callable[[Demo, Scene, np.ndarray, str], Callable[[], Policy]]
+"""``maker(demo, nominal scene, PD targets (T, D), target) -> (() -> Policy)``: how closed-loop robust success
+builds a fresh controller per replay (:func:`quasisim.method.track.closed_loop`)."""
+
+
+def _configs(robust: RobustConfig | Sequence[RobustConfig] | None) -> tuple[RobustConfig, ...]:
+    if robust is None:
+        return ()
+    return (robust,) if isinstance(robust, RobustConfig) else tuple(robust)
+
+
+def judging_cost(
+    render: bool, robust: RobustConfig | Sequence[RobustConfig] | None, closed_loop: bool = False
+) -> tuple[float, float]:
     """(seconds, MB) per frame of judging a clip in MuJoCo (PyBullet's rollouts are slower)."""
-    n = robust.n if robust is not None else 0
-    return JUDGE_S_PER_FRAME + n * REPLAY_S_PER_FRAME + render * RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME
+    n = sum(c.n for c in _configs(robust))
+    per_replay = REPLAY_S_PER_FRAME + (CLOSED_LOOP_S_PER_FRAME if closed_loop else 0.0)
+    return JUDGE_S_PER_FRAME + n * per_replay + render * RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME
 
 
 OUTPUTS = ("metrics.json", "rollout.npz", "report.html", "video.mp4", "scene.xml", "trajectory.npz")
@@ -118,12 +136,16 @@ def evaluate_controls(
     extra_info: dict[str, Any] | None = None,
     extra_images: dict[str, bytes] | None = None,
     progress: bool = False,
-    robust: RobustConfig | None = None,
+    robust: RobustConfig | Sequence[RobustConfig] | None = None,
+    closed_loop: PolicyMaker | None = None,
 ) -> Evaluation:
     """Roll ``controls`` out in ``target`` and compute the metrics; with ``out_dir`` write
     ``metrics.json``, ``rollout.npz``, ``report.html`` (+ ``video.mp4``), ``scene.xml`` and ``trajectory.npz``
-    there, as one set (with ``manifest.json``). With ``robust`` (``n`` > 0), the metrics hold ``robust``: the
-    fraction of ``n`` perturbed replays that pass each success criterion (:mod:`quasisim.eval.robust`)."""
+    there, as one set (with ``manifest.json``). With ``robust`` (one or more perturbation sets with ``n`` > 0),
+    the metrics hold, under each set's name (``robust``, ``robust_wide``), the fraction of ``n`` perturbed
+    replays that pass each success criterion (:mod:`quasisim.eval.robust`); with ``closed_loop`` also the same
+    worlds replayed closed loop (``robust_closed_loop``, ...: a controller made by ``closed_loop`` from the
+    nominal scene, :func:`quasisim.method.track.closed_loop`)."""
     hands = scene.hands if scene is not None else demo_hands(controls.hand, controls.sides)
     check_controls(demo, controls, hands)
     scene = scene or scene_for(demo, place_hands(hands, controls.base_rots))
@@ -132,13 +154,30 @@ def evaluate_controls(
     surf = scene_surface(scene, rollout.qpos)
     metrics, pf = evaluate_rollout(demo, rollout, surf)
     metrics = mark_stability(metrics, rollout.instability, f"{demo.name} in {target}")
-    if robust is not None and robust.n > 0:
-        metrics[ROBUST_KEY] = robust_success(demo, scene, controls.q_targets, target, robust)
+    metrics |= robust_metrics(demo, scene, controls.q_targets, target, robust, closed_loop)
     ev = Evaluation(metrics, pf, rollout, scene)
     if out_dir is not None:
         with output_set(Path(out_dir)) as stage:
             write_outputs(ev, demo, controls, target, stage, render, title, extra_info, extra_images, progress)
     return ev
+
+
+def robust_metrics(
+    demo: Demo, scene: Scene, q: np.ndarray, target: str, robust: RobustConfig | Sequence[RobustConfig] | None,
+    closed_loop: PolicyMaker | None,
+) -> dict[str, Any]:  # fmt: skip
+    """``{set name: open-loop robust success, set name + "_closed_loop": closed loop}`` for every set of
+    ``robust`` with replays (closed loop only with ``closed_loop``)."""
+    out: dict[str, Any] = {}
+    policy = None
+    for cfg in _configs(robust):
+        if cfg.n == 0:
+            continue
+        out[cfg.name] = robust_success(demo, scene, q, target, cfg)
+        if closed_loop is not None:
+            policy = policy or closed_loop(demo, scene, q, target)
+            out[cfg.closed_loop_key] = robust_success(demo, scene, q, target, cfg, policy)
+    return out
 
 
 def mark_stability(metrics: dict[str, Any], instability: str, what: str) -> dict[str, Any]:

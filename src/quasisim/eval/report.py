@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from quasisim.eval.metrics import MOVE_FRACTION, PAPER_KEYS, STRICT_CM, STRICT_DEG, PerFrame
+from quasisim.eval.robust import CLOSED_LOOP_SUFFIX, ROBUST_SETS
 from quasisim.eval.summary import lifted_text, yes_no
 from quasisim.files import atomic_path, save_text_atomic
 
@@ -89,7 +90,7 @@ def _metrics_table(metrics: dict[str, Any]) -> str:
         *[(f"success {k} (paper's threshold)", yes_no(s[k]), "mean R_err <= {0} deg, T_err <= {0} cm, MPJPE <= {0} cm".format(k.split("deg")[0])) for k in PAPER_KEYS],
         ("object lifted as in the demo", lifted_text(mo), f"the rollout's object rose at least {MOVE_FRACTION:.0%} as high as the demo's"),
         ("object moved as in the demo", yes_no(mo["as_demo"]), f"lifted, and at the demo's farthest frame displaced like it (off by {mo['displacement_error_cm']:.1f} of {mo['demo_displacement_cm']:.1f} cm); every success above requires it"),
-        *_robust_rows(metrics.get("robust")),
+        *_robust_rows(metrics),
         ("object rotation error R_err", f"{metrics['R_err_deg']:.2f} deg", "mean over frames"),
         ("object translation error T_err", f"{metrics['T_err_cm']:.2f} cm", "mean over frames"),
         ("hand keypoint error MPJPE", f"{metrics['MPJPE_mm']:.1f} mm", "mean over frames and metric keypoints"),
@@ -102,16 +103,22 @@ def _metrics_table(metrics: dict[str, Any]) -> str:
     return f"<table>{body}</table>"
 
 
-def _robust_rows(robust: dict[str, Any] | None) -> list[tuple[str, str, str]]:
-    """The robust-success rows of the metrics table (none without robust replays)."""
-    if not robust:
-        return []
-    why = (f"fraction of {robust['n']} replays of the same controls in perturbed targets (object mass, friction, "
-           "initial object position, PD gains; configs/robust.yaml) that pass")  # fmt: skip
-    return [
-        ("robust success strict", f"{robust['strict']:.0%}", f"{why} strict"),
-        ("robust success 20deg_20cm", f"{robust['20deg_20cm']:.0%}", f"{why} 20 deg / 20 cm"),
-    ]
+def _robust_rows(metrics: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """The robust-success rows of the metrics table, open and closed loop side by side, one pair of rows per
+    perturbation set (none without robust replays)."""
+    rows = []
+    for name, what in ROBUST_SETS.items():
+        opened, closed = metrics.get(name), metrics.get(name + CLOSED_LOOP_SUFFIX)
+        if not opened:
+            continue
+        why = f"fraction of {opened['n']} replays in perturbed targets ({what}) that pass"
+        if closed:
+            why += (f"; open loop / closed loop (a tracker re-planning from the observed state, "
+                    f"{closed['seconds_per_replay']:.1f} s and {closed['tracker']['replans']:.0f} re-plans per replay)")  # fmt: skip
+        for k, label in (("strict", "strict"), ("20deg_20cm", "20 deg / 20 cm")):
+            value = f"{opened[k]:.0%}" + (f" / {closed[k]:.0%}" if closed else "")
+            rows.append((f"{name.replace('_', ' ')} success {k}", value, f"{why} {label}"))
+    return rows
 
 
 # (PerFrame field, title, unit, strict limit): the per-frame plots, in order

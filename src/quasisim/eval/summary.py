@@ -52,6 +52,24 @@ def _motion_note(name: str, m: dict[str, Any]) -> list[str]:
     return [f"{name}: the object {why}: not moved as in the demo, so no success at any threshold."]
 
 
+def robust_lines(name: str, m: dict[str, Any]) -> list[str]:
+    """One line per perturbation set of ``m`` (metrics): robust success open loop, and closed loop where run."""
+    from quasisim.eval.robust import CLOSED_LOOP_SUFFIX, ROBUST_SETS
+
+    lines = []
+    for key in ROBUST_SETS:
+        r, c = m.get(key), m.get(key + CLOSED_LOOP_SUFFIX)
+        if not r:
+            continue
+        line = (f"{name}: {key.replace('_', ' ')} success ({r['n']} perturbed targets) open loop strict "
+                f"{r['strict']:.0%}, 20deg/20cm {r['20deg_20cm']:.0%}")  # fmt: skip
+        if c:
+            line += (f"; closed loop strict {c['strict']:.0%}, 20deg/20cm {c['20deg_20cm']:.0%} "
+                     f"({c['seconds_per_replay']:.1f} s per replay)")  # fmt: skip
+        lines.append(line)
+    return lines
+
+
 def summary_lines(title: str, runs: dict[str, dict[str, Any]], report: Path | None = None) -> list[str]:
     """Lines for the terminal: one row per named run's metrics (``metrics.json`` dictionaries)."""
     width = max(len(n) for n in runs) + 2
@@ -60,10 +78,7 @@ def summary_lines(title: str, runs: dict[str, dict[str, Any]], report: Path | No
     lines += [_row(n, m, width) for n, m in runs.items()]
     for n, m in runs.items():
         lines += _motion_note(n, m)
-        if m.get("robust"):
-            r = m["robust"]
-            lines.append(f"{n}: robust success (the same controls in {r['n']} perturbed targets) strict "
-                         f"{r['strict']:.0%}, 20deg/20cm {r['20deg_20cm']:.0%}")  # fmt: skip
+        lines += robust_lines(n, m)
     lines += legend()
     if report is not None:
         lines.append(f"report: {report} (open it in a browser; see README for a headless server)")

@@ -44,8 +44,13 @@ def write_outputs(ctx: Context, controls: Controls, sysid: SysID, out: Path) -> 
     km = evaluate_controls(demo, kin, target, None, render=False, scene=scene).metrics
     s_desc = sysid.describe(prob.obj.mass)
     images = {"optimisation loss per simulator of the curriculum": loss_plot(record.curves)} if record.curves else {}
-    robust = replays(spec.robust)
-    ev = evaluate_controls(demo, controls, target, None, render=False, scene=scene, robust=robust)
+    robust = [replays(spec.robust, r) for r in spec.ranges]
+    tracker = None
+    if spec.closed_loop:
+        from quasisim.method.track import closed_loop
+
+        tracker = closed_loop(weights=ctx.cfg.weights)
+    ev = evaluate_controls(demo, controls, target, None, render=False, scene=scene, robust=robust, closed_loop=tracker)
     title = (
         f"{demo.name}: {settings['method']} ({settings['curriculum']} curriculum, stages "
         f"{','.join(settings['stages']) or 'none'}) in {target}"

@@ -18,6 +18,9 @@ NETWORKS = (
 )  # stage 3's networks: residual physics (local, global), control transformation
 
 
+JUDGING_ONLY = ("progress", "robust", "closed_loop", "ranges")  # TransferSpec fields outside a run's identity
+
+
 @dataclass(frozen=True)
 class TransferSpec:
     """What to run (the CLI's options of ``quasisim transfer``; their defaults are these).
@@ -33,6 +36,8 @@ class TransferSpec:
             ``global`` residual networks, ``control`` transformation); the ablation flags remove them.
         robust: perturbed replays of the result for robust success (None: ``n`` of ``configs/robust.yaml``;
             0: none). Judging only: not part of the run's identity.
+        closed_loop: also replay the perturbed worlds closed loop (:mod:`quasisim.method.track`).
+        ranges: the perturbation sets of robust success (:data:`quasisim.eval.robust.RANGES`). Judging only.
     """
 
     hand: str = "shadow"
@@ -46,6 +51,8 @@ class TransferSpec:
     progress: bool = True
     networks: tuple[str, ...] = ("local", "global", "control")
     robust: int | None = None
+    closed_loop: bool = False
+    ranges: tuple[str, ...] = ("default",)
 
     def checked(self) -> TransferSpec:
         """Validated, with the stages that ``method`` implies."""
@@ -72,7 +79,7 @@ class TransferSpec:
     def identity(self) -> dict[str, object]:
         """The fields that determine the run's results (progress and robust replays aside; stage 3's networks
         only with stage 3)."""
-        d = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("progress", "robust")}
+        d = {k: v for k, v in dataclasses.asdict(self).items() if k not in JUDGING_ONLY}
         if "3" not in self.stages:
             d.pop("networks")
         return d

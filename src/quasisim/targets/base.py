@@ -7,7 +7,8 @@ Light on purpose (numpy only at import): the simulators themselves load in their
 * :func:`pd_schedule`: within a control frame from targets ``qa`` to ``qb``, the PD target of every physics
   step and the fed-forward target velocity; every backend's :meth:`Target.advance` and the batched window
   rollouts apply exactly these numbers;
-* :class:`Target`: reset, observe, save and restore the state, advance one frame, roll a whole clip out
+* :class:`Target`: reset, observe, save and restore the state, set it from an observation (:meth:`Target.sync`),
+  advance one frame, roll a whole clip out
   (:meth:`Target.rollout`, written once here), roll candidate windows out (:meth:`Target.rollout_windows`),
   judge a clip (:meth:`Target.judge`).
 """
@@ -255,6 +256,14 @@ class Target(abc.ABC):
     def set_hands(self, q: np.ndarray, qd: np.ndarray) -> None:
         """Put the hands at ``q`` (D,) with velocity ``qd`` (D,), the object untouched."""
         raise NotImplementedError(f"target {self.name}: setting the hands' state mid-run is not implemented")
+
+    def sync(self, obs: Observation) -> None:
+        """Put the simulation into the observed state ``obs`` (:data:`Observation`: the hands' ``qpos``, ``qvel``;
+        the object's pose and its centre of mass's linear and angular velocity, world axes), as a model is
+        re-synced to a measured world (:mod:`quasisim.method.track`). Only what ``obs`` holds is set: the
+        solver's warm start and contact history are cleared, so advancing from it may differ from the
+        observed world's own next frame in the solver's last digits. Needs a run (:meth:`reset`) first."""
+        raise NotImplementedError(f"target {self.name}: setting the state from an observation is not implemented")
 
     def extras(self) -> dict[str, Any]:
         """:attr:`TargetRollout.extras` of the run so far (the simulator's warnings, where it counts them)."""

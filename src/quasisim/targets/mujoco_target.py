@@ -402,6 +402,24 @@ class MujocoTarget(Target):
         d.qpos[mm.hand_qpos] = q
         d.qvel[mm.hand_dof] = qd
 
+    def sync(self, obs: Observation) -> None:
+        """The observed state into the run: hands' ``qpos``, ``qvel``; the object's free joint from its pose and
+        its centre of mass's world velocities (inverse of :func:`object_twist`: ``w_body = R^T w``,
+        ``v_origin = v - w x (R com)``); ``qacc_warmstart`` zeroed; ``mj_forward``."""
+        mm, d = self.mm, self._run()
+        quat = np.asarray(obs["obj_quat"], np.float64)
+        R = np_quat_to_mat(quat)
+        w = np.asarray(obs["obj_angvel"], np.float64)
+        o, od = mm.obj_qpos, mm.obj_dof
+        d.qpos[mm.hand_qpos] = obs["qpos"]
+        d.qvel[mm.hand_dof] = obs["qvel"]
+        d.qpos[o : o + 3] = obs["obj_pos"]
+        d.qpos[o + 3 : o + 7] = quat / np.linalg.norm(quat)
+        d.qvel[od : od + 3] = np.asarray(obs["obj_vel"]) - np.cross(w, R @ np.asarray(self.scene.obj.com))
+        d.qvel[od + 3 : od + 6] = R.T @ w
+        d.qacc_warmstart[:] = 0.0
+        mujoco.mj_forward(mm.model, d)
+
     def rollout_windows(
         self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None
     ) -> Prediction:

@@ -508,6 +508,14 @@ class PybulletTarget(Target):
     def set_hands(self, q: np.ndarray, qd: np.ndarray) -> None:
         self.set_state(q, qd)
 
+    def sync(self, obs: Observation) -> None:
+        """The observed state: the hands' joints (``resetJointState``), the object's pose, then its centre of
+        mass's velocities (``resetBaseVelocity``: PyBullet's base frame is the object's inertial frame)."""
+        self.set_state(np.asarray(obs["qpos"], np.float64), np.asarray(obs["qvel"], np.float64))
+        self.set_object_pose(obs["obj_pos"], obs["obj_quat"])
+        v, w = (np.asarray(obs[k], np.float64).tolist() for k in ("obj_vel", "obj_angvel"))
+        self.pb.resetBaseVelocity(self.obj_id, v, w, **self._kw())
+
     def advance(self, qa: np.ndarray, qb: np.ndarray) -> None:
         """One control frame (``substeps`` physics steps): the PD targets of :func:`pd_schedule` from ``qa`` to
         ``qb`` (D each) with their velocity fed forward; the PD law of the module docstring, per hand."""

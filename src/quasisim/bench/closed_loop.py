@@ -1,0 +1,148 @@
+"""Closed-loop robust success for the finished runs of a batch (``quasisim bench transfer --closed-loop``).
+
+Every finished run's controls (``OUT/<clip>/<run>/controls.npz``) are replayed in the seeded perturbed worlds of
+each perturbation set, open loop and closed loop (:mod:`quasisim.method.track`), in ``workers`` processes. Each
+run's result is cached in ``OUT/<clip>/<run>/robust_closed_loop-<hash of the settings>.json`` with the settings
+that made it, so the pass resumes where it stopped, and variants of the tracker (``--track-set``) sit side by side.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from quasisim.bench.tables import ROBUST_KEYS
+from quasisim.files import save_json_atomic
+
+CACHE = "robust_closed_loop-{}.json"
+
+
+def settings(n: int, ranges: tuple[str, ...], track: dict[str, Any], target: str) -> dict[str, Any]:
+    """What a cached result must match: the replays, the sets (their files' contents), the tracker, the target."""
+    from quasisim.eval.robust import replays
+
+    sets = {r: {k: v for k, v in dataclasses.asdict(replays(n, r)).items() if k != "path"} for r in ranges}
+    return json.loads(json.dumps({"sets": sets, "track": track, "target": target}))
+
+
+def cache_name(want: dict[str, Any]) -> str:
+    """The cache file of a run judged with settings ``want`` (:func:`settings`)."""
+    return CACHE.format(hashlib.sha256(json.dumps(want, sort_keys=True).encode()).hexdigest()[:12])
+
+
+def judge_run(
+    demo_path: str, run_dir: str, n: int, ranges: tuple[str, ...], target: str, track: dict[str, Any]
+) -> dict[str, Any]:
+    """One run's robust success in every set, open and closed loop (written to its cache); in a worker."""
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.evaluate import hands_of, robust_metrics
+    from quasisim.eval.robust import replays
+    from quasisim.method.track import TrackOptions, closed_loop
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    demo, c = load_demo(demo_path), load_controls(Path(run_dir) / "controls.npz")
+    scene = scene_for(demo, place_hands(hands_of(c, run_dir), c.base_rots))
+    opts = TrackOptions.from_yaml(None, track)
+    cfgs = [replays(n, r) for r in ranges]
+    metrics = robust_metrics(demo, scene, c.q_targets, target, cfgs, closed_loop(opts))
+    want = settings(n, ranges, _track_dict(opts), target)
+    out = {"settings": want, "metrics": metrics}
+    save_json_atomic(Path(run_dir) / cache_name(want), out)
+    return out
+
+
+def _track_dict(track: Any) -> dict[str, Any]:
+    return {k: v for k, v in dataclasses.asdict(track).items() if k != "path"}
+
+
+def add_closed_loop(
+    rows: list[dict[str, Any]], out: Path, demo_paths: dict[str, Path], n: int, ranges: tuple[str, ...],
+    target: str, workers: int, track: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """``rows`` (a batch's run rows, ``method`` = run name; the kinematic rows pass through) with every
+    perturbation set's open- and closed-loop robust success merged in, computed where no cache matches;
+    ``track``: overrides of ``configs/track.yaml``."""
+    from quasisim.method.track import TrackOptions
+
+    track = track or {}
+    want = settings(n, ranges, _track_dict(TrackOptions.from_yaml(None, track)), target)
+    todo, done = [], {}
+    for r in rows:
+        if r["method"] == "kinematic":
+            continue
+        run_dir = out / r["clip"] / r["method"]
+        cache = run_dir / cache_name(want)
+        if cache.is_file():
+            done[(r["clip"], r["method"])] = json.loads(cache.read_text())["metrics"]
+        elif (run_dir / "controls.npz").is_file():
+            todo.append((r["clip"], r["method"], str(demo_paths[r["clip"]]), str(run_dir)))
+        else:
+            print(f"closed loop: {r['clip']} {r['method']}: no controls.npz in {run_dir}; skipped")
+    if todo:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max(1, workers), mp_context=ctx) as pool:
+            futs = {pool.submit(judge_run, d, rd, n, ranges, target, track): (c, m) for c, m, d, rd in todo}
+            for f in tqdm(as_completed(futs), total=len(futs), desc="closed loop", unit="run"):
+                done[futs[f]] = f.result()["metrics"]
+    return [r | done.get((r["clip"], r["method"]), {}) for r in rows]
+
+
+def markdown(
+    rows: list[dict[str, Any]], runs: tuple[str, ...], ranges: tuple[str, ...], track: dict[str, Any] | None = None
+) -> list[str]:
+    """The closed-loop tables: per set and run, open vs closed loop robust success and the tracker's cost
+    (summary), then per clip."""
+    from quasisim.eval.robust import CLOSED_LOOP_SUFFIX, RANGES, RobustConfig
+
+    keys = [RobustConfig.from_yaml(RANGES[r]).name for r in ranges]
+    lines = [
+        "### Robust success open vs closed loop",
+        "",
+        "Fractions of the perturbed replays that pass (%), open loop / closed loop; the tracker's cost per replay; "
+        "`replays / sampling`: the closed-loop replays' seconds over the run's sampling stage's. Tracker: "
+        "configs/track.yaml" + (" with " + ", ".join(f"{k}={v}" for k, v in track.items()) if track else "") + ".",
+        "",
+        "| set | method | clips | strict open | strict closed | 20/20 open | 20/20 closed | s per replay | re-plans "
+        "per replay | share of steps re-planned | replays / sampling |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in keys:
+        for run in runs:
+            rs = [r for r in rows if r["method"] == run and r.get(key) and r.get(key + CLOSED_LOOP_SUFFIX)]
+            if rs:
+                lines.append(_summary_row(key, run, rs))
+    lines += ["", "| clip | method | set | strict open / closed | 20/20 open / closed | s per replay | re-plans |",
+              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in rows:
+        for key in keys:
+            o, c = r.get(key), r.get(key + CLOSED_LOOP_SUFFIX)
+            if r["method"] == "kinematic" or not (o and c):
+                continue
+            cells = " | ".join(f"{100 * o[k]:.0f} / {100 * c[k]:.0f}" for k in ROBUST_KEYS)
+            lines.append(f"| {r['clip']} | {r['method']} | {key} | {cells} | {c['seconds_per_replay']:.1f} | "
+                         f"{c['tracker']['replans']:.0f} |")  # fmt: skip
+    return lines
+
+
+def _summary_row(key: str, run: str, rs: list[dict[str, Any]]) -> str:
+    c = [r[key + "_closed_loop"] for r in rs]
+    pct = lambda xs: f"{100.0 * np.mean(xs):.0f}"  # noqa: E731
+    cols = [pct([r[key][k] for r in rs]) + " | " + pct([x[k] for x in c]) for k in ROBUST_KEYS]
+    ratio = [x["seconds_per_replay"] * x["n"] / r["seconds"]["sample"] for x, r in zip(c, rs, strict=True)
+             if r.get("seconds", {}).get("sample")]  # fmt: skip
+    return (
+        f"| {key} | {run} | {len(rs)} | {' | '.join(cols)} | {np.mean([x['seconds_per_replay'] for x in c]):.1f} | "
+        f"{np.mean([x['tracker']['replans'] for x in c]):.0f} | {pct([x['tracker']['replan_share'] for x in c])} % | "
+        + (f"{np.mean(ratio):.2f} (max {np.max(ratio):.2f})" if ratio else "-")
+        + " |"
+    )

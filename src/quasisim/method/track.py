@@ -1,0 +1,259 @@
+"""Closed-loop tracking of a finished result: the plan's PD targets, corrected from the observed state.
+
+An open-loop trajectory through contact is chaotic: in a world a little different from the one it was planned
+in (mass, friction, gains, the object's start) its replays part from the plan by millimetres once the hand
+touches the object. :class:`Tracker` closes the loop. It drives a world it knows only through
+:meth:`~quasisim.targets.base.Target.observe` (the hands' joints and velocities, the object's pose and twist)
+and acts on it with PD targets, frame by frame:
+
+1. **Shift** (frame 0): the object's observed position minus its nominal start, ``d`` (x, y), moves the plan's
+   hand bases and the reference by ``d`` from frame 1 on (the object where it is, not where it was planned).
+2. **Follow**: between re-plans, apply the plan's next PD targets ``q*_{t+1}``.
+3. **Re-plan** every ``every`` frames from the observed state: put the observation into the tracker's **model**,
+   a target of the nominal scene (:meth:`~quasisim.targets.base.Target.sync`; the world's hidden parameters are
+   never read), roll ``samples`` windows of the next ``horizon`` frames out in it (the current plan's window,
+   the untouched plan's window, and Gaussian perturbations of the current one on ``knots`` knots, the sampling
+   stage's noise, :func:`quasisim.method.sampling.sample_windows`) and keep the cheapest as the plan (receding
+   horizon, warm-started). The cost (:func:`quasisim.method.sampling.window_costs`) measures the distance to
+   the plan's own **nominal rollout** (object pose, metric keypoints; shifted by ``d``), not to the demo, so in
+   the nominal world the tracker reproduces the plan; ``strict_weight`` > 0 adds the hinge on the demo's
+   strict limits (2 cm, 30 deg) from ``strict_margin`` of them.
+
+Settings: ``configs/track.yaml`` (:class:`TrackOptions`). Cost per replay: about ``T / every`` re-plans of
+``samples`` x ``horizon`` frames in the model. Time-varying linear feedback around the plan (finite-difference
+Jacobians, a Riccati pass) was measured by a prototype (``docs/transfer.md``: 0 % robust strict, contact makes
+the Jacobians useless) and is not built.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.data.demo import Demo
+from quasisim.errors import InputError
+from quasisim.optim.objective import Weights, padded
+from quasisim.targets import Observation, Target, TargetRollout, make_target
+from quasisim.targets.scene import Scene
+
+TRACK_PATH = Path(__file__).resolve().parent.parent / "configs" / "track.yaml"
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """The tracker's settings (``configs/track.yaml``; see the module docstring).
+
+    Attributes:
+        every: frames between re-plans (0: never re-plan; the shift alone).  samples: candidate windows per
+            re-plan (>= 2: the current and the untouched plan's window).  horizon: frames per window.
+        knots: noise knots per window.  noise_base_pos (m), noise_base_rot (rad), noise_joints (rad):
+            noise std per dof group.  noise_scales: per-candidate std multipliers, cycled.
+        shift: move the plan by the object's observed start offset (step 1).
+        follow: fractions ``f``: at each re-plan, candidates with the hands' bases moved by ``f`` x the object's
+            offset from the plan's nominal rollout (``f > 0`` follows the object, ``f < 0`` pushes it back); when
+            one is kept, the rest of the plan moves with it.
+        strict_weight, strict_margin: the hinge on the demo's strict limits in the cost (0: none).
+        seed: noise seed.  threads: the model's rollout threads.
+    """
+
+    every: int = 2
+    samples: int = 16
+    horizon: int = 6
+    knots: int = 3
+    noise_base_pos: float = 0.004
+    noise_base_rot: float = 0.04
+    noise_joints: float = 0.08
+    noise_scales: tuple[float, ...] = (0.5, 1.0, 2.0)
+    shift: bool = True
+    follow: tuple[float, ...] = ()
+    strict_weight: float = 0.0
+    strict_margin: float = 0.75
+    seed: int = 0
+    threads: int = 1
+    path: str = ""
+
+    def __post_init__(self) -> None:
+        where = self.path or None
+        for name, lo in (("every", 0), ("samples", 2), ("horizon", 1), ("knots", 1), ("threads", 1), ("seed", 0)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+                raise InputError(where, name, f"an integer >= {lo}", repr(v))
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin"):
+            v = getattr(self, name)
+            if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < float("inf"):
+                raise InputError(where, name, "a finite number >= 0", repr(v))
+        if not self.noise_scales or not all(isinstance(s, int | float) and s >= 0 for s in self.noise_scales):
+            raise InputError(where, "noise_scales", "a non-empty list of numbers >= 0", repr(self.noise_scales))
+        if not all(isinstance(f, int | float) and abs(f) <= 2 for f in self.follow):
+            raise InputError(where, "follow", "a list of fractions in [-2, 2]", repr(self.follow))
+        if self.samples < 2 + len(self.follow):
+            raise InputError(where, "samples", f"at least 2 + len(follow) = {2 + len(self.follow)}", repr(self.samples))
+        if not isinstance(self.shift, bool):
+            raise InputError(where, "shift", "true or false", repr(self.shift))
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> TrackOptions:
+        """The settings in ``path`` (default ``configs/track.yaml``) with ``overrides`` (name -> value)."""
+        path = Path(path or TRACK_PATH)
+        data = apply_overrides(read_yaml(path), overrides)
+        for key in ("noise_scales", "follow"):
+            if isinstance(data.get(key), list):
+                data[key] = tuple(data[key])
+        return build(cls, {**data, "path": str(path)}, path)
+
+    def sampling(self) -> Any:
+        """The :class:`~quasisim.method.sampling.SamplingOptions` whose noise this tracker draws."""
+        from quasisim.method.sampling import SamplingOptions
+
+        return SamplingOptions(
+            samples=self.samples, horizon=self.horizon, knots=self.knots, noise_base_pos=self.noise_base_pos,
+            noise_base_rot=self.noise_base_rot, noise_joints=self.noise_joints, noise_scales=self.noise_scales,
+            mode="predictive", temperature=1.0, seed=self.seed, threads=self.threads, kinematic_alternative=False,
+        )  # fmt: skip
+
+
+def shift_bases(scene: Scene, q: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """PD targets ``q`` (..., D) with every hand's base moved by ``d`` (3,) m in the world: the first three base
+    coordinates of each hand are slides along world x, y, z (:mod:`quasisim.targets.mujoco_target`)."""
+    q = np.array(q, np.float64)
+    for sl in scene.dof_slices:
+        q[..., sl.start : sl.start + 3] += d
+    return q
+
+
+class Tracker:
+    """A closed-loop policy around a plan (see the module docstring): :meth:`start` on the world's first
+    observation, then :meth:`act` once per frame. Built from the **nominal** scene only.
+
+    Args:
+        demo: the clip (its strict limits, when ``opts.strict_weight`` > 0).  scene: the nominal scene the plan
+            was made in; the model is built from it.  plan: (T, D) PD targets.  opts: :class:`TrackOptions`.
+        weights: the objective weights of the window cost.  target: the model's simulator (``mujoco`` or
+            ``pybullet``; the world may be either).  nominal: the plan's rollout in the nominal scene (computed
+            here when None).
+    """
+
+    def __init__(
+        self, demo: Demo, scene: Scene, plan: np.ndarray, opts: TrackOptions, weights: Weights, target: str = "mujoco",
+        nominal: TargetRollout | None = None,
+    ) -> None:  # fmt: skip
+        from quasisim.method.sampling import scene_sampler
+
+        self.demo, self.scene, self.opts, self.weights = demo, scene, opts, weights
+        self.plan = np.asarray(plan, np.float64)
+        self.model: Target = make_target(target, scene, threads=opts.threads)
+        self.nominal = nominal if nominal is not None else self.model.rollout(self.plan)
+        self._sample = scene_sampler(opts.sampling(), scene)
+        self.replans, self.physics_steps, self.seconds = 0, 0, 0.0
+        self._work: np.ndarray | None = None
+
+    def start(self, obs: Observation) -> None:
+        """Frame 0: the shift of step 1 from the object's observed position; the plan and references set up."""
+        H, nom = self.opts.horizon, self.nominal
+        d = np.zeros(3)
+        if self.opts.shift:
+            d[:2] = (np.asarray(obs["obj_pos"]) - nom.object_pos[0])[:2]
+        self.offset = d
+        moved = shift_bases(self.scene, self.plan[1:], d)
+        self._planned = padded(np.concatenate([self.plan[:1], moved]), H)  # the untouched plan (shifted)
+        self._work = self._planned.copy()  # the plan as re-planning changes it
+        self._ref = [padded(nom.object_pos + d, H), padded(nom.object_quat, H), padded(nom.robot_keypoints + d, H)]
+        self._demo_ref = [padded(self.demo.object_pos, H), padded(self.demo.object_quat, H)]
+        self._rng = np.random.default_rng(self.opts.seed)
+        self._applied = self.plan[0].copy()
+        self.model.reset(self.plan[0])
+
+    def act(self, t: int, obs: Observation) -> np.ndarray:
+        """The PD targets (D,) for the end of frame ``t + 1``, from the world's observation ``obs`` at frame ``t``."""
+        if self._work is None:
+            raise RuntimeError("tracker: call start(obs) with the world's first observation before act")
+        every = self.opts.every
+        if every and t % every == 0:
+            t0 = time.perf_counter()
+            self._replan(t, obs)
+            self.seconds += time.perf_counter() - t0
+        self._applied = self._work[t + 1].copy()
+        return self._applied
+
+    def _replan(self, t: int, obs: Observation) -> None:
+        """Step 3: windows from the observed state rolled out in the model, the cheapest kept as the plan."""
+        from quasisim.method.sampling import window_costs
+
+        o, H, T = self.opts, self.opts.horizon, len(self.plan)
+        current = self._work[t : t + H + 1].copy()
+        current[0] = self._applied
+        untouched = self._planned[t : t + H + 1].copy()
+        untouched[0] = self._applied
+        wins = self._sample(self._rng, current)
+        wins[-1] = untouched  # the plan as made is always a candidate
+        offset = np.asarray(obs["obj_pos"]) - self._ref[0][t]  # the object against the plan's nominal rollout
+        shifts = [f * offset for f in o.follow]
+        for k, d in enumerate(shifts):  # the window with the hands moved with (f > 0) or against (f < 0) it
+            wins[-2 - k, 1:] = shift_bases(self.scene, current[1:], d)
+        self.model.sync(obs)
+        pred = self.model.rollout_windows(wins)
+        w = slice(t + 1, t + H + 1)
+        ref_pos, ref_quat, ref_kp = (r[w] for r in self._ref)
+        frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
+        base_cols = np.concatenate([np.arange(s.start, s.start + 6) for s in self.scene.dof_slices])
+        cost = functools.partial(
+            window_costs, frame_w=frame_w, weights=self.weights,
+            base_cols=base_cols if len(self.scene.hands) > 1 else None,
+        )  # fmt: skip
+        costs = cost(wins, pred, ref_pos, ref_quat, ref_kp)
+        if o.strict_weight > 0:
+            from quasisim.method.sampling import strict_hinge
+
+            dp, dq = (r[w] for r in self._demo_ref)
+            costs = costs + o.strict_weight * strict_hinge(
+                pred.obj_pos, pred.obj_quat, dp, dq, frame_w, o.strict_margin
+            )
+        costs = np.where(np.isfinite(costs), costs, np.inf)
+        best = int(np.argmin(costs))
+        self._work[t : t + H + 1] = wins[best]
+        k = len(wins) - 2 - best
+        if 0 <= k < len(shifts):  # a moved window: the rest of the plan moves with it
+            self._work[t + H + 1 :] = shift_bases(self.scene, self._work[t + H + 1 :], shifts[k])
+        self.replans += 1
+        self.physics_steps += pred.n_steps
+
+    def cost(self) -> dict[str, float]:
+        """What tracking cost so far: seconds re-planning, re-plans, the share of the clip's steps that
+        re-planned, physics steps in the model."""
+        return {
+            "replan_seconds": self.seconds, "replans": float(self.replans),
+            "replan_share": self.replans / max(len(self.plan) - 1, 1), "physics_steps": float(self.physics_steps),
+        }  # fmt: skip
+
+    def close(self) -> None:
+        self.model.close()
+
+    def __enter__(self) -> Tracker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def closed_loop(opts: TrackOptions | None = None, weights: Weights | None = None) -> Any:
+    """The controller maker of closed-loop robust success (:data:`quasisim.eval.evaluate.PolicyMaker`):
+    ``maker(demo, scene, plan, target)`` computes the plan's nominal rollout once and returns a function that
+    builds a fresh :class:`Tracker` per replay. Defaults: ``configs/track.yaml``, the weights of
+    ``configs/transfer.yaml``."""
+    from quasisim.method.config import TransferConfig
+
+    opts = opts or TrackOptions.from_yaml()
+    weights = weights or TransferConfig.from_yaml().weights
+
+    def maker(demo: Demo, scene: Scene, plan: np.ndarray, target: str) -> Any:
+        with make_target(target, scene) as tgt:
+            nominal = tgt.rollout(plan)
+        return lambda: Tracker(demo, scene, plan, opts, weights, target, nominal)
+
+    return maker

@@ -1,0 +1,197 @@
+"""Closed-loop tracking (:mod:`quasisim.method.track`) and closed-loop robust success (:mod:`quasisim.eval.robust`).
+
+The tracker's model is the nominal target re-synced to the observed state: ``Target.sync`` puts an observation
+back exactly (MuJoCo and PyBullet); the tracker never holds the world's hidden parameters and decides the same
+from the same observation whatever they are; in the nominal world it follows the plan; the wide set's push
+reaches the object; the CLI writes ``robust_closed_loop`` beside ``robust``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from helpers import cube_example
+from quasisim.errors import InputError
+from quasisim.eval.robust import RobustConfig, perturbed_scene, push_of, replay, replays
+from quasisim.method.config import TransferConfig
+from quasisim.method.track import Tracker, TrackOptions, closed_loop, shift_bases
+from quasisim.targets import OBS_KEYS, make_target
+
+FAST = TrackOptions(every=2, samples=6, horizon=3)  # a cheap tracker for tests
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """The bundled example (20 frames), its kinematic retarget and their scene."""
+    return cube_example(tmp_path_factory.mktemp("track"))
+
+
+@pytest.fixture(scope="module")
+def sampled(clip):
+    """A plan that lifts the cube: sample-target's PD targets of the example (its sampling stage, ~6 s)."""
+    from quasisim.method.sampling import run_sampling
+
+    _, demo, controls, scene = clip
+    cfg = TransferConfig.from_yaml()
+    return run_sampling(demo, scene, controls.q_targets, cfg.sampling, cfg.weights, progress=False).q_targets
+
+
+def _mid_run_observation(target, q: np.ndarray, frames: int) -> dict[str, np.ndarray]:
+    target.reset(q[0], (q[1] - q[0]) * target.scene.fps)
+    for t in range(frames):
+        target.advance(q[t], q[t + 1])
+    return target.observe()
+
+
+@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+def test_sync_puts_an_observed_state_back_exactly(clip, backend) -> None:
+    _, _, controls, scene = clip
+    q = controls.q_targets
+    with make_target(backend, scene) as world, make_target(backend, scene) as model:
+        obs = _mid_run_observation(world, q, 8)
+        assert np.abs(obs["obj_vel"]).max() + np.abs(obs["qvel"]).max() > 1e-3  # a moving state, not a rest
+        model.reset(q[0])
+        model.sync(obs)
+        back = model.observe()
+        for k in OBS_KEYS:
+            np.testing.assert_allclose(back[k], obs[k], atol=1e-9, err_msg=k)
+        world.advance(q[8], q[9])
+        model.advance(q[8], q[9])
+        a, b = world.observe(), model.observe()
+        # one frame on from the synced copy: the same physics (solver warm start and contact history aside)
+        assert np.abs(a["qpos"] - b["qpos"]).max() < 1e-3 and np.abs(a["obj_pos"] - b["obj_pos"]).max() < 1e-3
+
+
+def test_shifting_the_plan_moves_every_keypoint_by_the_offset(clip) -> None:
+    _, _, controls, scene = clip
+    d = np.array([0.004, -0.003, 0.0])
+    q = controls.q_targets[5]
+    with make_target("mujoco", scene) as tg:
+        tg.reset(q)
+        before = tg.observe()["keypoints"]
+        tg.reset(shift_bases(scene, q[None], d)[0])
+        after = tg.observe()["keypoints"]
+    np.testing.assert_allclose(after - before, np.broadcast_to(d, before.shape), atol=1e-9)
+
+
+def test_the_tracker_never_reads_the_worlds_hidden_parameters(clip, sampled) -> None:
+    """A world whose object is 2x heavier, with half the friction and 5 mm off its start: the tracker's model
+    keeps the nominal mass and friction, and a
+    tracker fed the same observed states from a world with the nominal parameters decides the same targets."""
+    _, demo, _, scene = clip
+    q, weights, opts = sampled, TransferConfig.from_yaml().weights, dataclasses.replace(FAST, samples=16)
+    heavy = dataclasses.replace(scene.obj, mass=2 * scene.obj.mass, inertia=2 * scene.obj.inertia)
+    object.__setattr__(heavy, "_memo", scene.obj._memo)
+    heavy_scene = dataclasses.replace(
+        scene,
+        obj=heavy,
+        physics=dataclasses.replace(scene.physics, friction=0.5 * scene.physics.friction),
+        object_pos0=scene.object_pos0 + np.array([0.004, -0.003, 0.0]),
+    )
+    seen, acted = [], []
+    with make_target("mujoco", heavy_scene) as world, Tracker(demo, scene, q, opts, weights) as a:
+        world.reset(q[0], (q[1] - q[0]) * scene.fps)
+        obs, prev = world.observe(), q[0]
+        a.start(obs)
+        for t in range(len(q) - 1):
+            seen.append(obs)
+            acted.append(a.act(t, obs))
+            world.advance(prev, acted[-1])
+            prev, obs = acted[-1], world.observe()
+        m = a.model.mm.model
+        assert m.body_mass[a.model.mm.obj_body] == pytest.approx(scene.obj.mass)
+        assert world.mm.model.body_mass[world.mm.obj_body] == pytest.approx(2 * scene.obj.mass)
+        assert m.geom_friction[:, 0].max() == pytest.approx(scene.physics.friction)
+    moved = np.abs(np.asarray(acted) - shift_bases(scene, q[1:], a.offset)).max()
+    assert moved > 1e-4  # the tracker re-planned away from the plan in the heavy world
+    with make_target("mujoco", scene) as twin, Tracker(demo, scene, q, opts, weights) as b:
+        twin.reset(q[0], (q[1] - q[0]) * scene.fps)
+        twin.sync(seen[0])
+        b.start(twin.observe())
+        for t in range(len(q) - 1):
+            twin.sync(seen[t])  # the nominal world, put into the state the heavy one was observed in
+            np.testing.assert_allclose(b.act(t, twin.observe()), acted[t], atol=1e-9, err_msg=f"frame {t}")
+
+
+def test_in_the_nominal_world_the_tracker_follows_the_plans_rollout(clip) -> None:
+    _, demo, controls, scene = clip
+    q = controls.q_targets
+    with make_target("mujoco", scene) as tg:
+        nominal = tg.rollout(q)
+    maker = closed_loop(FAST)(demo, scene, q, "mujoco")
+    with make_target("mujoco", scene) as world:
+        tracker = maker()
+        run = replay(world, q, tracker)
+        tracker.close()
+    assert tracker.replans == len(range(0, len(q) - 1, 2))
+    assert np.abs(run.object_pos - nominal.object_pos).max() < 2e-3
+    assert np.abs(run.keypoints - nominal.keypoints).max() < 5e-3
+
+
+def test_the_wide_set_pushes_the_object_mid_clip_and_keeps_the_default_worlds(clip) -> None:
+    _, _, controls, scene = clip
+    wide, default = replays(2, "wide"), replays(2)
+    assert wide.name == "robust_wide" and wide.closed_loop_key == "robust_wide_closed_loop"
+    assert wide.mass == pytest.approx(2 * default.mass) and wide.push > 0 and default.push == 0
+    frame, dv = push_of(wide, 0, len(controls.q_targets))
+    assert frame == round(0.5 * (len(controls.q_targets) - 1)) and dv[2] == 0
+    assert np.linalg.norm(dv) == pytest.approx(wide.push)
+    assert push_of(default, 0, 20) is None
+    # the default worlds are the ones drawn before the push existed (5 draws, seeded by (seed, i))
+    u = np.random.default_rng([default.seed, 1]).uniform(-1.0, 1.0, size=5)
+    assert perturbed_scene(scene, default, 1).obj.mass == pytest.approx(scene.obj.mass * (1 + default.mass * u[0]))
+    q = controls.q_targets
+    with make_target("mujoco", scene) as world:
+        still = replay(world, q)
+        pushed = replay(world, q, push=(frame, dv))
+    np.testing.assert_array_equal(pushed.object_pos[: frame + 1], still.object_pos[: frame + 1])
+    moved = pushed.object_pos[frame + 1] - still.object_pos[frame + 1]  # a cube on the table: friction stops it
+    assert np.linalg.norm(moved) > 2e-4 and np.dot(moved, dv) / np.linalg.norm(moved) / wide.push > 0.9
+
+
+def test_bad_tracker_settings_name_the_field(tmp_path) -> None:
+    assert TrackOptions.from_yaml().every >= 1
+    with pytest.raises(InputError, match="samples"):
+        TrackOptions.from_yaml(None, {"samples": 1})
+    with pytest.raises(InputError, match="noise_joints"):
+        TrackOptions.from_yaml(None, {"noise_joints": -1.0})
+    with pytest.raises(InputError, match="push"):
+        RobustConfig(push=5.0)
+
+
+def test_evaluate_closed_loop_writes_both_loops_for_both_sets(clip, tmp_path) -> None:
+    path, _, _, _ = clip
+    out = tmp_path / "eval"
+    cmd = [sys.executable, "-m", "quasisim.cli", "evaluate", str(path), str(path.parent / "kinematic.npz"), "--out", str(out),
+           "--no-render", "--robust", "1", "--closed-loop", "--ranges", "default,wide"]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("robust", "robust_closed_loop", "robust_wide", "robust_wide_closed_loop"):
+        assert m[key]["n"] == 1 and set(m[key]) >= {"seed", "strict", "20deg_20cm", "unstable"}, key
+    assert m["robust_closed_loop"]["tracker"]["replans"] == 10 and m["robust_closed_loop"]["seconds_per_replay"] > 0
+    assert "closed loop strict" in r.stdout
+    bad = subprocess.run([*cmd[:-5], "--closed-loop", "--overwrite"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "--robust N" in bad.stderr
+    bad = subprocess.run([*cmd[:-1], "huge", "--overwrite"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "default" in bad.stderr and "wide" in bad.stderr
+
+
+def test_the_tracker_drives_pybullet_through_the_same_interface(clip) -> None:
+    """PyBullet as world and model: the same tracker, re-planning with PyBullet's window rollouts."""
+    _, demo, controls, scene = clip
+    q = controls.q_targets[:8]
+    opts = TrackOptions(every=2, samples=3, horizon=2)
+    with make_target("pybullet", scene) as tg:
+        nominal = tg.rollout(q)
+    with make_target("pybullet", scene) as world, Tracker(demo, scene, q, opts, TransferConfig.from_yaml().weights,
+                                                            "pybullet", nominal) as tracker:  # fmt: skip
+        run = replay(world, q, tracker)
+    assert tracker.replans == 4 and tracker.physics_steps > 0 and run.target == "pybullet"
+    assert np.abs(run.object_pos - nominal.object_pos).max() < 2e-3
