@@ -175,7 +175,7 @@ def test_evaluate_closed_loop_writes_both_loops_for_both_sets(clip, tmp_path) ->
     m = json.loads((out / "metrics.json").read_text())
     for key in ("robust", "robust_closed_loop", "robust_wide", "robust_wide_closed_loop"):
         assert m[key]["n"] == 1 and set(m[key]) >= {"seed", "strict", "20deg_20cm", "unstable"}, key
-    assert m["robust_closed_loop"]["tracker"]["replans"] == 10 and m["robust_closed_loop"]["seconds_per_replay"] > 0
+    assert m["robust_closed_loop"]["tracker"]["replans"] == 19 and m["robust_closed_loop"]["seconds_per_replay"] > 0
     assert "closed loop strict" in r.stdout
     bad = subprocess.run([*cmd[:-5], "--closed-loop", "--overwrite"], capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "--robust N" in bad.stderr
@@ -195,3 +195,62 @@ def test_the_tracker_drives_pybullet_through_the_same_interface(clip) -> None:
         run = replay(world, q, tracker)
     assert tracker.replans == 4 and tracker.physics_steps > 0 and run.target == "pybullet"
     assert np.abs(run.object_pos - nominal.object_pos).max() < 2e-3
+
+
+def test_transfer_and_the_bench_pass_write_closed_loop_beside_open_loop(clip, tmp_path) -> None:
+    """``transfer --robust 1 --closed-loop`` judges its result both ways; the bench pass over finished runs
+    (:mod:`quasisim.bench.closed_loop`) adds both sets, caches each run's result and tabulates open / closed."""
+    from click.testing import CliRunner
+
+    from quasisim.bench import closed_loop as cl
+    from quasisim.cli import main
+
+    path = clip[0]
+    run = tmp_path / "runs" / path.stem / "retarget"
+    args = ["transfer", str(path), "--method", "kinematic", "--out", str(run), "--no-render", "--robust", "1"]
+    r = CliRunner().invoke(main, [*args, "--closed-loop"])
+    assert r.exit_code == 0, r.output
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["robust"]["n"] == m["robust_closed_loop"]["n"] == 1 and "robust_wide" not in m
+    assert "closed loop strict" in r.output
+    rows = [{"clip": path.stem, "method": "retarget", "seconds": {"sample": 1.0}}]
+    out = cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default", "wide"), "mujoco", 1)
+    assert {"robust", "robust_closed_loop", "robust_wide", "robust_wide_closed_loop"} <= set(out[0])
+    assert out[0]["robust"] == m["robust"]  # the same seeded worlds as the run's own judging
+    assert len(list(run.glob("robust_closed_loop-*.json"))) == 1
+    (run / "controls.npz").rename(run / "moved.npz")  # a cached run needs no controls
+    again = cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default", "wide"), "mujoco", 1)
+    assert again == out
+    text = "\n".join(cl.markdown(out, ("retarget",), ("default", "wide")))
+    assert "| robust | retarget | 1 |" in text and "| robust_wide | retarget | 1 |" in text
+
+
+def test_two_hands_are_tracked_and_shifted_together(tmp_path) -> None:
+    """A two-hand demo: both hands' bases move with the object's start offset, and closed-loop replays run."""
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.data.synthetic import write_example
+    from quasisim.eval.evaluate import hands_of
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    demo_path = write_example("cube_lift", tmp_path, n_frames=12, two_hands=True)
+    r = CliRunner().invoke(main, ["retarget", str(demo_path), "--hand", "shadow", "--out", str(tmp_path / "k")])
+    assert r.exit_code == 0, r.output
+    ev = tmp_path / "ev"
+    args = ["evaluate", str(demo_path), str(tmp_path / "k" / "kinematic.npz"), "--out", str(ev), "--no-render"]
+    r = CliRunner().invoke(main, [*args, "--robust", "1", "--closed-loop", "--track-set", "samples=4"])
+    assert r.exit_code == 0, r.output
+    m = json.loads((ev / "metrics.json").read_text())
+    assert m["robust_closed_loop"]["tracker"]["replans"] > 0
+    c = load_controls(tmp_path / "k" / "kinematic.npz")
+    scene = scene_for(load_demo(demo_path), place_hands(hands_of(c, None), c.base_rots))
+    d = np.array([0.003, 0.002, 0.0])
+    moved = shift_bases(scene, c.q_targets, d) - c.q_targets
+    assert len(scene.dof_slices) == 2
+    for sl in scene.dof_slices:
+        np.testing.assert_allclose(moved[:, sl.start : sl.start + 3], np.broadcast_to(d, (len(moved), 3)))
+        assert not moved[:, sl.start + 3 : sl.stop].any()

@@ -32,8 +32,8 @@ CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
 JUDGE_S_PER_FRAME, REPLAY_S_PER_FRAME, RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME = 0.004, 0.002, 0.2, 0.15
 
 
-# a closed-loop replay re-plans every 2 frames (configs/track.yaml): about this many seconds per frame
-CLOSED_LOOP_S_PER_FRAME = 0.07
+# a closed-loop replay re-plans every frame (configs/track.yaml): about this many seconds per frame
+CLOSED_LOOP_S_PER_FRAME = 0.15
 
 PolicyMaker = Callable[[Demo, Scene, np.ndarray, str], Callable[[], Policy]]
 """``maker(demo, nominal scene, PD targets (T, D), target) -> (() -> Policy)``: how closed-loop robust success

@@ -62,7 +62,7 @@ class TrackOptions:
         seed: noise seed.  threads: the model's rollout threads.
     """
 
-    every: int = 2
+    every: int = 1
     samples: int = 16
     horizon: int = 6
     knots: int = 3
