@@ -120,6 +120,16 @@ def _ranges(text: str) -> tuple[str, ...]:
     return names
 
 
+def _robust_sets(robust: int | None, ranges: str, closed_loop: bool) -> list[Any]:
+    """The perturbation sets of ``--ranges`` with ``--robust`` replays each; ``--closed-loop`` needs replays."""
+    from quasisim.eval.robust import replays
+
+    sets = [replays(robust, r) for r in _ranges(ranges)]
+    if closed_loop and not any(c.n for c in sets):
+        raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+    return sets
+
+
 _LEAD_CLIP = click.option(
     "--lead-clip/--no-lead-clip", default=True, show_default=True,
     help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
@@ -250,11 +260,7 @@ def evaluate(
         _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
         if note:
             click.echo(f"warning: {note}", err=True)
-        from quasisim.eval.robust import replays
-
-        robust_cfg = [replays(robust, r) for r in _ranges(ranges)]
-        if closed_loop and not any(r.n for r in robust_cfg):
-            raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+        robust_cfg = _robust_sets(robust, ranges, closed_loop)
         cost = judging_cost(render, robust_cfg, closed_loop)
         warn_long_clip(d, *cost, "evaluation" + (" with rendering" if render else ""))
         tracker = None
@@ -479,27 +485,15 @@ def transfer(
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
     _setup_runtime()
-    from quasisim.eval.robust import replays
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.pipeline import run_transfer
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
+    _robust_sets(robust, ranges, closed_loop)
     spec = TransferSpec(
-        hand,
-        target,
-        curriculum,
-        parse_stages(stages),
-        budget,
-        method,
-        render,
-        True,
-        nets,
-        robust,
-        closed_loop,
-        _ranges(ranges),
-    )
-    if closed_loop and not any(replays(robust, r).n for r in spec.ranges):
-        raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+        hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets, robust,
+        closed_loop=closed_loop, ranges=_ranges(ranges),
+    )  # fmt: skip
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     if resume and overwrite:
@@ -855,8 +849,7 @@ def bench_transfer(
     )
     loop = None
     if closed_loop:
-        if not robust:
-            raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+        _robust_sets(robust, ranges, closed_loop)
         from quasisim.method.track import TrackOptions
 
         TrackOptions.from_yaml(None, _parse_sets(track_sets))  # a bad setting fails here, before any clip runs

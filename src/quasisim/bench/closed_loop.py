@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from quasisim.bench.tables import ROBUST_KEYS
+from quasisim.eval.robust import CLOSED_LOOP_SUFFIX
 from quasisim.files import save_json_atomic
 
 CACHE = "robust_closed_loop-{}.json"
@@ -102,9 +103,9 @@ def markdown(
 ) -> list[str]:
     """The closed-loop tables: per set and run, open vs closed loop robust success and the tracker's cost
     (summary), then per clip."""
-    from quasisim.eval.robust import CLOSED_LOOP_SUFFIX, RANGES, RobustConfig
+    from quasisim.eval.robust import replays
 
-    keys = [RobustConfig.from_yaml(RANGES[r]).name for r in ranges]
+    keys = [replays(None, r).name for r in ranges]
     lines = [
         "### Robust success open vs closed loop",
         "",
@@ -135,7 +136,7 @@ def markdown(
 
 
 def _summary_row(key: str, run: str, rs: list[dict[str, Any]]) -> str:
-    c = [r[key + "_closed_loop"] for r in rs]
+    c = [r[key + CLOSED_LOOP_SUFFIX] for r in rs]
     pct = lambda xs: f"{100.0 * np.mean(xs):.0f}"  # noqa: E731
     cols = [pct([r[key][k] for r in rs]) + " | " + pct([x[k] for x in c]) for k in ROBUST_KEYS]
     ratio = [x["seconds_per_replay"] * x["n"] / r["seconds"]["sample"] for x, r in zip(c, rs, strict=True)

@@ -16,6 +16,7 @@ import numpy as np
 from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
+from quasisim.eval.robust import CLOSED_LOOP_SUFFIX
 from quasisim.files import save_json_atomic, save_text_atomic
 from quasisim.targets import TargetRollout
 
@@ -68,7 +69,7 @@ def robust_cells(rs: list[dict[str, Any]], key: str = "robust") -> str:
     replays (``key + "_closed_loop"``); ``-`` where a row has none (runs made before it)."""
     if not rs or any(not r.get(key) for r in rs):
         return " | ".join("-" for _ in ROBUST_KEYS)
-    closed = key + "_closed_loop"
+    closed = key + CLOSED_LOOP_SUFFIX
     has_closed = all(r.get(closed) for r in rs)
 
     def cell(k: str) -> str:

@@ -214,19 +214,18 @@ def _reproduced(run: RunInput, rollout: Any, scene_matches: bool) -> None:
             )  # fmt: skip
 
 
-def record_episode(run: RunInput, demo: Demo) -> dict[str, Any]:
-    """The episode of ``run`` (made from ``demo``): ``obs``, ``next_obs`` (dicts), the arrays of
-    :data:`~quasisim.data.dataset.ARRAYS` and ``attrs``, from a rollout of its controls in the MuJoCo target."""
+def record_episode(run: RunInput, demo: Demo, scene: Scene | None = None) -> dict[str, Any]:
+    """The episode of ``run`` (made from ``demo``; ``scene``: its nominal scene, :func:`run_scene`, where the
+    caller has it): ``obs``, ``next_obs`` (dicts), the arrays of :data:`~quasisim.data.dataset.ARRAYS` and
+    ``attrs``, from a rollout of its controls in the MuJoCo target."""
     c = run.controls
-    scene = run_scene(run, demo)
+    scene = scene or run_scene(run, demo)
     spec = build_spec(scene, visual=True)
-    model = spec.compile()
     run_xml, xml6 = (run.path / "scene.xml").read_text(), spec.to_xml()
     with _recorder(scene) as tgt:
         rollout = tgt.rollout(c.q_targets)
-        frames, states = tgt.frames, np.array(tgt.states)  # type: ignore[attr-defined]
     _reproduced(run, rollout, xml6 == run_xml)
-    return _episode(run, demo, scene, spec, model, c.q_targets, rollout, frames, states, run.metrics, {})
+    return _episode(run, demo, spec, tgt, c.q_targets, rollout, run.metrics, run_xml, {}, xml6)
 
 
 def run_scene(run: RunInput, demo: Demo) -> Scene:
@@ -242,12 +241,13 @@ def run_scene(run: RunInput, demo: Demo) -> Scene:
 
 
 def record_closed_loop_episode(
-    run: RunInput, demo: Demo, scene: Scene, cfg: Any, i: int, policy: Any
+    run: RunInput, demo: Demo, scene: Scene, cfg: Any, i: int, policy: Any, run_xml: str
 ) -> dict[str, Any]:
     """Closed-loop episode ``i`` of ``run``: the tracker ``policy()`` (:func:`quasisim.method.track.closed_loop`,
     built from the nominal ``scene``) drives robust replay ``i``'s perturbed world (``cfg``, a
     :class:`~quasisim.eval.robust.RobustConfig` without a push); the actions are the targets it applied. Checked:
-    the applied targets replayed open loop in the same world reproduce the episode's states."""
+    the applied targets replayed open loop in the same world reproduce the episode's states. ``run_xml``: the
+    run's ``scene.xml``."""
     from quasisim.eval.evaluate import mark_stability
     from quasisim.eval.metrics import evaluate_rollout
     from quasisim.eval.robust import perturbed_scene, replay
@@ -257,12 +257,11 @@ def record_closed_loop_episode(
     logged = _Logged(policy(), q[0])
     with _recorder(world) as tgt:
         rollout = replay(tgt, q, logged)
-        frames, states = tgt.frames, np.array(tgt.states)  # type: ignore[attr-defined]
     logged.inner.close()
     applied = np.array(logged.actions)
     with _recorder(world) as again:
         replay(again, applied, qd0=(q[1] - q[0]) * fps)
-        dev = np.abs(np.array(again.states) - states).max()  # type: ignore[attr-defined]
+    dev = np.abs(np.array(again.states) - np.array(tgt.states)).max()  # type: ignore[attr-defined]
     if not dev <= REPRODUCE_TOL:
         raise QuasisimError(f"{run.path}: closed-loop episode {i} does not replay open loop in its world ({dev:.3g})")
     metrics, _ = evaluate_rollout(demo, rollout, None)
@@ -274,7 +273,7 @@ def record_closed_loop_episode(
                   "gain_scale": float(world.physics.gain_scale), "object_pos0": world.object_pos0.tolist()},
         "tracker": {k: v for k, v in dataclasses.asdict(logged.inner.opts).items() if k != "path"},
     }  # fmt: skip
-    return _episode(run, demo, world, spec, spec.compile(), applied, rollout, frames, states, metrics, extra)
+    return _episode(run, demo, spec, tgt, applied, rollout, metrics, run_xml, extra)
 
 
 class _Logged:
@@ -292,14 +291,15 @@ class _Logged:
 
 
 def _episode(
-    run: RunInput, demo: Demo, scene: Scene, spec: Any, model: Any, q: np.ndarray, rollout: Any,
-    frames: list[dict[str, np.ndarray]], states: np.ndarray, metrics: dict[str, Any], extra: dict[str, Any],
+    run: RunInput, demo: Demo, spec: Any, rec: MujocoTarget, q: np.ndarray, rollout: Any, metrics: dict[str, Any],
+    run_xml: str, extra: dict[str, Any], xml: str | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """An episode's arrays and attributes from a recorded rollout of the PD targets ``q`` (T, D) in ``scene``."""
+    """An episode's arrays and attributes from the recorder ``rec`` (:func:`_recorder`) that ran the PD targets
+    ``q`` (T, D) in its scene, built from ``spec`` (``xml``: its ``to_xml()`` where the caller has it)."""
     from quasisim.data.mjcf import exact_mjcf
 
-    with MujocoTarget(scene) as tgt:
-        mm, n = tgt.mm, tgt.substeps
+    scene, mm, n, model = rec.scene, rec.mm, rec.substeps, spec.compile()
+    frames, states = rec.frames, np.array(rec.states)  # type: ignore[attr-defined]
     if (model.nq, model.nv, model.na, model.nu) != (mm.model.nq, mm.model.nv, mm.model.na, mm.model.nu):
         raise QuasisimError(f"{run.path}: the exported scene's layout differs from the target's model")
     fps = scene.fps
@@ -312,8 +312,7 @@ def _episode(
         "ref_hand_keypoints": demo.human_joints, "ref_object_pos": demo.object_pos, "ref_object_quat": demo.object_quat,
     }  # fmt: skip
     N = len(q) - 1
-    run_xml = (run.path / "scene.xml").read_text()
-    attrs = _episode_attrs(run, demo, scene, model, mm, n, exact_mjcf(spec, model), run_xml, N, metrics)
+    attrs = _episode_attrs(run, demo, scene, model, mm, n, exact_mjcf(spec, model, xml), run_xml, N, metrics)
     return {
         "obs": {k: per_frame[k][:-1] for k in OBS_KEYS},
         "next_obs": {k: per_frame[k][1:] for k in OBS_KEYS},
@@ -326,15 +325,16 @@ def _episode(
 
 def _run_episodes(run: RunInput, demo: Demo, closed_loop: int) -> Any:
     """``run``'s episode, then its ``closed_loop`` closed-loop episodes (a generator: one in memory at a time)."""
-    yield record_episode(run, demo)
+    scene = run_scene(run, demo)
+    yield record_episode(run, demo, scene)
     if closed_loop:
         from quasisim.eval.robust import replays
         from quasisim.method.track import closed_loop as tracker
 
-        scene = run_scene(run, demo)
         policy = tracker()(demo, scene, run.controls.q_targets, "mujoco")
+        cfg, run_xml = replays(closed_loop), (run.path / "scene.xml").read_text()
         for i in range(closed_loop):
-            yield record_closed_loop_episode(run, demo, scene, replays(closed_loop), i, policy)
+            yield record_closed_loop_episode(run, demo, scene, cfg, i, policy, run_xml)
 
 
 def _state_layout(model: Any) -> list[list[Any]]:

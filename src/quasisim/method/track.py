@@ -27,7 +27,6 @@ the Jacobians useless) and is not built.
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,7 +149,10 @@ class Tracker:
         self.model: Target = make_target(target, scene, threads=opts.threads)
         self.nominal = nominal if nominal is not None else self.model.rollout(self.plan)
         self._sample = scene_sampler(opts.sampling(), scene)
+        base = np.concatenate([np.arange(s.start, s.start + 6) for s in scene.dof_slices])
+        self._base_cols = base if len(scene.hands) > 1 else None  # window_costs' smoothness split (one hand: None)
         self.replans, self.physics_steps, self.seconds = 0, 0, 0.0
+        self.offset = np.zeros(3)  # the start shift of step 1 (m), set by start()
         self._work: np.ndarray | None = None
 
     def start(self, obs: Observation) -> None:
@@ -201,12 +203,7 @@ class Tracker:
         w = slice(t + 1, t + H + 1)
         ref_pos, ref_quat, ref_kp = (r[w] for r in self._ref)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-        base_cols = np.concatenate([np.arange(s.start, s.start + 6) for s in self.scene.dof_slices])
-        cost = functools.partial(
-            window_costs, frame_w=frame_w, weights=self.weights,
-            base_cols=base_cols if len(self.scene.hands) > 1 else None,
-        )  # fmt: skip
-        costs = cost(wins, pred, ref_pos, ref_quat, ref_kp)
+        costs = window_costs(wins, pred, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols)
         if o.strict_weight > 0:
             from quasisim.method.sampling import strict_hinge
 
