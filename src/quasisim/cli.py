@@ -16,7 +16,14 @@ from click.core import ParameterSource
 
 from quasisim.errors import QuasisimError
 from quasisim.method.registry import METHODS as REGISTERED_METHODS
-from quasisim.method.spec import METHODS, TransferSpec, networks_from_flags, parse_stages
+from quasisim.method.spec import (
+    DEFAULT_METHOD,
+    FULL_STAGES,
+    METHODS,
+    TransferSpec,
+    networks_from_flags,
+    parse_stages,
+)
 from quasisim.targets import TARGETS
 
 # The commands import their modules when they run (JAX, MuJoCo and PyBullet take seconds to load; `--help`
@@ -442,18 +449,20 @@ def _ablation_flags(f: Any) -> Any:
 )
 @click.option(
     "--stages",
-    default=",".join(_SPEC.stages),
-    show_default=True,
-    help="Stages to run (1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo with the "
+    default=None,
+    help="Stages of method ours (given alone, they imply --method ours; default "
+    f"{','.join(FULL_STAGES)}): quick: sampling in the target that ends the run where it passes strict success, "
+    "1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo with the "
     "quasi-physical model, sample: sampling MPC in the target, select: keep the best trajectory seen, judged in "
-    "the target).",
+    "the target.",
 )
 @click.option(
     "--method",
     type=click.Choice(METHODS),
-    default=_SPEC.method,
-    show_default=True,
-    help="; ".join(f"{name}: {m.summary}" for name, m in REGISTERED_METHODS.items()) + ".",
+    default=None,
+    help=f"Default {DEFAULT_METHOD} (ours where --stages is given). "
+    + "; ".join(f"{name}: {m.summary}" for name, m in REGISTERED_METHODS.items())
+    + ".",
 )
 @click.option("--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
@@ -477,7 +486,7 @@ def _ablation_flags(f: Any) -> Any:
 @_ablation_flags
 @_friendly
 def transfer(
-    demo: Path, hand: str, target: str, curriculum: str, stages: str, method: str, budget: str, out: Path,
+    demo: Path, hand: str, target: str, curriculum: str, stages: str | None, method: str | None, budget: str, out: Path,
     resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, record: Path | None,
     robust: int | None, closed_loop: bool, ranges: str, no_residual: bool, no_local_residual: bool,
     no_control_transform: bool,
@@ -491,16 +500,16 @@ def transfer(
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
     _robust_sets(robust, ranges, closed_loop)
     spec = TransferSpec(
-        hand, target, curriculum, parse_stages(stages), budget, method, render, True, nets, robust,
+        hand, target, curriculum, _stages(stages), budget, method, render, True, nets, robust,
         closed_loop=closed_loop, ranges=_ranges(ranges),
-    )  # fmt: skip
+    ).checked()  # fmt: skip
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
     if resume and overwrite:
         raise QuasisimError("options --resume (continue OUT) and --overwrite (replace it): expected one, got both")
     res = run_transfer(demo, out, spec, cfg, resume, overwrite, record_transitions=record)
     click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'summary.json'}")
-    label = method if method != "ours" else f"ours (stages {stages})"
+    label = spec.method if spec.method != "ours" else f"ours (stages {','.join(spec.stages or ())})"
     runs = {label: res.metrics, "kinematic replay": res.kinematic_metrics}
     _summary(f"{demo.stem}: {label} in {target}, beside the kinematic replay", runs, out / "report.html")
 
@@ -510,8 +519,8 @@ def transfer(
 @click.option(
     "--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder (one folder per clip)."
 )
-@click.option("--method", type=click.Choice(METHODS), default=_SPEC.method, show_default=True, help="As in transfer.")
-@click.option("--stages", default=",".join(_SPEC.stages), show_default=True, help="As in transfer (method ours).")
+@click.option("--method", type=click.Choice(METHODS), default=None, help=f"As in transfer (default {DEFAULT_METHOD}).")
+@click.option("--stages", default=None, help="As in transfer (method ours; given alone, they imply it).")
 @click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
 @click.option("--hand", default=_SPEC.hand, show_default=True)
 @click.option("--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True)
@@ -554,7 +563,7 @@ def transfer(
 @_ablation_flags
 @_friendly
 def batch(
-    data_dir: Path, out: Path, method: str, stages: str, curriculum: str, hand: str, target: str, budget: str,
+    data_dir: Path, out: Path, method: str | None, stages: str | None, curriculum: str, hand: str, target: str, budget: str,
     pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
     sets: tuple[str, ...], render: bool, record: bool, robust: int | None, no_residual: bool, no_local_residual: bool,
     no_control_transform: bool, lead_clip: bool,
@@ -567,7 +576,7 @@ def batch(
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
     spec = TransferSpec(
-        hand, target, curriculum, parse_stages(stages), budget, method, render, False, nets, robust
+        hand, target, curriculum, _stages(stages), budget, method, render, False, nets, robust
     ).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
@@ -784,7 +793,8 @@ def bench_sim(
     default="default,none,curriculum2",
     show_default=True,
     help="Comma-separated runs: a curriculum (its stages, --stages), CURRICULUM+3, +mpc, +sample, +select (those "
-    "stages after them, e.g. short+sample+select = transfer's default), mpc-base, mpc-soften, sample-target.",
+    "stages after them, e.g. short+sample+select = method ours), cascade (transfer's default), mpc-base, mpc-soften, "
+    "sample-target.",
 )
 @click.option("--stages", default="1,2", show_default=True)
 @click.option("--budget", default="fast", show_default=True)
@@ -893,7 +903,7 @@ def bench_compare(folders: tuple[str, ...], run: str, kinematic: bool, out: Path
 )
 @click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
 @click.option("--method", type=click.Choice(METHODS), default="sample-target", show_default=True)
-@click.option("--stages", default=",".join(_SPEC.stages), show_default=True, help="As in transfer (method ours).")
+@click.option("--stages", default=None, help="As in transfer (method ours).")
 @click.option(
     "--layouts", default="1x1,2x1,1x2", show_default=True,
     help="WORKERSxTHREADS per layout, in order; -unpinned: workers not pinned to cores of their own (2x1-unpinned).",
@@ -917,9 +927,14 @@ def bench_batch(
         raise QuasisimError(
             f"--layouts expects WORKERSxTHREADS[-unpinned],... (e.g. 1x1,2x1,2x1-unpinned), got {layouts!r}"
         ) from None
-    spec = TransferSpec(method=method, stages=parse_stages(stages), render=False, progress=False).checked()
+    spec = TransferSpec(method=method, stages=_stages(stages), render=False, progress=False).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))  # type: ignore[arg-type]
+
+
+def _stages(text: str | None) -> tuple[str, ...] | None:
+    """``--stages``: None where not given (the method's own stages)."""
+    return None if text is None else parse_stages(text)
 
 
 def _layout(text: str) -> tuple[int, int, bool]:

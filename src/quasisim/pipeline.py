@@ -96,13 +96,17 @@ def run_transfer(
         ctx = Context(prob, cur, cfg, spec, ck, progress, record, np.asarray(kin["q"]), transitions)
         plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
         outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
+        ran: list[Stage] = []
         for stage in stages:
+            if outcome.done:  # a stage ended the run: the cascade's first step passed strict success
+                break
             outcome = stage.run(ctx, outcome)
+            ran.append(stage)
 
         controls = Controls(
             hand=spec.hand, demo=demo.name, method=f"{spec.method}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
             fps=demo.fps, base_rots=prob.scene.base_rots, q_targets=np.asarray(outcome.q), joint_names=hands[0].joint_names,
-            extras=file_extras(ctx, outcome, stages), demo_hash=content_hash(demo),
+            extras=file_extras(ctx, outcome, tuple(ran)), demo_hash=content_hash(demo),
         )  # fmt: skip
         return write_outputs(ctx, controls, outcome.plan.sysid, out)
 
@@ -111,7 +115,7 @@ def file_extras(ctx: Context, outcome: Outcome, stages: tuple[Stage, ...]) -> di
     """What ``controls.npz`` keeps of the run beside its PD targets: the kinematic retarget, the trajectories
     the later stages started from (``plan_q``: MPC's, ``sample_nominal_q``: the sampling's, ``<name>_q`` for
     what another stage keeps in ``Outcome.seen``), the selection, and the plan's quasi-physical rollout
-    (``sim_qpos``) when a stage optimised in the simulator."""
+    (``sim_qpos``) when one of the stages that ran, ``stages``, optimised in the simulator."""
     extras: dict[str, Any] = {"kinematic_q": ctx.kinematic_q}
     names = {"plan": "plan_q", "sampling nominal": "sample_nominal_q"}
     extras.update({names.get(k, k.replace(" ", "_") + "_q"): v for k, v in outcome.seen.items()})

@@ -35,8 +35,10 @@ def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferS
     """A benchmark run name (``default``, ``none+mpc``, ``mpc-base`` ...) as the transfer it stands for: a
     method with stages of its own (:data:`quasisim.method.registry.METHODS`), or a curriculum with ``stages``
     and the stages after stage 2 named after it."""
-    if registry.METHODS.get(run) is not None and registry.METHODS[run].stages:
-        return dataclasses.replace(base, method=run, curriculum="none").checked()
+    preset = registry.METHODS[run].stages if run in registry.METHODS else None
+    if preset:  # a method with stages of its own; the curriculum matters only to stages 1 and 2
+        cur = base.curriculum if {"1", "2"} & set(preset) else "none"
+        return dataclasses.replace(base, method=run, curriculum=cur).checked()
     name, *ablations = run.split(":")
     cur, *extra = name.split("+")
     flags = {"no-residual", "no-local-residual", "no-control-transform"}

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.data.demo import Demo
-from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
+from quasisim.limits import STRICT_CM, STRICT_DEG, object_errors
 from quasisim.rotations import np_quat_to_mat
 
 SYMMETRIC_MM = 1.0  # mean surface distance (mm) under which a rotation error is a symmetry of the shape

@@ -22,7 +22,7 @@ Per sequence of N frames:
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
@@ -30,12 +30,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from quasisim.data.demo import BONES, Demo
-from quasisim.rotations import quat_angle_deg
+from quasisim.limits import (  # noqa: F401 (the limits' names, as the evaluation's users import them)
+    MOVE_FRACTION,
+    MOVE_MIN_CM,
+    STRICT_CM,
+    STRICT_DEG,
+    ObjectMotion,
+    object_errors,
+    object_motion,
+    within_strict,
+)
 
 THRESHOLDS = (10, 15, 20)
-STRICT_CM, STRICT_DEG = 2.0, 30.0
-MOVE_MIN_CM = 2.0  # demo motions below this are within the strict tolerance and not required
-MOVE_FRACTION = 0.5  # the rollout must reproduce the demo's lift and displacement to within this fraction
 METRIC_KEYS = ("R_err_deg", "T_err_cm", "MPJPE_mm", "CD_mm", "object_motion", "success")
 SUCCESS_KEYS = ("10deg_10cm", "15deg_15cm", "20deg_20cm", "strict")  # the order of the benchmark tables
 PAPER_KEYS = SUCCESS_KEYS[:3]  # the paper's thresholds (mean errors); shown after "strict"
@@ -51,58 +57,12 @@ class PerFrame:
     cd_mm: np.ndarray
 
 
-@dataclass(frozen=True)
-class ObjectMotion:
-    """How far the object moved in the demo and in the rollout (cm), each from its own first frame.
-
-    Attributes:
-        demo_lift_cm, lift_cm: height gain (highest frame above the first) of the demo's / rollout's object.
-        demo_displacement_cm: the demo's largest displacement from its start (at frame ``t*``).
-        displacement_error_cm: distance between the rollout's displacement at ``t*`` and the demo's.
-    """
-
-    demo_lift_cm: float
-    lift_cm: float
-    demo_displacement_cm: float
-    displacement_error_cm: float
-
-    @property
-    def lift_ok(self) -> bool:
-        return self.demo_lift_cm < MOVE_MIN_CM or self.lift_cm >= MOVE_FRACTION * self.demo_lift_cm
-
-    @property
-    def displacement_ok(self) -> bool:
-        need = MOVE_FRACTION * self.demo_displacement_cm
-        return self.demo_displacement_cm < MOVE_MIN_CM or self.displacement_error_cm <= need
-
-    @property
-    def as_demo(self) -> bool:
-        return self.lift_ok and self.displacement_ok
-
-    def to_json(self) -> dict[str, Any]:
-        flags = {"lift_ok": self.lift_ok, "displacement_ok": self.displacement_ok, "as_demo": self.as_demo}
-        return {**asdict(self), **flags}
-
-
-def object_motion(ref_pos: np.ndarray, pos: np.ndarray) -> ObjectMotion:
-    """:class:`ObjectMotion` of object positions ``pos`` (T, 3) against the demo's ``ref_pos`` (T, 3), in m."""
-    d_ref = 100.0 * (np.asarray(ref_pos) - ref_pos[0])
-    d_sim = 100.0 * (np.asarray(pos) - pos[0])
-    t_star = int(np.argmax(np.linalg.norm(d_ref, axis=1)))
-    return ObjectMotion(
-        demo_lift_cm=float(d_ref[:, 2].max()),
-        lift_cm=float(d_sim[:, 2].max()),
-        demo_displacement_cm=float(np.linalg.norm(d_ref[t_star])),
-        displacement_error_cm=float(np.linalg.norm(d_sim[t_star] - d_ref[t_star])),
-    )
-
-
 def success_flags(
     r_deg: float, t_cm: float, mpjpe_mm: float, rot_deg: np.ndarray, trans_cm: np.ndarray, moved: bool
 ) -> dict[str, bool]:
     """The paper's thresholds on mean errors and ``strict`` (every frame), each requiring ``moved``."""
     out = {f"{x}deg_{x}cm": bool(moved and r_deg <= x and t_cm <= x and mpjpe_mm <= 10.0 * x) for x in THRESHOLDS}
-    out["strict"] = bool(moved and np.all(trans_cm <= STRICT_CM) and np.all(rot_deg <= STRICT_DEG))
+    out["strict"] = bool(moved and within_strict(rot_deg, trans_cm))
     return out
 
 
@@ -117,13 +77,6 @@ def summarize(pf: PerFrame, motion: ObjectMotion) -> dict[str, Any]:
         "object_motion": motion.to_json(),
         "success": success_flags(r, t, m, pf.rot_deg, pf.trans_cm, motion.as_demo),
     }
-
-
-def object_errors(
-    ref_pos: np.ndarray, ref_quat: np.ndarray, pos: np.ndarray, quat: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame rotation error (deg) and translation error (cm)."""
-    return quat_angle_deg(ref_quat, quat), 100.0 * np.linalg.norm(np.asarray(pos) - np.asarray(ref_pos), axis=-1)
 
 
 def mpjpe_per_frame(human: np.ndarray, robot_kp: np.ndarray, human_index: np.ndarray) -> np.ndarray:

@@ -5,7 +5,9 @@
 :mod:`quasisim.method.stages` and one line here (``docs/stages.md`` has a worked example).
 
 :data:`METHODS` are named presets: the stages a method runs (None: the stages the user gives, ``--stages``)
-and the settings it changes (``--method mpc-soften`` is MPC with softened gradients).
+and the settings it changes (``--method mpc-soften`` is MPC with softened gradients). The default,
+``cascade``, spends the curriculum where it pays: sampling in the target first (stage ``quick``), and the
+curriculum with sampling around its plan only where that fails strict success.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ if TYPE_CHECKING:
 # stage name (as in --stages) -> the module that declares it (or, added at run time, the Stage itself), in the
 # order a run takes them
 STAGES: dict[str, Any] = {
+    "quick": "quasisim.method.stages.quick",
     "1": "quasisim.method.stages.point_dynamics",
     "2": "quasisim.method.stages.contact_curriculum",
     "3": "quasisim.method.stages.fit_to_target",
@@ -82,8 +85,14 @@ class Method:
         return cfg if self.configure is None else self.configure(cfg)
 
 
+CASCADE = ("quick", "1", "2", "sample", "select")
+
 METHODS: dict[str, Method] = {
-    "ours": Method(None, "the stages given (--stages)"),
+    "cascade": Method(
+        CASCADE, "the default: sample in the target first; where that fails strict success, the curriculum "
+        "(stages 1, 2) and sampling around its plan, keeping the best judged in the target",
+    ),
+    "ours": Method(None, "the stages given (--stages; the full method: 1,2,sample,select)"),
     "mpc-base": Method(("mpc",), "gradient MPC in MuJoCo with the stiffest simulator, from the kinematic retarget"),
     "mpc-soften": Method(("mpc",), "mpc-base with gradients averaged over softened contact", _soften),
     "sample-target": Method(("sample",), "sampling MPC with the target itself as the model, from the kinematic retarget"),

@@ -141,8 +141,8 @@ from tqdm import tqdm
 from quasisim.assets.hand import HandModel
 from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError, choice_error
-from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
 from quasisim.files import save_npz_atomic
+from quasisim.limits import STRICT_CM, STRICT_DEG, object_errors
 from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
 from quasisim.sim.kinematics import fk_full, keypoints
@@ -189,6 +189,9 @@ class SamplingOptions:
             0 frames: no pruning).
         grip, grip_gap: the extra closure (rad or m) of finger joints held more than ``grip_gap`` from their
             targets at a step's start, added to every window's frames (step 3; 0: none).
+        stop_when_lost: end the run at the first frame that stays outside the strict limits (step 6: the clip
+            can no longer pass strict success; the frames after it keep the plan's targets). The cascade's
+            first step (stage ``quick``) sets it; false in ``configs/transfer.yaml``.
     """
 
     samples: int
@@ -224,6 +227,7 @@ class SamplingOptions:
     grip: float = 0.0
     grip_gap: float = 0.02
     backtrack_limit: float = 1.0
+    stop_when_lost: bool = False
 
     def __post_init__(self) -> None:
         self.validate()
@@ -249,7 +253,7 @@ class SamplingOptions:
         sc = self.noise_scales
         if not isinstance(sc, tuple) or not sc or not all(_is_number(s) and s >= 0 for s in sc):
             raise QuasisimError(f"sampling option 'noise_scales' must be a non-empty tuple of numbers >= 0, got {sc!r}")
-        for name in ("kinematic_alternative", "backtrack_copies", "backtrack_after_lost"):
+        for name in ("kinematic_alternative", "backtrack_copies", "backtrack_after_lost", "stop_when_lost"):
             if not isinstance(getattr(self, name), bool):
                 raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
         w = self.backtrack_strict_weight
@@ -297,6 +301,8 @@ class SampleResult:
             is deterministic and its state is copied exactly; NaN in ``mppi`` mode (no candidate applied).
         backup_frames: (B, 2) int, each time the loop backed up to re-plan frames that left the strict limits
             (step 6): the frame that left them and the frame it went back to, in the order they happened.
+        stopped_at: with ``stop_when_lost``, the frame that stayed outside the strict limits, where the run
+            ended (the later frames hold the plan's targets and are not in ``rollout``); else None.
     """
 
     q_targets: np.ndarray
@@ -306,6 +312,7 @@ class SampleResult:
     n_physics_steps: int
     prediction_error: np.ndarray
     backup_frames: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    stopped_at: int | None = None
 
     @property
     def backups(self) -> int:
@@ -718,6 +725,8 @@ def _control_loop(
             near = off or over > opts.backtrack_limit  # outside, or inside by less than the margin asked
             back = None if lost and not opts.backtrack_after_lost else _back_up_to(t, near, opts, backed_from)
             lost = lost or (off and back is None)
+            if lost and opts.stop_when_lost:
+                break
             if opts.backtrack > 0:  # the states a back-up may return to
                 saved[t] = [tg.save_state() for tg in every]
                 back, drop = _kept_states(sorted(saved), t, back, behind)
@@ -734,6 +743,8 @@ def _control_loop(
                 bar.update(back - t)
                 t = back
                 break
+        if lost and opts.stop_when_lost:
+            break
     bar.close()
     for states in saved.values():
         _release(every, states)
@@ -741,7 +752,8 @@ def _control_loop(
     if transitions is not None:
         transitions.finish(applied, frames)
     backups = np.array(events, np.int64).reshape(-1, 2)
-    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, backups)
+    stopped = t if lost and opts.stop_when_lost else None
+    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, backups, stopped)
 
 
 def grip_bias(q: np.ndarray, qpos: np.ndarray, fingers: np.ndarray, grip: float, gap: float) -> np.ndarray | None:

@@ -18,6 +18,9 @@ NETWORKS = (
 )  # stage 3's networks: residual physics (local, global), control transformation
 
 
+FULL_STAGES = ("1", "2", "sample", "select")  # method ours with no stages given: the full method (BENCHMARKS.md)
+DEFAULT_METHOD = "cascade"  # the sampling in the target first, the curriculum where that fails strict success
+
 JUDGING_ONLY = ("progress", "robust", "closed_loop", "ranges")  # TransferSpec fields outside a run's identity
 
 
@@ -27,10 +30,14 @@ class TransferSpec:
 
     Attributes:
         hand: built-in hand name or hand YAML path.  target: simulator that judges the result.
-        curriculum: built-in curriculum name or YAML path.  stages: of :data:`STAGES`.
+        curriculum: built-in curriculum name or YAML path.  stages: of :data:`STAGES`, for method ``ours``
+            (None: :data:`FULL_STAGES`; stages given without a method mean ``ours``).
         budget: a budget of the transfer config.  method: of :data:`METHODS`
-            (:data:`quasisim.method.registry.METHODS`: ``ours`` runs ``stages``; ``mpc-base``/``mpc-soften``
-            only the MPC stage, ``sample-target`` only the sampling stage, ``kinematic`` no stage).
+            (:data:`quasisim.method.registry.METHODS`; None: ``cascade``, or ``ours`` where ``stages`` are
+            given. ``cascade`` runs stage ``quick`` and,
+            where it fails strict success, stages 1, 2, sample, select; ``ours`` runs ``stages``;
+            ``mpc-base``/``mpc-soften`` only the MPC stage, ``sample-target`` only the sampling stage,
+            ``kinematic`` no stage).
         render: render the report's video.  progress: show progress bars.
         networks: what stage 3 trains on top of S and the constants, of :data:`NETWORKS` (``local`` and
             ``global`` residual networks, ``control`` transformation); the ablation flags remove them.
@@ -44,9 +51,9 @@ class TransferSpec:
     target: str = "mujoco"
     # 4 analytical simulators; "default" is the paper's 8 (BENCHMARKS.md, "A shorter curriculum")
     curriculum: str = "short"
-    stages: tuple[str, ...] = ("1", "2", "sample", "select")  # the best composition measured (BENCHMARKS.md)
+    stages: tuple[str, ...] | None = None  # None: the method's (ours: FULL_STAGES)
     budget: str = "fast"
-    method: str = "ours"
+    method: str | None = None  # None: cascade, or ours where stages are given
     render: bool = True
     progress: bool = True
     networks: tuple[str, ...] = ("local", "global", "control")
@@ -55,13 +62,20 @@ class TransferSpec:
     ranges: tuple[str, ...] = ("default",)
 
     def checked(self) -> TransferSpec:
-        """Validated, with the stages that ``method`` implies."""
+        """Validated, with the method (None: ``cascade``, or ``ours`` where stages are given) and the stages it
+        implies; stages given to a method that has its own are refused."""
         if self.target not in TARGETS:
             raise choice_error("target", self.target, TARGETS)
-        if self.method not in registry.METHODS:
-            raise choice_error("method", self.method, list(registry.METHODS))
-        preset = registry.METHODS[self.method].stages
-        stages = self.stages if preset is None else preset
+        method = self.method or ("ours" if self.stages is not None else DEFAULT_METHOD)
+        if method not in registry.METHODS:
+            raise choice_error("method", method, list(registry.METHODS))
+        preset = registry.METHODS[method].stages
+        if preset is not None and self.stages is not None and registry.order(self.stages) != preset:
+            raise QuasisimError(
+                f"stages {','.join(self.stages)} given with method {method}, which runs its own "
+                f"({','.join(preset) or 'none'}): use method ours to run the stages given, or leave the stages out"
+            )
+        stages = (self.stages or FULL_STAGES) if preset is None else preset
         bad = [s for s in stages if s not in registry.STAGES]
         if bad:
             raise choice_error("stage", bad[0], list(registry.STAGES))
@@ -74,7 +88,7 @@ class TransferSpec:
                 "leave out stages 3 and mpc"
             )
         networks = tuple(n for n in NETWORKS if n in self.networks)
-        return dataclasses.replace(self, stages=registry.order(stages), networks=networks)
+        return dataclasses.replace(self, method=method, stages=registry.order(stages), networks=networks)
 
     def identity(self) -> dict[str, object]:
         """The fields that determine the run's results (progress and robust replays aside; stage 3's networks

@@ -4,6 +4,8 @@ A transfer runs a sequence of stages (:mod:`quasisim.method.registry`) over one 
 
     outcome = Outcome.start(context)
     for stage in stages:
+        if outcome.done:  # a stage ended the run (the cascade's first step passed)
+            break
         outcome = stage.run(context, outcome)
 
 Each stage is a module of :mod:`quasisim.method.stages` that declares one :class:`Stage`: its name (as in
@@ -100,6 +102,8 @@ class Outcome:
             (MPC's start) and ``sampling nominal`` (the sampling stage's nominal).
         selected: the name of the trajectory the selection kept, and ``selection_costs`` every candidate's
             objective in the target (stage ``select``).
+        done: a stage ended the run: the stages after it do not run (the cascade's first step, stage
+            ``quick``, when its result passes strict success in the target).
     """
 
     plan: Plan
@@ -110,6 +114,7 @@ class Outcome:
     seen: dict[str, np.ndarray] = field(default_factory=dict)
     selected: str | None = None
     selection_costs: dict[str, float] = field(default_factory=dict)
+    done: bool = False
 
     def replace(self, **changes: Any) -> Outcome:
         return dataclasses.replace(self, **changes)
@@ -127,7 +132,7 @@ class Stage:
     """One stage of the method, as its module declares it.
 
     Attributes:
-        name: as in ``--stages`` (``"1"``, ``"2"``, ``"3"``, ``"mpc"``, ``"sample"``, ``"select"``).
+        name: as in ``--stages`` (``"quick"``, ``"1"``, ``"2"``, ``"3"``, ``"mpc"``, ``"sample"``, ``"select"``).
         word: names its checkpoints (``word`` or ``word_*``) and its ``seconds`` entry in ``summary.json``.
         config: the config keys (:class:`~quasisim.method.config.TransferConfig` fields) and spec fields
             (``networks``) whose values determine its result.

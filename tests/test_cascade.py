@@ -1,0 +1,91 @@
+"""The default method, the cascade: sampling in the target first (stage ``quick``), ending the run where its
+result passes strict success in MuJoCo; the curriculum and sampling around its plan only where it fails."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers import cube_example
+from quasisim.errors import QuasisimError
+from test_transfer import CURRICULUM, TINY
+
+
+def test_the_method_follows_from_the_stages_and_a_preset_refuses_other_stages() -> None:
+    from quasisim.bench.transfer import run_spec
+    from quasisim.method.registry import CASCADE
+    from quasisim.method.spec import FULL_STAGES, TransferSpec
+
+    assert (TransferSpec().checked().method, TransferSpec().checked().stages) == ("cascade", CASCADE)
+    assert TransferSpec(stages=("1", "2")).checked().method == "ours"
+    assert TransferSpec(method="ours").checked().stages == FULL_STAGES
+    assert TransferSpec(method="sample-target").checked().stages == ("sample",)
+    with pytest.raises(QuasisimError, match="method ours"):
+        TransferSpec(method="cascade", stages=("1", "2")).checked()
+    # a benchmark run of the cascade keeps the curriculum (its stages 1 and 2 use it); sample-target has none
+    assert run_spec("cascade", FULL_STAGES, TransferSpec()).curriculum == "short"
+    assert run_spec("sample-target", FULL_STAGES, TransferSpec()).curriculum == "none"
+
+
+def test_sampling_stops_at_the_first_frame_that_stays_outside_the_strict_limits(tmp_path: Path) -> None:
+    from quasisim.limits import STRICT_CM, STRICT_DEG, object_errors
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.sampling import run_sampling
+
+    _, demo, controls, scene = cube_example(tmp_path)
+    cfg = TransferConfig.from_yaml()
+    # the kinematic retarget alone (one window, the nominal; no back-ups) does not lift the cube
+    opts = dataclasses.replace(cfg.sampling, samples=1, screen=1, backtrack=0, prune_frames=0)
+    full = run_sampling(demo, scene, controls.q_targets, opts, cfg.weights, progress=False)
+    rot, trans = object_errors(demo.object_pos, demo.object_quat, full.rollout.object_pos, full.rollout.object_quat)
+    off = np.flatnonzero((trans > STRICT_CM) | (rot > STRICT_DEG))
+    assert full.stopped_at is None and len(off), "the nominal alone should leave the strict limits"
+
+    stop = run_sampling(
+        demo, scene, controls.q_targets, dataclasses.replace(opts, stop_when_lost=True), cfg.weights, progress=False
+    )
+    t = int(off[0])
+    assert stop.stopped_at == t
+    assert len(stop.rollout.object_pos) == t + 1  # the frames observed up to the lost one
+    np.testing.assert_array_equal(stop.q_targets[: t + 1], full.q_targets[: t + 1])  # the same run until then
+    np.testing.assert_array_equal(stop.q_targets[t + 1 :], controls.q_targets[t + 1 :])  # then the plan's targets
+    assert stop.n_physics_steps < full.n_physics_steps
+
+
+def _run(demo: Path, out: Path, overrides: dict, curriculum: str = "short") -> tuple[dict, dict, list[str]]:
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
+
+    spec = TransferSpec(curriculum=curriculum, render=False, progress=False, robust=0)
+    run_transfer(demo, out, spec, TransferConfig.from_yaml(overrides=overrides))
+    metrics = json.loads((out / "metrics.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())
+    return metrics, summary, sorted(p.stem for p in (out / "checkpoints").glob("*.npz"))
+
+
+@pytest.mark.slow
+def test_the_cascade_ends_after_sampling_where_it_passes_strict_success_in_mujoco(tmp_path: Path) -> None:
+    path, *_ = cube_example(tmp_path)
+    metrics, summary, ck = _run(path, tmp_path / "run", {})
+    assert metrics["success"]["strict"]  # judged by the evaluation in MuJoCo, not by the stage
+    assert ck == ["kinematic", "quick"]  # no curriculum
+    assert "extra_sim_qpos" not in np.load(tmp_path / "run" / "controls.npz")  # no quasi-physical plan
+    assert set(summary["seconds"]) >= {"retarget", "quick"} and "stage1" not in summary["seconds"]
+
+
+@pytest.mark.slow
+def test_the_cascade_runs_the_curriculum_where_sampling_loses_the_object(tmp_path: Path) -> None:
+    path, *_ = cube_example(tmp_path)
+    (tmp_path / "tiny.yaml").write_text(CURRICULUM)
+    lose = {"sampling.samples": 1, "sampling.screen": 1, "sampling.backtrack": 0, "sampling.prune_frames": 0}
+    _, summary, ck = _run(path, tmp_path / "run", {**TINY, **lose}, str(tmp_path / "tiny.yaml"))
+    assert "quick" in ck and "stage1_human" in ck and any(c.startswith("stage2_") for c in ck) and "sample" in ck
+    assert {"quick", "stage1", "stage2", "sample", "select"} <= set(summary["seconds"])
+    # the first step stopped early: its partial result is not a candidate of the selection
+    costs = json.loads(str(np.load(tmp_path / "run" / "controls.npz")["extra_selection_costs"]))
+    assert "sample-target" not in costs and {"kinematic", "curriculum"} <= set(costs)
