@@ -106,7 +106,7 @@ def test_bench_compare_puts_each_folders_kinematic_replay_beside_it(tmp_path: Pa
 
 def test_table_header_quotes_the_command_as_a_shell_needs_it(monkeypatch: pytest.MonkeyPatch) -> None:
     """A benchmark table's command line can be pasted back: arguments with spaces keep their quotes."""
-    from quasisim.bench.tables import header
+    from quasisim.eval.tables import header
 
     monkeypatch.setattr("sys.argv", ["/x/.venv/bin/quasisim", "bench", "world", "--variant", "table on mesh samples"])
     assert "- command: `quasisim bench world --variant 'table on mesh samples'`" in header("t")

@@ -417,7 +417,7 @@ def write_batch_files(
     out: Path, result_rows: list[dict[str, Any]], failures: dict[str, str], meta: dict[str, Any]
 ) -> str:
     """``OUT/batch.json`` (rows, failures, settings) and ``OUT/batch.md`` (summary + per-clip table)."""
-    from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, summary_rows
+    from quasisim.eval.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, summary_rows
 
     first = {r["clip"]: r for r in reversed(result_rows)}  # the kinematic replay once per clip
     rows = [_flat(r, "kinematic") for r in first.values()] + [_flat(r, "method") for r in result_rows]
@@ -455,7 +455,7 @@ def run_batch_command(
     """``quasisim batch``: one run per clip into ``OUT/<clip>/``; prints the summary and the throughput;
     ``record_transitions``: each clip keeps what its sampling stage rolled out (``OUT/<clip>/transitions/``)."""
     from quasisim.assets.hand import load_hand
-    from quasisim.bench.tables import clips
+    from quasisim.eval.tables import clips
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.method.curriculum import load_curriculum
 

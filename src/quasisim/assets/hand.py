@@ -24,10 +24,11 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from quasisim.assets.model_edit import ModelEdit, apply_edits, compile_spec, read_spec
+from quasisim.assets.mirror import mirror_spec
+from quasisim.assets.model_edit import ModelEdit, canonicalize, compile_spec, read_spec, scale_subtree
 from quasisim.config import apply_overrides, build, read_yaml
-from quasisim.data.demo import N_KEYPOINTS
 from quasisim.errors import InputError, QuasisimError, choice_error
+from quasisim.keypoints import N_KEYPOINTS
 
 HANDS_DIR = Path(__file__).parent / "hands"
 ROBOT_PATH_ENV = "QUASISIM_ROBOT_PATH"
@@ -194,6 +195,20 @@ class HandConfig:
             raise InputError(self.path, "mirror_axis", "one of x, y, z", repr(self.mirror_axis))
         for i, edit in enumerate(self.edits):
             edit.validate(self.path, f"edits[{i}]")
+
+
+def apply_edits(spec: Any, edits: tuple[ModelEdit, ...], path: str | Path) -> Any:
+    """Apply ``edits`` in order to ``spec`` (changed in place and returned); ``path`` names the YAML in errors."""
+    for i, edit in enumerate(edits):
+        canonicalize(spec, compile_spec(spec, path), path)
+        if edit.mirror:
+            mirror_spec(spec, edit.mirror)
+        else:
+            names = [b.name for b in spec.bodies]
+            if edit.body not in names:
+                raise InputError(path, f"edits[{i}].body", f"a body of the model ({', '.join(names[1:])})", edit.body)
+            scale_subtree(spec, spec.body(edit.body), edit.scale)
+    return spec
 
 
 def _read_hand_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:

@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from quasisim.assets.hand import HandConfig, HandModel, KeypointSpec, PointSetConfig, load_hand
-from quasisim.data.demo import KEYPOINT_NAMES
 from quasisim.files import cache_dir, save_text_atomic
+from quasisim.keypoints import KEYPOINT_NAMES
 
 # name: (keypoint chain base..tip, capsule radii per bone (m), flex range (rad), abd range (rad))
 FINGERS: dict[str, tuple[tuple[int, int, int, int], tuple[float, float, float], float, float]] = {

@@ -27,7 +27,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from quasisim.assets.model_edit import ModelEdit, apply_edits, read_spec, set_mesh_data, write_mjcf
+from quasisim.assets.model_edit import canonicalize, compile_spec, read_spec, set_mesh_data, write_mjcf
 
 AXES = ("x", "y", "z")
 
@@ -74,5 +74,6 @@ def mirror_spec(spec: Any, axis: str) -> Any:
 
 def mirror_mjcf(src: str | Path, dst: str | Path, axis: str = "x") -> Path:
     """Write the mirror image of the MJCF/URDF model ``src`` as an MJCF file ``dst`` (meshes as STL beside it)."""
-    spec = apply_edits(read_spec(Path(src)), (ModelEdit(mirror=axis),), src)
-    return write_mjcf(spec, dst)
+    spec = read_spec(Path(src))
+    canonicalize(spec, compile_spec(spec, src), src)
+    return write_mjcf(mirror_spec(spec, axis), dst)

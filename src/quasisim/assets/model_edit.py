@@ -7,7 +7,7 @@ as the original, and a geometric edit is then a plain change of numbers. Meshes 
 and face arrays (the compiled ones), so an edited model needs no mesh files until it is written out
 (:func:`write_mjcf`, meshes as binary STL through trimesh).
 
-The edits of a hand YAML (``edits:``, see docs/hands.md) are applied by :func:`apply_edits`:
+The edits of a hand YAML (``edits:``, see docs/hands.md) are applied by :func:`quasisim.assets.hand.apply_edits`:
 
 * ``{mirror: x}``: the reflection across the plane normal to x (or y, z) of every frame
   (:mod:`quasisim.assets.mirror`); a right hand becomes a left hand.
@@ -84,22 +84,6 @@ def compile_spec(spec: Any, path: str | Path) -> Any:
         raise InputError(path, None, "a model MuJoCo can compile", " ".join(str(e).split()) + extra) from None
     emit(said)
     return model
-
-
-def apply_edits(spec: Any, edits: tuple[ModelEdit, ...], path: str | Path) -> Any:
-    """Apply ``edits`` in order to ``spec`` (changed in place and returned); ``path`` names the YAML in errors."""
-    from quasisim.assets.mirror import mirror_spec
-
-    for i, edit in enumerate(edits):
-        canonicalize(spec, compile_spec(spec, path), path)
-        if edit.mirror:
-            mirror_spec(spec, edit.mirror)
-        else:
-            names = [b.name for b in spec.bodies]
-            if edit.body not in names:
-                raise InputError(path, f"edits[{i}].body", f"a body of the model ({', '.join(names[1:])})", edit.body)
-            scale_subtree(spec, spec.body(edit.body), edit.scale)
-    return spec
 
 
 # ---- canonical form -------------------------------------------------------------------------------

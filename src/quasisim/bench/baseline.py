@@ -8,10 +8,10 @@ from typing import Any
 
 from tqdm import tqdm
 
-from quasisim.bench.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, clips, header, lifted, publish, summary_rows
 from quasisim.data.demo import load_demo
 from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.robust import RobustConfig
+from quasisim.eval.tables import CLIP_HEAD, SUMMARY_HEAD, clip_row, clips, header, lifted, publish, summary_rows
 from quasisim.method.retarget import kinematic_controls
 from quasisim.targets.build import demo_hands, scene_for
 from quasisim.targets.scene import place_hands

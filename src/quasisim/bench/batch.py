@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.batch import Job, Run, Settings, run_batch, throughput
-from quasisim.bench.tables import clips, header, publish
+from quasisim.eval.tables import clips, header, publish
 from quasisim.files import CACHE_ENV
 from quasisim.method.spec import TransferSpec
 

@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from quasisim.bench.tables import ROBUST_KEYS
 from quasisim.eval.robust import CLOSED_LOOP_SUFFIX
+from quasisim.eval.tables import ROBUST_KEYS
 from quasisim.files import save_json_atomic
 
 CACHE = "robust_closed_loop-{}.json"

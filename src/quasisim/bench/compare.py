@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from quasisim.batch import CLIP_FILE, method_seconds, seconds_keys
-from quasisim.bench.tables import header, publish, robust_cells
 from quasisim.bench.transfer import stiffest_simulator
 from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
+from quasisim.eval.tables import header, publish, robust_cells
 
 
 def folder_rows(folder: Path, run: str) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:

@@ -14,8 +14,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
+from quasisim.eval.tables import clips, header, prediction_summary, publish
 from quasisim.files import save_json_atomic
 from quasisim.method import replay, stage3
 from quasisim.method.config import TransferConfig

@@ -17,8 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from quasisim.bench.tables import header
 from quasisim.errors import QuasisimError
+from quasisim.eval.tables import header
 from quasisim.files import save_json_atomic, save_text_atomic
 
 COMMANDS = ("retarget", "evaluate", "sample-target")

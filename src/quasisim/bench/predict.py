@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from quasisim.bench.tables import clips, header, prediction_summary, publish
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
+from quasisim.eval.tables import clips, header, prediction_summary, publish
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import kinematic_problem

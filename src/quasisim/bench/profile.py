@@ -22,7 +22,7 @@ from typing import Any
 import jax
 
 from quasisim import pipeline, tracecache
-from quasisim.bench.tables import header, publish
+from quasisim.eval.tables import header, publish
 from quasisim.method.config import TransferConfig
 from quasisim.method.spec import TransferSpec
 from quasisim.runtime import free_compiled_programs

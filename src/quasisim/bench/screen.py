@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.bench.tables import header, publish
 from quasisim.bench.world import held_out_files, rows_per_clip
 from quasisim.errors import QuasisimError
+from quasisim.eval.tables import header, publish
 from quasisim.files import file_sha256
 from quasisim.method.config import TransferConfig
 from quasisim.method.problem import Problem

@@ -68,10 +68,10 @@ def run_sensitivity(root: Path, data_dir: Path, scales: tuple[float, ...], n: in
     ``data_dir``) replayed at each scale; writes ``sensitivity.md`` and ``sensitivity.json`` to ``out``."""
     from tqdm import tqdm
 
-    from quasisim.bench.tables import header
     from quasisim.data.run_demo import RunDemos
     from quasisim.errors import QuasisimError
     from quasisim.eval.failures import finished_runs
+    from quasisim.eval.tables import header
     from quasisim.files import save_text_atomic
 
     runs = finished_runs(root)

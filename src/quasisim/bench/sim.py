@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from quasisim.bench.tables import header, peak_rss_mb
 from quasisim.data.demo import load_demo
+from quasisim.eval.tables import header, peak_rss_mb
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
 from quasisim.method.problem import Problem, kinematic_problem

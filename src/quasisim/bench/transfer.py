@@ -13,12 +13,12 @@ from typing import Any
 import numpy as np
 
 from quasisim.batch import Job, Run, Settings, finished_runs, lifted_as_demo, method_seconds, run_batch
-from quasisim.bench.tables import SUMMARY_HEAD, clips, header, publish, robust_cells, summary_rows
 from quasisim.data.controls import load_controls
 from quasisim.data.demo import load_demo
 from quasisim.errors import QuasisimError
 from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.metrics import SUCCESS_KEYS
+from quasisim.eval.tables import SUMMARY_HEAD, clips, header, publish, robust_cells, summary_rows
 from quasisim.files import save_json_atomic
 from quasisim.method import registry
 from quasisim.method.curriculum import load_curriculum

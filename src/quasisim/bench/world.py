@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from quasisim.bench.tables import header, publish
 from quasisim.errors import QuasisimError
+from quasisim.eval.tables import header, publish
 from quasisim.files import file_sha256, save_json_atomic
 from quasisim.method.transitions import HELD_OUT, ClipWindows, clip_problem, load_clip, read_meta, transition_files
 from quasisim.method.world_fit import SIMULATOR, stiffest_params

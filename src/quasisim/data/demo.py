@@ -21,7 +21,6 @@ key                shape       unit  meaning
 from __future__ import annotations
 
 import hashlib
-import itertools
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,24 +29,9 @@ import numpy as np
 
 from quasisim.errors import InputError
 from quasisim.files import npz_array, npz_member, npz_number, npz_str, open_npz, save_npz_atomic
+from quasisim.keypoints import BONES, FINGERTIPS, KEYPOINT_NAMES, N_KEYPOINTS  # noqa: F401 (the format's names)
 
 FORMAT = "quasisim-demo-v1"
-N_KEYPOINTS = 21
-FINGERTIPS = (4, 8, 12, 16, 20)
-KEYPOINT_NAMES = (
-    "wrist",
-    "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
-    "index_mcp", "index_pip", "index_dip", "index_tip",
-    "middle_mcp", "middle_pip", "middle_dip", "middle_tip",
-    "ring_mcp", "ring_pip", "ring_dip", "ring_tip",
-    "little_mcp", "little_pip", "little_dip", "little_tip",
-)  # fmt: skip
-# Bones of the human hand skeleton as (parent, child) keypoint pairs.
-BONES = tuple(
-    (a, b)
-    for chain in ((0, 1, 2, 3, 4), (0, 5, 6, 7, 8), (0, 9, 10, 11, 12), (0, 13, 14, 15, 16), (0, 17, 18, 19, 20))
-    for a, b in itertools.pairwise(chain)
-)
 REQUIRED_KEYS = (
     "format",
     "name",

@@ -137,9 +137,9 @@ def classify(demo: Demo, run_dir: Path, method: str, mesh: Any, surface: np.ndar
 
 
 def finished_runs(root: Path) -> list[Path]:
-    """The finished runs under ``root`` (:func:`quasisim.data.dataset_export.find_runs`) that were judged in
+    """The finished runs under ``root`` (:func:`quasisim.eval.dataset_export.find_runs`) that were judged in
     MuJoCo's exported scene: with ``rollout.npz``, ``scene.xml``, ``trajectory.npz`` and ``controls.npz``."""
-    from quasisim.data.dataset_export import find_runs
+    from quasisim.eval.dataset_export import find_runs
 
     need = ("rollout.npz", "scene.xml", "trajectory.npz", "controls.npz")
     return [d for d in find_runs(root) if all((d / n).is_file() for n in need)]
@@ -210,7 +210,7 @@ def analyse(root: Path, data_dir: Path) -> list[Failure]:
 
 
 def write(root: Path, failures: list[Failure], out: Path) -> str:
-    from quasisim.bench.tables import header
+    from quasisim.eval.tables import header
     from quasisim.files import save_text_atomic
 
     md = header(f"Strict failures of the runs under {root}") + "\n" + markdown(failures)

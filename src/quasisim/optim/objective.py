@@ -26,7 +26,7 @@ import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -49,8 +49,22 @@ from quasisim.sim.step import object_pose, rollout
 from quasisim.sim.types import Model, Params, State, pytree, static
 from quasisim.tracecache import cached_jit
 
-if TYPE_CHECKING:
-    from quasisim.targets import TargetRollout
+
+class Rollout(Protocol):
+    """What :func:`clip_cost` reads of a target's rollout (:class:`quasisim.targets.TargetRollout`, which sits
+    above this module: the targets judge with it)."""
+
+    object_pos: np.ndarray
+    object_quat: np.ndarray
+    kp_human: np.ndarray
+    kp_metric: np.ndarray
+
+    @property
+    def instability(self) -> str: ...
+
+    @property
+    def robot_keypoints(self) -> np.ndarray: ...
+
 
 Array = jax.Array
 F32 = jnp.float32
@@ -190,7 +204,7 @@ def weighted_sum(terms: dict[str, Array], weights: dict[str, Array]) -> Array:
     return sum(weights[k] * v for k, v in terms.items())  # type: ignore[return-value]
 
 
-def clip_cost(demo: Demo, rollout: TargetRollout, weights: Weights) -> float:
+def clip_cost(demo: Demo, rollout: Rollout, weights: Weights) -> float:
     """J of a target's rollout over the whole clip (frames 1..T-1 against ``demo``): ``obj_pos``, ``obj_rot``
     and ``hand`` of :func:`tracking_errors` with ``weights``; infinity when the rollout is unstable. The
     judge of :meth:`quasisim.targets.base.Target.judge` (selection, stage 3's rounds)."""
