@@ -204,6 +204,21 @@ def read_landmarks(path: Path, opts: ConvertOptions) -> tuple[np.ndarray, float 
     return pts, fps
 
 
+def rigid_transforms(mats: np.ndarray, path: Path, field: str = "pose") -> tuple[np.ndarray, np.ndarray]:
+    """Translations (T, 3) and rotations (T, 3, 3) of 4x4 poses (T, 4, 4), checked to be rigid transforms."""
+    pos, rot = mats[:, :3, 3], mats[:, :3, :3]
+    not_rotation = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    not_last_row = np.abs(mats[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+    bad = (not_rotation > 0.01) | (not_last_row > 0.01) | (np.linalg.det(rot) < 0)
+    if bad.any():
+        t = int(np.argmax(bad))
+        raise InputError(
+            path, field, "4x4 rigid transforms (a rotation, det +1, then a translation; last row 0 0 0 1)",
+            f"{mats[t].round(3).tolist()} at frame {t}",
+        )  # fmt: skip
+    return pos, rot
+
+
 def read_poses(path: Path, opts: ConvertOptions) -> tuple[np.ndarray, np.ndarray]:
     """Object positions (T, 3) in m and unit quaternions (T, 4) w x y z, z up."""
     if path.suffix.lower() == ".npz":
@@ -218,17 +233,7 @@ def read_poses(path: Path, opts: ConvertOptions) -> tuple[np.ndarray, np.ndarray
     else:
         rows = read_rows(path, (7, 16))[0]
     if rows.shape[1] == 16:
-        mats = rows.reshape(-1, 4, 4)
-        pos, rot = mats[:, :3, 3], mats[:, :3, :3]
-        not_rotation = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-        not_last_row = np.abs(mats[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
-        bad = (not_rotation > 0.01) | (not_last_row > 0.01) | (np.linalg.det(rot) < 0)
-        if bad.any():
-            t = int(np.argmax(bad))
-            raise InputError(
-                path, "pose", "4x4 rigid transforms (a rotation, det +1, then a translation; last row 0 0 0 1)",
-                f"{mats[t].round(3).tolist()} at frame {t}",
-            )  # fmt: skip
+        pos, rot = rigid_transforms(rows.reshape(-1, 4, 4), path)
     else:
         q = rows[:, 3:7] if opts.quat_order == "wxyz" else rows[:, [6, 3, 4, 5]]
         norm = np.linalg.norm(q, axis=1)

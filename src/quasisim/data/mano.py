@@ -115,6 +115,8 @@ class SafeUnpickler(pickle.Unpickler):
     naming it (pickles can run code when they name a callable; this one names none but numpy's array
     reconstruction)."""
 
+    ALLOWED = "numpy arrays (chumpy and scipy.sparse allowed)"  # what a refusal says the file may hold
+
     def find_class(self, module: str, name: str) -> Any:
         if module.split(".")[0] == "chumpy":
             return _ChumpyStandIn
@@ -170,12 +172,13 @@ def unwrap(obj: Any) -> Any:
     return obj
 
 
-def safe_load_pickle(f: BinaryIO, path: str | Path) -> Any:
-    """Unpickle ``f`` with :class:`SafeUnpickler`; any failure is an :class:`InputError` naming ``path``."""
+def safe_load_pickle(f: BinaryIO, path: str | Path, unpickler: type[SafeUnpickler] = SafeUnpickler) -> Any:
+    """Unpickle ``f`` with :class:`SafeUnpickler` (or a subclass allowing a few more classes, as TACO's torch
+    tensors); any failure is an :class:`InputError` naming ``path``."""
     try:
-        return unwrap(SafeUnpickler(f, encoding="latin1").load())
+        return unwrap(unpickler(f, encoding="latin1").load())
     except pickle.UnpicklingError as e:
-        raise InputError(path, None, "a pickle of numpy arrays (chumpy and scipy.sparse allowed)", str(e)) from None
+        raise InputError(path, None, f"a pickle of {unpickler.ALLOWED}", str(e)) from None
     except Exception as e:  # truncated or corrupt: EOFError, ValueError, TypeError, ...
         raise InputError(path, None, "a readable pickle file", f"{type(e).__name__}: {str(e)[:100]}") from None
 
