@@ -160,7 +160,8 @@ def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
 def test_bench_batch_layouts_parse_and_refuse_bad_ones(tmp_path: Path) -> None:
     from click.testing import CliRunner
 
-    from quasisim.cli import _layout, main
+    from quasisim.cli import main
+    from quasisim.cli.bench import _layout
 
     assert _layout("2x1") == (2, 1, True) and _layout("2x1-unpinned") == (2, 1, False)
     for bad in ("2x1-pinned", "2", "0x1", "axb"):

@@ -1,0 +1,199 @@
+"""What the commands share: the root group ``main`` (every command module registers on it), the error
+handling of every command, the options several commands take and their parsing."""
+
+from __future__ import annotations
+
+import functools
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from quasisim.errors import QuasisimError
+from quasisim.method.spec import TransferSpec, parse_stages
+from quasisim.targets import TARGETS
+
+# The commands import their modules when they run (JAX, MuJoCo and PyBullet take seconds to load; `--help`
+# and bad-option errors should not wait for them).
+
+TARGET_CHOICE = click.Choice(list(TARGETS))
+
+
+def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn quasisim's own errors into a one-line message and exit code 2 (no traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except (QuasisimError, OSError) as e:  # OSError: a path the system refuses (too long, a loop, no space)
+            msg = f"{e.filename}: {e.strerror}" if isinstance(e, OSError) and e.filename and e.strerror else e
+            click.echo(f"error: {' '.join(str(msg).split())}", err=True)  # one line, whatever the names hold
+            sys.exit(2)
+
+    return wrapper
+
+
+class _OneLineErrors(click.Group):
+    """The top-level group: click's usage errors (bad or missing options) as one line on stderr, exit code 2."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.exceptions.NoArgsIsHelpError as e:
+            click.echo(e.ctx.get_help() if e.ctx else str(e), err=True)
+            sys.exit(2)
+        except click.ClickException as e:
+            where = f"{e.ctx.command_path}: " if getattr(e, "ctx", None) else ""
+            click.echo(f"error: {where}{' '.join(e.format_message().split())} (see --help)", err=True)
+            sys.exit(e.exit_code)
+        except click.Abort:
+            click.echo("Aborted!", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True) -> None:
+    """Before any work: ``out`` can be written and holds none of ``names`` (unless ``overwrite``)."""
+    from quasisim.files import check_out_dir, refuse_overwrite, remove_orphans
+
+    check_out_dir(out)
+    refuse_overwrite(out, names, overwrite)
+    remove_orphans(out)  # what a killed atomic write left there
+
+
+_OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
+_TRANSITIONS_DATA = click.option(
+    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+    help="Folder of the demos the transitions were recorded on (their meshes beside them).",
+)  # fmt: skip
+
+
+def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
+    """``text`` as comma-separated positive integers; a one-line error naming ``option`` otherwise."""
+    try:
+        values = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        raise QuasisimError(f"{option}: expected comma-separated positive integers (e.g. {example}), got {text!r}")
+    return values
+
+
+_ROBUST = click.option(
+    "--robust", type=click.IntRange(0, 1000), default=None,
+    help="Perturbed replays for robust success (default: n of configs/robust.yaml; 0: none).",
+)  # fmt: skip
+_CLOSED_LOOP = click.option(
+    "--closed-loop", is_flag=True,
+    help="Also replay the perturbed worlds of robust success closed loop: a tracker observes each world's state "
+    "and re-plans around the result in the nominal target (configs/track.yaml; docs/transfer.md).",
+)  # fmt: skip
+_TRACK_SET = click.option(
+    "--track-set", "track_sets", multiple=True,
+    help="With --closed-loop: override a tracker setting of configs/track.yaml, e.g. --track-set every=1.",
+)  # fmt: skip
+_RANGES = click.option(
+    "--ranges", default="default", show_default=True,
+    help="Perturbation sets of robust success, comma-separated: default (configs/robust.yaml), wide "
+    "(configs/robust_wide.yaml: about 2x the ranges and a push on the object mid-clip).",
+)  # fmt: skip
+
+
+def _ranges(text: str) -> tuple[str, ...]:
+    """``--ranges`` as a tuple of set names, each one of :data:`quasisim.eval.robust.RANGES`."""
+    from quasisim.errors import choice_error
+    from quasisim.eval.robust import RANGES
+
+    names = tuple(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
+    for n in names or ("",):
+        if n not in RANGES:
+            raise choice_error("--ranges", n, tuple(RANGES))
+    return names
+
+
+def _robust_sets(robust: int | None, ranges: str, closed_loop: bool) -> list[Any]:
+    """The perturbation sets of ``--ranges`` with ``--robust`` replays each; ``--closed-loop`` needs replays."""
+    from quasisim.eval.robust import replays
+
+    sets = [replays(robust, r) for r in _ranges(ranges)]
+    if closed_loop and not any(c.n for c in sets):
+        raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+    return sets
+
+
+_LEAD_CLIP = click.option(
+    "--lead-clip/--no-lead-clip", default=True, show_default=True,
+    help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
+    "compile once on all cores (docs/batch.md).",
+)  # fmt: skip
+
+
+def _summary(title: str, runs: dict[str, dict[str, Any]], report: Path) -> None:
+    """The human summary that ends ``evaluate`` and ``transfer`` (strict first; metrics.json has the numbers)."""
+    from quasisim.eval.summary import summary_lines
+
+    click.echo("\n" + "\n".join(summary_lines(title, runs, report if report.is_file() else None)))
+
+
+def _setup_runtime() -> None:
+    """Environment and JAX settings of every command (before MuJoCo or JAX load); SIGTERM ends the command
+    like Ctrl-C, so atomic writes remove their temporary files."""
+    import signal
+
+    from quasisim.runtime import configure
+
+    configure()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+
+
+@click.group(cls=_OneLineErrors, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="quasisim")
+def main() -> None:
+    """quasisim: turn human hand-object demonstrations into robot-hand controls that work in MuJoCo/PyBullet."""
+
+
+def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
+    """``--set a.b=1.5`` options -> {"a.b": 1.5} (values parsed as YAML scalars)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for s in sets:
+        if "=" not in s:
+            raise QuasisimError(f"--set expects KEY=VALUE (e.g. budgets.fast.sim.control_steps=20), got {s!r}")
+        k, v = s.split("=", 1)
+        if not k.strip():
+            raise QuasisimError(f"--set expects KEY=VALUE with a key (e.g. weights.hand=2.0), got {s!r}")
+        try:
+            out[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError as e:
+            problem = " ".join(str(getattr(e, "problem", "") or e).split())
+            raise QuasisimError(
+                f"--set {k.strip()}: expected a YAML value (e.g. 2.0, true, [1, 2]), got {v!r} ({problem})"
+            ) from None
+    return out
+
+
+_SPEC = TransferSpec()  # the defaults of `quasisim transfer`'s options
+
+
+def _ablation_flags(f: Any) -> Any:
+    """Stage 3's ablation flags (each removes networks from what stage 3 trains)."""
+    for name, what in (
+        ("--no-control-transform", "the control transformation"),
+        ("--no-local-residual", "the local residual network (the global one stays)"),
+        ("--no-residual", "the residual networks (local and global)"),
+    ):
+        f = click.option(name, is_flag=True, help=f"Stage 3 without {what}.")(f)
+    return f
+
+
+def _stages(text: str | None) -> tuple[str, ...] | None:
+    """``--stages``: None where not given (the method's own stages)."""
+    return None if text is None else parse_stages(text)

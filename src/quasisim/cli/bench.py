@@ -1,0 +1,331 @@
+"""`quasisim bench`: the group and its main benchmarks (baseline, sim, transfer, compare, batch, profile,
+long, failures); the studies are in bench_studies."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from quasisim.cli._common import (
+    _LEAD_CLIP,
+    _RANGES,
+    _ROBUST,
+    _SPEC,
+    _TRACK_SET,
+    TARGET_CHOICE,
+    _friendly,
+    _outputs_free,
+    _parse_sets,
+    _positive_ints,
+    _ranges,
+    _robust_sets,
+    _setup_runtime,
+    _stages,
+    main,
+)
+from quasisim.errors import QuasisimError
+from quasisim.method.spec import METHODS, TransferSpec, parse_stages
+
+
+@main.group()
+def bench() -> None:
+    """Benchmarks whose output goes into BENCHMARKS.md."""
+
+
+@bench.command("baseline")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--hand", default="shadow", show_default=True)
+@click.option(
+    "--target", "targets", type=TARGET_CHOICE, multiple=True, default=("mujoco", "pybullet"), show_default=True
+)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/baseline"), show_default=True)
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz are skipped unless named."
+)
+@click.option("--render/--no-render", default=False, show_default=True)
+@_ROBUST
+@_friendly
+def bench_baseline(
+    data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool, robust: int | None
+) -> None:  # fmt: skip
+    """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
+    _setup_runtime()
+    from quasisim.bench.baseline import run_baseline
+    from quasisim.eval.robust import replays
+
+    run_baseline(data_dir, hand, targets, out, pattern, render, replays(robust))
+
+
+@bench.command("sim")
+@click.option(
+    "--data",
+    "data_dir",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=None,
+    help="Folder of clips (default: $QUASISIM_DATA).",
+)
+@click.option("--clip", default="grab_s1_apple_lift", show_default=True, help="Clip of the speed measurement.")
+@click.option("--study-clips", default="grab_s1_apple_lift,grab_s1_cubesmall_lift,grab_s1_mug_lift", show_default=True)
+@click.option("--hand", default="shadow", show_default=True)
+@click.option(
+    "--substeps", type=click.IntRange(1, None), default=None, help="Substeps per frame (default: the fast budget's)."
+)
+@click.option(
+    "--dt-study",
+    default="50,20,10",
+    show_default=True,
+    help="Substeps per frame compared with 100 (dt 0.5 ms at 20 fps).",
+)
+@click.option(
+    "--study-sims", default="", help="Simulators of the default curriculum (1-based) of the step-size study "
+    "(default: the stiffest analytical one).",
+)  # fmt: skip
+@click.option("--json", "as_json", is_flag=True, help="Print JSON only.")
+@_friendly
+def bench_sim(
+    data_dir: Path | None, clip: str, study_clips: str, hand: str, substeps: int | None, dt_study: str,
+    study_sims: str, as_json: bool,
+) -> None:  # fmt: skip
+    """Simulator speed (forward, forward+backward, memory), MuJoCo on the same scene, step-size study."""
+    import os
+
+    _setup_runtime()
+    from quasisim.bench.sim import run_sim_bench
+    from quasisim.method.curriculum import load_curriculum
+
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    if not (data / f"{clip}.npz").is_file():
+        raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
+    study = _positive_ints(dt_study, "--dt-study", "50,20,10")
+    sims = _positive_ints(study_sims, "--study-sims", "1,5,9") if study_sims.strip() else ()
+    analytical = [i + 1 for i, st in enumerate(load_curriculum("default").stages) if not st.residual]
+    if bad := sorted(set(sims) - set(analytical)):
+        raise QuasisimError(
+            f"--study-sims: {bad} are not analytical simulators of the default curriculum (valid: {analytical})"
+        )
+    clips_ = tuple(c for c in study_clips.split(",") if c.strip())
+    run_sim_bench(data, clip, clips_, hand, substeps, study, as_json, sims)
+
+
+@bench.command("transfer")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option(
+    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped unless named."
+)
+@click.option(
+    "--runs",
+    "--curricula",
+    "runs",
+    default="default,none,curriculum2",
+    show_default=True,
+    help="Comma-separated runs: a curriculum (its stages, --stages), CURRICULUM+3, +mpc, +sample, +select (those "
+    "stages after them, e.g. short+sample+select = method ours), cascade (transfer's default), mpc-base, mpc-soften, "
+    "sample-target.",
+)
+@click.option("--stages", default="1,2", show_default=True)
+@click.option("--budget", default="fast", show_default=True)
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--hand", default="shadow", show_default=True)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
+@click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
+@click.option(
+    "--judge",
+    type=TARGET_CHOICE,
+    default=None,
+    help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
+)
+@click.option("--ray", "ray_address", default=None, help="Address of an existing Ray cluster (default: local Ray).")
+@click.option(
+    "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
+)
+@click.option(
+    "--set", "sets", multiple=True, help="Override a config key (as in transfer), e.g. --set stage2.mode=none."
+)
+@click.option(
+    "--record-transitions", "record", is_flag=True,
+    help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
+    "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
+)  # fmt: skip
+@click.option(
+    "--robust", type=click.IntRange(0, 1000), default=None,
+    help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
+    "finished before keep their judging: use a new OUT.",
+)  # fmt: skip
+@click.option(
+    "--closed-loop", is_flag=True,
+    help="After the batch, replay every finished run in the perturbed worlds of --ranges open and closed loop "
+    "(--robust N replays each; cached per run, resumable) and add the closed-loop tables.",
+)  # fmt: skip
+@_TRACK_SET
+@_RANGES
+@_LEAD_CLIP
+@_friendly
+def bench_transfer(
+    data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
+    out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
+    record: bool, robust: int | None, closed_loop: bool, track_sets: tuple[str, ...], ranges: str, lead_clip: bool,
+) -> None:  # fmt: skip
+    """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
+    Ray batch (resumable)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
+    _setup_runtime()
+    from quasisim.batch import Settings
+    from quasisim.bench.transfer import run_spec, run_transfer_bench
+    from quasisim.method.config import TransferConfig
+
+    st = parse_stages(stages)
+    rs = tuple(c.strip() for c in runs.split(",") if c.strip())
+    for r in rs:
+        run_spec(r, st, TransferSpec())
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    overrides = _parse_sets(sets)
+    TransferConfig.from_yaml(overrides=overrides)  # a bad key fails here, before any clip runs
+    s = Settings(
+        ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record, lead_clip=lead_clip
+    )
+    loop = None
+    if closed_loop:
+        _robust_sets(robust, ranges, closed_loop)
+        from quasisim.method.track import TrackOptions
+
+        TrackOptions.from_yaml(None, _parse_sets(track_sets))  # a bad setting fails here, before any clip runs
+        loop = (_ranges(ranges), _parse_sets(track_sets))
+    run_transfer_bench(
+        data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust, closed_loop=loop
+    )
+
+
+@bench.command("compare")
+@click.argument("folders", nargs=-1, required=True)
+@click.option(
+    "--run", "run", default="short+sample+select", show_default=True,
+    help="The run to compare: one name for every folder, or comma-separated, one per folder.",
+)  # fmt: skip
+@click.option(
+    "--kinematic", is_flag=True, help="Each folder's kinematic replay beside its run (e.g. one folder per hand)."
+)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/compare"), show_default=True)
+@_friendly
+def bench_compare(folders: tuple[str, ...], run: str, kinematic: bool, out: Path) -> None:
+    """One run of finished `bench transfer` folders side by side: FOLDERS as LABEL=PATH (or PATH, labelled
+    by its name), the first is the reference. Reads results back; runs nothing."""
+    from quasisim.bench.compare import compare_folders
+
+    pairs = []
+    for f in folders:
+        label, _, path = f.rpartition("=")
+        p = Path(path)
+        if not p.is_dir():
+            raise QuasisimError(f"bench compare: {p} is not a folder (expected LABEL=PATH of a `bench transfer` --out)")
+        pairs.append((label or p.name, p))
+    _outputs_free(out)
+    compare_folders(pairs, [r.strip() for r in run.split(",")], out, kinematic)
+
+
+@bench.command("batch")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+)
+@click.option("--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped.")
+@click.option("--method", type=click.Choice(METHODS), default="sample-target", show_default=True)
+@click.option("--stages", default=None, help="As in transfer (method ours).")
+@click.option(
+    "--layouts", default="1x1,2x1,1x2", show_default=True,
+    help="WORKERSxTHREADS per layout, in order; -unpinned: workers not pinned to cores of their own (2x1-unpinned).",
+)  # fmt: skip
+@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/batch"), show_default=True)
+@_friendly
+def bench_batch(
+    data_dir: Path, clip_names: str, pattern: str, method: str, stages: str, layouts: str, sets: tuple[str, ...],
+    out: Path,
+) -> None:  # fmt: skip
+    """Clips per hour of `quasisim batch` with 1 and 2 Ray workers on the same clips (same command)."""
+    _outputs_free(out)
+    _setup_runtime()
+    from quasisim.bench.batch import run_batch_bench
+
+    try:
+        lay = tuple(_layout(x.strip()) for x in layouts.split(",") if x.strip())
+        assert lay and all(min(x[:2]) >= 1 for x in lay)
+    except (ValueError, AssertionError):
+        raise QuasisimError(
+            f"--layouts expects WORKERSxTHREADS[-unpinned],... (e.g. 1x1,2x1,2x1-unpinned), got {layouts!r}"
+        ) from None
+    spec = TransferSpec(method=method, stages=_stages(stages), render=False, progress=False).checked()
+    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))  # type: ignore[arg-type]
+
+
+def _layout(text: str) -> tuple[int, int, bool]:
+    """``2x1`` -> (2, 1, pinned); ``2x1-unpinned`` -> (2, 1, not pinned)."""
+    shape, _, flag = text.partition("-")
+    if flag not in ("", "unpinned"):
+        raise ValueError(text)
+    w, t = (int(x) for x in shape.split("x"))
+    return w, t, flag == ""
+
+
+@bench.command("profile")
+@click.argument("demo", type=click.Path(path_type=Path, exists=True, dir_okay=False))
+@click.option("--stages", default="1,2,3,mpc", show_default=True, help="Stages of the profiled transfer.")
+@click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
+@click.option("--budget", default=_SPEC.budget, show_default=True)
+@click.option("--cold", is_flag=True, help="Start from empty XLA compilation and trace caches.")
+@click.option("--cprofile", is_flag=True, help="Also measure MuJoCo's share (cProfile; slows tracing).")
+@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/profile"), show_default=True)
+@_friendly
+def bench_profile(
+    demo: Path, stages: str, curriculum: str, budget: str, cold: bool, cprofile: bool, sets: tuple[str, ...], out: Path
+) -> None:
+    """Where one transfer's time goes: per piece, XLA compilation, MuJoCo, the rest (JAX execution, Python)."""
+    _outputs_free(out)
+    _setup_runtime()
+    import shutil
+
+    from quasisim.bench.profile import run_profile
+    from quasisim.method.config import TransferConfig
+
+    spec = TransferSpec(curriculum=curriculum, stages=parse_stages(stages), budget=budget, render=False, progress=False)
+    shutil.rmtree(out / "run", ignore_errors=True)
+    run_profile(demo, spec.checked(), TransferConfig.from_yaml(overrides=_parse_sets(sets)), out, cold, cprofile)
+
+
+@bench.command("long")
+@click.option("--frames", "frames_", default="60,600,3000,10000", show_default=True, help="Clip lengths.")
+@click.option("--commands", default=",".join(("retarget", "evaluate", "sample-target")), show_default=True)
+@click.option("--render/--no-render", default=True, show_default=True, help="evaluate and transfer render videos.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/long"), show_default=True)
+@_friendly
+def bench_long(frames_: str, commands: str, render: bool, out: Path) -> None:
+    """Wall time and peak memory of retarget, evaluate and sample-target on clips of 60 to 10,000 frames,
+    beside the clip-length warning's estimate (resumable per row)."""
+    _outputs_free(out)  # resumable: only a folder that can be written is required
+    from quasisim.bench.long import run_long_bench
+
+    lengths = _positive_ints(frames_, "--frames", "60,600,3000,10000")
+    click.echo(run_long_bench(lengths, tuple(c.strip() for c in commands.split(",") if c.strip()), out, render))
+
+
+@bench.command("failures")
+@click.argument("runs", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--data", "data_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder of the runs' demos (default: $QUASISIM_DATA).")  # fmt: skip
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None, help="Output folder (default: RUNS).")
+@_friendly
+def bench_failures(runs: Path, data_dir: Path | None, out: Path | None) -> None:
+    """Why each finished run under RUNS fails strict success: first frame over a limit, which limit, and a
+    label (symmetric, drop, never grasped, lost contact, slip); writes failures.md and failures.json."""
+    import os
+
+    from quasisim.eval.failures import analyse, write
+
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    click.echo(write(runs, analyse(runs, data), out or runs))

@@ -1,0 +1,98 @@
+"""`quasisim convert`: bring your own data in (landmarks, GRAB, ARCTIC)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from quasisim.cli._common import _friendly, main
+
+
+@main.group()
+def convert() -> None:
+    """Bring your own data in: write a quasisim-demo-v1 clip (docs/demo_format.md)."""
+
+
+@convert.command("landmarks")
+@click.argument("landmarks", type=click.Path(path_type=Path))
+@click.argument("poses", type=click.Path(path_type=Path))
+@click.argument("mesh", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Demo .npz to write.")
+@click.option("--units", default="m", show_default=True, help="Length unit of all three inputs: m, cm or mm.")
+@click.option("--up", default="z", show_default=True, help="The inputs' up axis: z, y, -y, x, -x or -z.")
+@click.option("--quat-order", default="wxyz", show_default=True, help="Quaternion order in POSES: wxyz or xyzw.")
+@click.option("--fps", type=float, default=None, help="Frame rate (default: the landmark file's 'fps').")
+@click.option(
+    "--support-height", type=float, help="Table top z (m, z up; default: the object's lowest point at frame 0)."
+)
+@click.option("--key", default=None, help="Landmark array in an .npz (default: the only (T, 21, 3) or (T, 63) one).")
+@click.option("--name", default=None, help="Clip name (default: OUT's file name).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT and its mesh in meshes/ when they exist.")
+@_friendly
+def convert_landmarks(
+    landmarks: Path, poses: Path, mesh: Path, out: Path, units: str, up: str, quat_order: str, fps: float | None,
+    support_height: float | None, key: str | None, name: str | None, overwrite: bool,
+) -> None:  # fmt: skip
+    """21 hand LANDMARKS per frame (MediaPipe order; .npz, .csv or .json), the object's POSES per frame
+    (position + quaternion, or 4x4) and its MESH (object frame) -> OUT (demo npz) and meshes/ beside it.
+    File layouts: docs/demo_format.md."""
+    from quasisim.data import convert as cv
+
+    opts = cv.ConvertOptions(units, up, quat_order, fps, support_height, key, name)
+    click.echo(str(cv.convert_landmarks(landmarks, poses, mesh, out, opts, overwrite)))
+
+
+def _raw_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """The options `convert grab` and `convert arctic` share."""
+    for opt in reversed((
+        click.option("--mano-dir", type=click.Path(path_type=Path), required=True,
+                     help="Folder with your MANO_RIGHT.pkl / MANO_LEFT.pkl (or its mano/ subfolder); https://mano.is.tue.mpg.de."),
+        click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Demo .npz to write."),
+        click.option("--fps", type=float, default=20.0, show_default=True, help="Clip frame rate (0: the source rate)."),
+        click.option("--start", type=int, default=0, show_default=True, help="Source frame of clip frame 0."),
+        click.option("--frames", type=int, default=None, help="Clip frames (default: to the end of the sequence)."),
+        click.option("--name", default=None, help="Clip name (default: OUT's file name)."),
+    )):  # fmt: skip
+        fn = opt(fn)
+    return fn
+
+
+@convert.command("grab")
+@click.argument("seq", type=click.Path(path_type=Path))
+@click.option("--grab-root", type=click.Path(path_type=Path), default=None,
+              help="Folder holding grab/ and tools/ (default: three levels above SEQ).")  # fmt: skip
+@click.option("--left", is_flag=True, help="Also write the left hand as left_joints (needs MANO_LEFT.pkl).")
+@_raw_options
+@_friendly
+def convert_grab(
+    seq: Path, grab_root: Path | None, left: bool, mano_dir: Path, out: Path, fps: float, start: int,
+    frames: int | None, name: str | None,
+) -> None:  # fmt: skip
+    """A GRAB sequence (grab/<subject>/<object>_<intent>.npz) -> OUT (demo npz, right hand) and meshes/ beside
+    it. docs/demo_format.md, "From GRAB / ARCTIC"."""
+    from quasisim.data import convert_raw as cr
+
+    opts = cr.RawOptions(fps=fps or None, start=start, frames=frames, name=name, left=left)
+    click.echo(str(cr.convert_grab(seq, mano_dir, out, grab_root, opts)))
+
+
+@convert.command("arctic")
+@click.argument("seq", type=click.Path(path_type=Path))
+@click.option("--arctic-root", type=click.Path(path_type=Path), default=None,
+              help="Folder holding raw_seqs/ and meta/ (default: three levels above SEQ).")  # fmt: skip
+@click.option("--source-fps", type=float, default=30.0, show_default=True, help="ARCTIC's frame rate.")
+@_raw_options
+@_friendly
+def convert_arctic(
+    seq: Path, arctic_root: Path | None, source_fps: float, mano_dir: Path, out: Path, fps: float, start: int,
+    frames: int | None, name: str | None,
+) -> None:  # fmt: skip
+    """An ARCTIC raw sequence (raw_seqs/<subject>/<seq>.mano.npy and .object.npy) -> OUT (demo npz, both
+    hands) and a rigid mesh (hinge at the clip's median angle) in meshes/. docs/demo_format.md."""
+    from quasisim.data import convert_raw as cr
+
+    opts = cr.RawOptions(fps=fps or None, start=start, frames=frames, name=name, source_fps=source_fps)
+    click.echo(str(cr.convert_arctic(seq, mano_dir, out, arctic_root, opts)))
