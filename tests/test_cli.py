@@ -97,24 +97,21 @@ def test_evaluate_rejects_mismatched_controls(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_demo_method_lifts_the_cube(tmp_path: Path) -> None:
-    """What `make demo` runs: sample-target lifts and tracks the bundled cube; the kinematic replay does not."""
+    """What `make demo` runs: the default method (the cascade) lifts and tracks the bundled cube; the kinematic
+    replay does not."""
     _run(["example", "--out", str(tmp_path), "--name", "cube_lift"])
-    out = tmp_path / "st"
-    text = _run(
-        ["transfer", str(tmp_path / "cube_lift.npz"), "--method", "sample-target", "--out", str(out), "--no-render"]
-    )
+    out = tmp_path / "transfer"
+    text = _run(["transfer", str(tmp_path / "cube_lift.npz"), "--out", str(out), "--no-render"])
     m = json.loads((out / "metrics.json").read_text())
     mo = m["object_motion"]
     assert mo["as_demo"] and mo["lift_cm"] > 0.8 * mo["demo_lift_cm"] and mo["displacement_error_cm"] < 3.0
     assert m["success"]["20deg_20cm"] and m["T_err_cm"] < 2.0 and m["R_err_deg"] < 10.0
     kin = json.loads((out / "summary.json").read_text())["kinematic_metrics"]
     assert not kin["object_motion"]["lift_ok"] and not any(kin["success"].values())
-    rows = [
-        line.split() for line in text.splitlines() if line.startswith("  sample-target") or "  kinematic replay" in line
-    ]
+    rows = [line.split() for line in text.splitlines() if line.startswith("  cascade") or "  kinematic replay" in line]
     assert [r[:5] for r in rows] == [
         [
-            "sample-target",
+            "cascade",
             *("yes" if m["success"][k] else "no" for k in ("strict", "10deg_10cm", "15deg_15cm", "20deg_20cm")),
         ],
         ["kinematic", "replay", "no", "no", "no"],

@@ -330,3 +330,18 @@ def test_tool_not_in_the_right_hand_is_warned_about(tmp_path: Path, mano_dir: Pa
         err,
     )
     assert gap and 8.0 < float(gap[1]) < 11.0, err
+
+
+def test_convert_taco_command(tmp_path: Path, mano_dir: Path) -> None:
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    seq = _taco_tree(tmp_path / "TACO")
+    out = tmp_path / "clips" / "spoon.npz"
+    args = ["convert", "taco", str(seq), "--mano-dir", str(mano_dir), "--out", str(out), "--frames", "40"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert load_demo(out).n_frames == 40 and r.output.strip().endswith("spoon.npz")
+    r = CliRunner().invoke(main, [*args[:-4], "--out", str(tmp_path / "o.npz"), "--start", "500"])
+    assert r.exit_code == 2 and "error" in r.output.lower()

@@ -51,6 +51,9 @@ class Run:
     spec: TransferSpec
     seed_from: str | None = None
 
+    def __post_init__(self) -> None:  # the method and stages resolved (a spec's None: its defaults)
+        object.__setattr__(self, "spec", self.spec.checked())
+
 
 @dataclass(frozen=True)
 class Job:

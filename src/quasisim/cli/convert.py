@@ -96,3 +96,42 @@ def convert_arctic(
 
     opts = cr.RawOptions(fps=fps or None, start=start, frames=frames, name=name, source_fps=source_fps)
     click.echo(str(cr.convert_arctic(seq, mano_dir, out, arctic_root, opts)))
+
+
+@convert.command("taco")
+@click.argument("seq", type=click.Path(path_type=Path))
+@click.option("--mano-dir", type=click.Path(path_type=Path), required=True,
+              help="Folder holding MANO_RIGHT.pkl (your own download of MANO).")  # fmt: skip
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Demo file to write (.npz).")
+@click.option(
+    "--taco-root",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Folder holding Hand_Poses/, Object_Poses/ and the object models (default: found above SEQ).",
+)
+@click.option(
+    "--object-models",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Folder holding <id>_cm.obj (default: TACO_ROOT/Object_Models).",
+)
+@click.option("--fps", type=float, default=0.0, show_default=True, help="Output frame rate (0: TACO's own).")
+@click.option("--source-fps", type=float, default=30.0, show_default=True, help="TACO's frame rate.")
+@click.option(
+    "--start", type=int, default=None, help="Source frame of clip frame 0 (default: 1.5 s before the tool first moves)."
+)
+@click.option("--frames", type=int, default=150, show_default=True, help="Clip frames at most (the paper's 150).")
+@click.option("--up", type=click.Choice(["x", "y", "z"]), default="z", show_default=True, help="TACO's up axis.")
+@click.option("--name", default=None, help="Clip name (default: OUT's file name).")
+@_friendly
+def convert_taco(
+    seq: Path, mano_dir: Path, out: Path, taco_root: Path | None, object_models: Path | None, fps: float,
+    source_fps: float, start: int | None, frames: int, up: str, name: str | None,
+) -> None:  # fmt: skip
+    """A TACO sequence (Hand_Poses/<triplet>/<sequence> or Object_Poses/...) -> OUT (demo npz: the right hand
+    and its tool, the first approach-and-act segment) and the tool's mesh in metres in meshes/.
+    docs/demo_format.md, "From TACO"."""
+    from quasisim.data import convert_taco as ct
+
+    opts = ct.TacoOptions(fps=fps or None, start=start, frames=frames, name=name, source_fps=source_fps, up=up)
+    click.echo(str(ct.convert_taco(seq, mano_dir, out, taco_root, object_models, opts)))

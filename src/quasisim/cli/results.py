@@ -77,7 +77,7 @@ def export_cmd(
     if out.exists() and not overwrite:
         raise InputError(out, "--out", "a new file (pass --overwrite to replace it)", "an existing file")
     _setup_runtime()
-    from quasisim.data.dataset_export import export_dataset
+    from quasisim.eval.dataset_export import export_dataset
 
     res = export_dataset(batch_dir, out, only, min_robust, data_dirs, closed_loop=closed_loop)
     mb = out.stat().st_size / 1e6
