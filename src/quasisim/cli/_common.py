@@ -68,12 +68,6 @@ def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True
 
 
 _OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
-_TRANSITIONS_DATA = click.option(
-    "--data", "data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
-    help="Folder of the demos the transitions were recorded on (their meshes beside them).",
-)  # fmt: skip
-
-
 def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
     """``text`` as comma-separated positive integers; a one-line error naming ``option`` otherwise."""
     try:

@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
-from quasisim.cli._common import _TRANSITIONS_DATA, _friendly, _setup_runtime, main
+from quasisim.cli._common import _friendly, _setup_runtime, main
 
 
 @main.command()
@@ -102,39 +102,3 @@ def _export_check(out: Path, runs: dict[str, str]) -> None:
                f"{max(worst.values()):.3g} (tolerance {REPLAY_TOL:g}): " + (f"FAILED ({', '.join(bad)})" if bad else "ok"))  # fmt: skip
     if bad:
         sys.exit(1)
-
-
-@main.command()
-@click.argument("transitions_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
-@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="The world model file (.eqx).")
-@_TRANSITIONS_DATA
-@click.option(
-    "--held-out", "held_out", default=None,
-    help="Comma-separated clips never trained on (default: the fixed split of docs/world_model.md).",
-)  # fmt: skip
-@click.option("--steps", default=None, type=click.IntRange(0, None), help="Adam steps (default: the config's).")
-@click.option("--workers", default=2, show_default=True, type=click.IntRange(1, 64), help="Clips at once.")
-@_friendly
-def fit(
-    transitions_dir: Path, out: Path, data_dir: Path, held_out: str | None, steps: int | None, workers: int
-) -> None:
-    """Train a world model (the stiffest simulator + a learned correction of the object's state per frame) on
-    the transitions recorded under TRANSITIONS_DIR (transfer/batch --record-transitions); resumable."""
-    from quasisim.files import check_out_dir
-
-    check_out_dir(out.parent, "--out")
-    _setup_runtime()
-    import dataclasses
-
-    from quasisim.method.transitions import HELD_OUT
-    from quasisim.method.world_fit import fit_world_model
-    from quasisim.method.world_model import WorldModelConfig
-
-    cfg = WorldModelConfig() if steps is None else dataclasses.replace(WorldModelConfig(), steps=steps)
-    names = HELD_OUT if held_out is None else tuple(c.strip() for c in held_out.split(",") if c.strip())
-    model = fit_world_model(transitions_dir, data_dir, out, cfg, names, workers)
-    info = model.info
-    click.echo(
-        f"{out}: trained on {len(info['trained_on'])} clips ({info['n_pairs']} frames), held out "
-        f"{len(info['held_out'])}; final loss {info['losses'][-1] if info['losses'] else float('nan'):.3f}"
-    )
