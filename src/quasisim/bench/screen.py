@@ -1,13 +1,13 @@
 """``quasisim bench screen``: could the quasi-physical simulator pre-screen the sampling stage's candidates?
 
 At every step of the control loop the sampling stage rolls ``N`` candidate windows out in the target and
-applies the cheapest (:mod:`quasisim.method.sampling`). Pre-screening (issue "world model", point 4b) would
+applies the cheapest (:mod:`quasisim.method.stages.sampling`). Pre-screening (issue "world model", point 4b) would
 roll many candidates out in the simulator and send only its ``k`` cheapest to the target. Whether that can
 pay is measured here offline, on recorded transitions (``--record-transitions``), step by step:
 
 * every recorded candidate of every step is predicted open loop by a predictor (the nominal stiffest
   simulator; the world model of ``--model``) from the target's state the step started from, and scored with
-  the sampling stage's own window cost (:func:`quasisim.method.sampling.window_costs`) against the demo;
+  the sampling stage's own window cost (:func:`quasisim.method.stages.sampling.window_costs`) against the demo;
 * the target's costs are computed again from the recorded rollouts the same way and must equal the recorded
   ones (a check on the frames and references; a mismatch stops the run);
 * for ``k`` in ``--top``: the target's cost of the best of the predictor's ``k`` cheapest candidates, as a
@@ -37,7 +37,7 @@ from quasisim.errors import QuasisimError
 from quasisim.files import file_sha256
 from quasisim.method.config import TransferConfig
 from quasisim.method.problem import Problem
-from quasisim.method.sampling import kinematic_keypoints, window_costs
+from quasisim.method.stages.sampling import kinematic_keypoints, window_costs
 from quasisim.method.transitions import ClipWindows, Steps, clip_problem, load_candidates
 from quasisim.method.world_fit import SIMULATOR, stiffest_params
 from quasisim.method.world_model import WorldModel, WorldModelConfig, predict
@@ -78,7 +78,7 @@ def step_costs(
 
 def kinematic_prediction(w: ClipWindows) -> dict[str, np.ndarray]:
     """The cheapest predictor, no physics: the hands exactly at their PD targets (the sampling stage's
-    pre-screen, :func:`~quasisim.method.sampling.kinematic_keypoints`), the object still at its start pose."""
+    pre-screen, :func:`~quasisim.method.stages.sampling.kinematic_keypoints`), the object still at its start pose."""
     return {**object_still(w), "keypoints": kinematic_keypoints(w.prob.scene)(w.q_targets[:, 1:])}
 
 
