@@ -126,7 +126,8 @@ def test_sampling_over_both_hands() -> None:
     import dataclasses
 
     from quasisim.method.config import TransferConfig
-    from quasisim.method.sampling import Prediction, SamplingOptions, noise_std, sample_windows, window_costs
+    from quasisim.method.options import SamplingOptions
+    from quasisim.method.stages.sampling import Prediction, noise_std, sample_windows, window_costs
 
     opts = SamplingOptions(
         samples=300, horizon=3, knots=2, noise_base_pos=0.004, noise_base_rot=0.04, noise_joints=0.5,

@@ -34,7 +34,7 @@ def test_the_method_follows_from_the_stages_and_a_preset_refuses_other_stages() 
 def test_sampling_stops_at_the_first_frame_that_stays_outside_the_strict_limits(tmp_path: Path) -> None:
     from quasisim.limits import STRICT_CM, STRICT_DEG, object_errors
     from quasisim.method.config import TransferConfig
-    from quasisim.method.sampling import run_sampling
+    from quasisim.method.stages.sampling import run_sampling
 
     _, demo, controls, scene = cube_example(tmp_path)
     cfg = TransferConfig.from_yaml()

@@ -1,5 +1,5 @@
-"""Stage 2's touching hand-off (quasisim.method.handoff): contacts move the asked distance closer to the
-object, nothing else moves, and the stage-2 restart guard sees the touching start."""
+"""Stage 2's touching hand-off (quasisim.method.stages.contact_curriculum): contacts move the asked distance
+closer to the object, nothing else moves, and the stage-2 restart guard sees the touching start."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from quasisim.method.handoff import HandoffOptions
+from quasisim.method.options import HandoffOptions
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def soft_grasp(tmp_path_factory: pytest.TempPathFactory):
 
 def test_touching_moves_each_contact_so_that_it_pushes_as_before(soft_grasp) -> None:
     from helpers import STIFF
-    from quasisim.method.handoff import force_keeping_shift, state_depths, target_depths, touching
+    from quasisim.method.stages.contact_curriculum import force_keeping_shift, state_depths, target_depths, touching
     from quasisim.optim.trajectory import simulate_jit
 
     prob, params, traj = soft_grasp
@@ -88,6 +88,7 @@ def test_checkpoints_before_the_handoff_are_shared_with_runs_without_it() -> Non
 
     from quasisim.method.config import TransferConfig
     from quasisim.method.curriculum import load_curriculum
+    from quasisim.method.stage import declared_stages
     from quasisim.pipeline import piece_scope as _piece_scope
 
     cur = load_curriculum("default")
@@ -100,7 +101,7 @@ def test_checkpoints_before_the_handoff_are_shared_with_runs_without_it() -> Non
             "demo": "d",
             "curriculum_settings": cur_settings,
             "stages": list(stages),
-            **cfg.identity("fast", stages),
+            **cfg.identity("fast", declared_stages(stages)),
         }
 
     none, every, stiffest = info("none"), info("every"), info("stiffest")

@@ -12,7 +12,7 @@ import pytest
 from helpers import STIFF
 from quasisim.assets.human_hand import build_human_hand
 from quasisim.data.demo import BONES, load_demo
-from quasisim.method.stage1 import fit_human_hand as human_hand_trajectory
+from quasisim.method.stages.point_dynamics import fit_human_hand as human_hand_trajectory
 from quasisim.sim.kinematics import forward_kinematics, keypoints
 
 CLIP = "grab_s1_apple_lift.npz"
@@ -215,6 +215,7 @@ def test_human_point_seed_draws_another_point_set_and_keys_stage_1(synthetic) ->
     part of what determines stage 1 and the runs after it, not a run without stage 1 (sample-target)."""
     from quasisim.assets.human_hand import HUMAN_POINTS
     from quasisim.method.config import TransferConfig
+    from quasisim.method.stage import declared_stages
     from quasisim.sim.build import SimOptions, hand_set_points
 
     demo, _ = synthetic
@@ -225,8 +226,9 @@ def test_human_point_seed_draws_another_point_set_and_keys_stage_1(synthetic) ->
     assert not np.array_equal(pts[0].local, pts[1].local)
     c0, c1 = TransferConfig.from_yaml(), TransferConfig.from_yaml(overrides={"stage1.human_point_seed": 1})
     assert c0.stage1.human_point_seed == 0 and c1.stage1.human_point_seed == 1
-    assert c0.identity("fast", ("1", "2", "sample")) != c1.identity("fast", ("1", "2", "sample"))
-    assert c0.identity("fast", ("sample",)) == c1.identity("fast", ("sample",))
+    curriculum, sample = declared_stages(("1", "2", "sample")), declared_stages(("sample",))
+    assert c0.identity("fast", curriculum) != c1.identity("fast", curriculum)
+    assert c0.identity("fast", sample) == c1.identity("fast", sample)
 
 
 def test_point_set_is_the_same_whatever_state_the_shared_random_generators_hold(data_dir, monkeypatch) -> None:

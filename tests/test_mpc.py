@@ -63,7 +63,8 @@ def test_mpc_loop_applies_what_it_plans_and_lowers_its_window_loss(short) -> Non
     they optimise (a wrong gradient would leave the plan's own loss the best)."""
     from quasisim.method.config import TransferConfig
     from quasisim.method.curriculum import load_curriculum
-    from quasisim.method.mpc import MPCOptions, run_mpc
+    from quasisim.method.options import MPCOptions
+    from quasisim.method.stages.mpc import run_mpc
     from quasisim.targets import make_target
 
     demo, _hand, obj, c, scene = short

@@ -173,8 +173,7 @@ def test_restart_guard_skips_diverged_and_repeated_starts_and_stage_2_goes_on() 
     on with its start."""
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.stage import RunRecord
-    from quasisim.method.stage2 import restart_guard
-    from quasisim.method.stages.contact_curriculum import _record_simulator
+    from quasisim.method.stages.contact_curriculum import _record_simulator, restart_guard
     from quasisim.optim.adam import Progress
 
     calls = []
@@ -202,8 +201,8 @@ def test_stage2_reads_back_where_identification_ended_instead_of_evaluating_it_a
     first evaluation, at (x, best S), is identification's own, so the objective runs once fewer than the two
     optimisations' loss evaluations (none fewer without identification), and the result is exactly that of
     running both optimisations with their own evaluations."""
-    from quasisim.method.stage1 import pick_grad
-    from quasisim.method.stage2 import one_simulator
+    from quasisim.method.stages.contact_curriculum import one_simulator
+    from quasisim.method.stages.point_dynamics import pick_grad
     from quasisim.optim.adam import Progress, StepBudget, minimise
 
     target = jnp.array([0.3, -0.2])

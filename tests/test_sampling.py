@@ -11,11 +11,10 @@ import yaml
 
 from quasisim.errors import QuasisimError
 from quasisim.method.config import TransferConfig
-from quasisim.method.sampling import (
-    MODES,
+from quasisim.method.options import SAMPLING_MODES, SamplingOptions
+from quasisim.method.stages.sampling import (
     UNSTABLE_COST,
     Prediction,
-    SamplingOptions,
     copy_scenes,
     cost_bounds,
     knot_basis,
@@ -121,14 +120,14 @@ def test_bad_options_raise(field: str, value: object, match: str) -> None:
 
 def test_docstring_yaml_builds_the_options() -> None:
     """The suggested YAML block in the module docstring is complete and valid (every field is required)."""
-    import quasisim.method.sampling as st
+    import quasisim.method.stages.sampling as st
     from quasisim.config import build
 
     block = st.__doc__.split("::", 1)[1]
     opts = build(SamplingOptions, yaml.safe_load(block)["sampling"], None)
     shipped = TransferConfig.from_yaml().sampling  # the docstring suggests the shipped sizes
     assert (opts.samples, opts.horizon, opts.knots) == (shipped.samples, shipped.horizon, shipped.knots)
-    assert opts.mode in MODES
+    assert opts.mode in SAMPLING_MODES
     assert opts.noise_scales == (0.5, 1.0, 2.0)
     with pytest.raises(QuasisimError, match="seed"):
         build(SamplingOptions, {k: v for k, v in yaml.safe_load(block)["sampling"].items() if k != "seed"}, None)
@@ -210,7 +209,7 @@ def test_back_up_bookkeeping_survives_chained_back_ups() -> None:
     """Back-ups from frame 50 to 45, then from 46 to 41, then from 42 to 37: the states older than 40 were
     released while the loop stood at frame 50, so the third goes back to frame 40, the oldest state kept (it
     once raised KeyError); without a back-up the states older than t - 2 backtrack are released."""
-    from quasisim.method.sampling import _kept_states
+    from quasisim.method.stages.sampling import _kept_states
 
     kept = list(range(40, 51))  # after frame 50: frames 40..50 (backtrack 5: 10 frames kept)
     back, drop = _kept_states(kept, 50, 45, 10)
@@ -226,7 +225,7 @@ def test_back_up_bookkeeping_survives_chained_back_ups() -> None:
 def test_a_frame_that_leaves_the_limits_again_backs_up_further() -> None:
     """Step 6's choice: the first back-up from frame 50 goes ``backtrack`` frames back, a retry from the same
     frame ``backtrack`` further; past ``backtrack_retries`` or the clip's budget, none."""
-    from quasisim.method.sampling import _back_up_to
+    from quasisim.method.stages.sampling import _back_up_to
 
     opts = dataclasses.replace(OPTS, backtrack=5, backtrack_budget=3, backtrack_retries=1)
     assert _back_up_to(50, True, opts, {}) == 45
@@ -320,7 +319,7 @@ def test_best_candidate_lowers_the_first_window_cost(real) -> None:
 def test_kinematic_keypoints_are_the_targets_keypoints(real) -> None:
     """The pre-screen's forward kinematics puts the metric keypoints where MuJoCo reports them, along a
     replay of the plan (float32: within 1e-5 m)."""
-    from quasisim.method.sampling import kinematic_keypoints
+    from quasisim.method.stages.sampling import kinematic_keypoints
 
     _demo, plan, scene = real
     rep = _replay(scene, plan)
@@ -330,7 +329,7 @@ def test_kinematic_keypoints_are_the_targets_keypoints(real) -> None:
 
 
 def test_screened_keeps_the_nominal_and_the_cheapest() -> None:
-    from quasisim.method.sampling import screened
+    from quasisim.method.stages.sampling import screened
 
     wins = np.arange(6.0)[:, None, None] * np.ones((6, 3, 2))
     costs = np.array([9.0, 5.0, 1.0, 4.0, 0.5, 7.0])
@@ -341,7 +340,7 @@ def test_pre_screen_rolls_out_as_many_windows_and_chooses_among_the_cheapest(rea
     """screen 2: twice the windows are drawn, the same number rolled out (same physics steps); the windows
     rolled out are the kinematically cheapest of their draw, so their hand-tracking cost is lower than
     without the pre-screen; the run is still a replay of the targets it applied."""
-    from quasisim.method.sampling import Transitions, kinematic_costs, kinematic_keypoints
+    from quasisim.method.stages.sampling import Transitions, kinematic_costs, kinematic_keypoints
     from quasisim.optim.objective import window_references
 
     demo, plan, scene = real
@@ -401,7 +400,7 @@ def test_backing_up_restores_the_target_exactly(real) -> None:
     np.testing.assert_allclose(again.qpos, back.rollout.qpos, atol=1e-9)
     np.testing.assert_allclose(again.object_pos, back.rollout.object_pos, atol=1e-9)
     assert back.prediction_error.max() <= 1e-9
-    from quasisim.method.sampling import Transitions
+    from quasisim.method.stages.sampling import Transitions
 
     kept = Transitions()  # recording: every step as it ran, the same window count each, the applied one kept
     rec = run_sampling(
@@ -458,7 +457,7 @@ def test_a_tighter_back_up_limit_backs_up_inside_the_limits_and_loses_only_outsi
     ``backtrack_after_lost``); frames between L and 1 that come back the same are not lost. L = 1 is the old
     rule: the first back-up leaves from the first frame outside the limits."""
     from quasisim.data.demo import load_demo
-    from quasisim.method.sampling import strict_fractions
+    from quasisim.method.stages.sampling import strict_fractions
 
     # 12 frames before the lift-off, where the plan's replay creeps towards the limits, then leaves them
     demo, plan, scene = _inputs(load_demo(data_dir / "grab_s1_cubesmall_lift.npz").slice(20, 32))
@@ -486,7 +485,7 @@ def test_robust_copies(real, monkeypatch: pytest.MonkeyPatch) -> None:
     object starts 5 cm away (off the strict limits from the start) never score a candidate. Perturbed copies
     change the choice; the run is still a replay of its own targets in the unperturbed target, and the copies
     rolled out the top candidates and followed every applied frame."""
-    import quasisim.method.sampling as st
+    import quasisim.method.stages.sampling as st
 
     demo, plan, scene = real
     opts = dataclasses.replace(OPTS, backtrack=3, backtrack_budget=2)
@@ -614,7 +613,7 @@ def test_replanning_within_a_margin_plans_afresh_where_the_object_nears_the_limi
     candidate predicted the object within that fraction of the strict limits; a margin nothing meets is
     planning every frame (bit for bit), one everything meets is plain ``replan``."""
     from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
-    from quasisim.method.sampling import Transitions
+    from quasisim.method.stages.sampling import Transitions
 
     demo, plan, scene = real
     T = demo.n_frames
@@ -659,7 +658,7 @@ def test_re_planned_frames_can_weigh_the_strict_limits(real) -> None:
     after a back-up. Weight 0 is the default (strict_weight 0) exactly; a heavy weight applies the same
     frames up to the first back-up's frame, chooses other windows after it, and is still a replay of what it
     applied."""
-    from quasisim.method.sampling import Transitions
+    from quasisim.method.stages.sampling import Transitions
 
     demo, plan, scene = real
     opts = dataclasses.replace(OPTS, backtrack=3, backtrack_budget=2)
@@ -680,7 +679,7 @@ def test_steps_that_start_with_the_object_astray_sample_more(real) -> None:
     out ``backtrack_samples`` x the windows, the others the usual count (counted exactly in physics steps,
     the strays found from the recorded start states); a margin nothing crosses changes nothing."""
     from quasisim.eval.metrics import STRICT_CM, STRICT_DEG, object_errors
-    from quasisim.method.sampling import Transitions
+    from quasisim.method.stages.sampling import Transitions
 
     demo, plan, scene = real
     T, applied = demo.n_frames, (demo.n_frames - 1) * 25  # the applied frames' own physics steps
@@ -703,7 +702,7 @@ def test_replanning_every_few_frames_applies_what_was_predicted(real) -> None:
     """``replan`` 3: each chosen window's first three frames are applied before planning again, so a third
     of the steps roll out windows; the applied frames are what the chosen candidate predicted (the target is
     deterministic) and the run is a replay of its targets. With zero noise it is the plan's replay."""
-    from quasisim.method.sampling import Transitions
+    from quasisim.method.stages.sampling import Transitions
 
     demo, plan, scene = real
     T = demo.n_frames
@@ -766,7 +765,7 @@ def test_pruned_sampling_rolls_out_fewer_frames_and_still_replays_exactly(real) 
     the loop simulates fewer physics steps, chooses only candidates that ran their whole window, and its
     recorded run is still the exact replay of the targets it applied; recording transitions rolls every window
     out in full (the run equals the unpruned one)."""
-    from quasisim.method.sampling import Transitions
+    from quasisim.method.stages.sampling import Transitions
 
     demo, plan, scene = real
     opts = dataclasses.replace(OPTS, backtrack=0)  # the same steps with and without pruning
@@ -786,7 +785,7 @@ def test_pruned_sampling_rolls_out_fewer_frames_and_still_replays_exactly(real) 
 def test_grip_bias_presses_held_back_finger_joints_only() -> None:
     """The bias is ``grip * sign(q - qpos)`` on finger columns more than ``grip_gap`` from their targets, 0 on
     the base and on joints that follow their targets; no grip, no bias."""
-    from quasisim.method.sampling import biased, grip_bias
+    from quasisim.method.stages.sampling import biased, grip_bias
 
     fingers = np.array([False] * 6 + [True] * 4)
     q = np.zeros(10)

@@ -10,7 +10,7 @@ import pytest
 
 from quasisim.errors import QuasisimError
 from quasisim.method.config import TransferConfig
-from quasisim.method.select import best_in_target
+from quasisim.method.stages.selection import best_in_target
 from quasisim.optim.objective import clip_cost
 from quasisim.targets import TargetRollout
 

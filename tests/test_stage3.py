@@ -20,7 +20,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
     from quasisim.method.problem import make_problem
     from quasisim.method.replay import collect
     from quasisim.method.retarget import retarget
-    from quasisim.method.stage3 import noisy_variants
+    from quasisim.method.stages.fit_to_target import noisy_variants
     from quasisim.targets.scene import Placement
 
     p: Path = write_example("cube_lift", tmp_path_factory.mktemp("s3"), n_frames=24)
@@ -50,7 +50,7 @@ def test_noisy_variants_are_smooth_perturbations_within_limits(setup) -> None:
 @pytest.mark.slow
 def test_fit_lowers_the_prediction_loss_and_residuals_start_at_zero(setup) -> None:
     from quasisim.method.replay import predict, split_starts, windows
-    from quasisim.method.stage3 import SimFit, fit, window_loss
+    from quasisim.method.stages.fit_to_target import SimFit, fit, window_loss
     from quasisim.sim.build import attach_residual
     from quasisim.sim.residual import ResidualConfig, ResidualNets
 
@@ -81,7 +81,7 @@ def test_fit_lowers_the_prediction_loss_and_residuals_start_at_zero(setup) -> No
 def test_world_model_rounds_keep_the_best_controls_judged_in_the_target(setup) -> None:
     """Each round's controls are judged by ``cost``; the best seen is returned (the start when no round beats
     it), the fitted simulator's error on each round's new rollout is measured and the rollouts are kept."""
-    from quasisim.method.stage3 import SimFit, world_model_rounds
+    from quasisim.method.stages.fit_to_target import SimFit, world_model_rounds
     from quasisim.optim.trajectory import Trajectory
 
     prob, cfg, p0, buf, q, _v = setup

@@ -141,7 +141,7 @@ def test_a_fresh_process_traces_none_of_the_per_clip_kinematics(cache: Path, mon
     from quasisim.data.synthetic import write_example
     from quasisim.eval.evaluate import robot_surface
     from quasisim.method.retarget import RetargetOptions, retarget
-    from quasisim.method.sampling import kinematic_keypoints
+    from quasisim.method.stages.sampling import kinematic_keypoints
 
     demo = load_demo(write_example("cube_lift", cache.parent / "demo", n_frames=12))
     hand = load_hand("shadow")

@@ -35,7 +35,7 @@ def clip(tmp_path_factory):
 @pytest.fixture(scope="module")
 def sampled(clip):
     """A plan that lifts the cube: sample-target's PD targets of the example (its sampling stage, ~6 s)."""
-    from quasisim.method.sampling import run_sampling
+    from quasisim.method.stages.sampling import run_sampling
 
     _, demo, controls, scene = clip
     cfg = TransferConfig.from_yaml()

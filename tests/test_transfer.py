@@ -163,6 +163,7 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
 
 def test_soft_simulators_take_substeps_over_the_step_scale() -> None:
     from quasisim.method.config import TransferConfig
+    from quasisim.method.stage import declared_stages
 
     def soft(substeps: int, scale: float) -> int:
         over = {"budgets.fast.substeps": substeps, "budgets.fast.soft_step_scale": scale}
@@ -170,7 +171,8 @@ def test_soft_simulators_take_substeps_over_the_step_scale() -> None:
 
     assert (soft(20, 1.0), soft(20, 2.0), soft(20, 3.0), soft(5, 2.0), soft(1, 4.0)) == (20, 10, 7, 2, 1)
     # the neutral scale is left out of a run's identity: runs made before the setting existed still match it
-    ids = {k: TransferConfig.from_yaml(overrides={"budgets.fast.soft_step_scale": k}).identity("fast", ("1", "2"))
+    stages = declared_stages(("1", "2"))
+    ids = {k: TransferConfig.from_yaml(overrides={"budgets.fast.soft_step_scale": k}).identity("fast", stages)
            for k in (1.0, 2.0)}  # fmt: skip
     assert "soft_step_scale" not in ids[1.0]["budget_settings"] and ids[2.0]["budget_settings"]["soft_step_scale"] == 2
 
@@ -182,11 +184,11 @@ def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path)
 
     from quasisim.assets.hand import load_hand
     from quasisim.data.demo import load_demo
-    from quasisim.method import stage2
     from quasisim.method.config import TransferConfig
     from quasisim.method.curriculum import load_curriculum
     from quasisim.method.problem import make_problem
     from quasisim.method.retarget import retarget
+    from quasisim.method.stages.contact_curriculum import one_simulator
     from quasisim.optim.adam import Progress, StepBudget
     from quasisim.optim.sysid import SysID
     from quasisim.optim.trajectory import Trajectory
@@ -201,7 +203,7 @@ def test_stage2_lowers_its_objective_in_the_stiffest_simulator(short_demo: Path)
     w = TransferConfig.from_yaml().weights.arrays(points=0.0)
     sb = StepBudget(control_steps=6, sysid_steps=4, control_lr=1e-3, sysid_lr=5e-2, patience=6, min_rel_improvement=0)
     traj0 = Trajectory.from_q(rt.q, prob.model.n_points)
-    traj, sysid, log_s, log_c = stage2.one_simulator(vg, traj0, SysID.init(), params, w, sb, Progress(False), "t")
+    traj, sysid, log_s, log_c = one_simulator(vg, traj0, SysID.init(), params, w, sb, Progress(False), "t")
     assert log_s.best < log_s.losses[0] and log_c.best < 0.98 * log_c.losses[0], (log_s.losses, log_c.losses)
     assert float(vg(traj, sysid, params, w)[0][0]) == pytest.approx(log_c.best, rel=1e-6)
     # the restart guard's forward pass alone gives the same loss

@@ -141,7 +141,7 @@ def test_stage1_pairs_points_within_each_hand(pair) -> None:
     """Each human point's robot point belongs to the same hand, even where the other hand is closer."""
     from types import SimpleNamespace
 
-    from quasisim.method.stage1 import correspondences
+    from quasisim.method.stages.point_dynamics import correspondences
 
     rng = np.random.default_rng(2)
     robot = rng.normal(size=(40, 3))

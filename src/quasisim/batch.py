@@ -94,7 +94,7 @@ def identity(run: Run, s: Settings) -> dict[str, Any]:
     """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
     match it), as JSON would give it back: the run, its spec, the config settings its stages read and, for a
     run with a stage in the quasi-physical simulator, the simulator's revision."""
-    from quasisim.method.registry import simulator_identity
+    from quasisim.method.stage import simulator_identity
 
     d = {"name": run.name, **run.spec.identity(), "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
     return json.loads(json.dumps(d | simulator_identity(run.spec.stages)))
@@ -104,9 +104,10 @@ def identity(run: Run, s: Settings) -> dict[str, Any]:
 def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[str, ...], method: str) -> str:
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.method.registry import METHODS
+    from quasisim.method.stage import declared_stages
 
     cfg = METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
-    content = cfg.identity(budget, stages)
+    content = cfg.identity(budget, declared_stages(stages))
     content.get("sampling", {}).pop("threads", None)
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -509,9 +510,9 @@ def throughput(res: BatchResult) -> dict[str, Any]:
 def seconds_keys() -> tuple[str, ...]:
     """The keys of a run's ``seconds`` (``summary.json``) that time its work: the retarget's, then each
     stage's :attr:`~quasisim.method.stage.Stage.word` in run order."""
-    from quasisim.method.registry import stages
+    from quasisim.method.stage import declared_stages
 
-    return ("retarget", *(st.word for st in stages()))
+    return ("retarget", *(st.word for st in declared_stages()))
 
 
 def method_seconds(seconds: dict[str, float]) -> float:

@@ -1,7 +1,8 @@
 """The method, end to end (paper section "Method" and appendix "Evaluation process").
 
 :func:`run_transfer` reads like the method: kinematic retargeting gives the first trajectory; then the
-run's stages (:mod:`quasisim.method.registry`), each a module of :mod:`quasisim.method.stages`, in order:
+run's stages (named in :mod:`quasisim.method.registry`, loaded by
+:func:`~quasisim.method.stage.declared_stages`), each a module of :mod:`quasisim.method.stages`, in order:
 stage 1 transfers the demo through point dynamics in the curriculum's relaxed simulator, stage 2 follows the
 contact curriculum from soft to stiff, stage 3 fits the simulator to the target, closed-loop MPC tracks
 the result in the target with the quasi-physical simulator as its model (``mpc``) or the target itself
@@ -37,7 +38,7 @@ from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import RETARGET_S_PER_FRAME, retarget_hands
 from quasisim.method.spec import TransferSpec
-from quasisim.method.stage import Context, Outcome, Plan, RunRecord, Stage
+from quasisim.method.stage import Context, Outcome, Plan, RunRecord, Stage, declared_stages, simulator_identity
 from quasisim.method.stages._common import timed
 from quasisim.optim.adam import Progress
 from quasisim.optim.sysid import SysID
@@ -64,7 +65,7 @@ def run_transfer(
     (``<demo>.<method>.npz``; the results are the same with or without it)."""
     spec = (spec or TransferSpec()).checked()
     cfg = registry.METHODS[spec.method].config(config or TransferConfig.from_yaml())
-    stages, cur, out = registry.stages(spec.stages), load_curriculum(spec.curriculum), Path(out)
+    stages, cur, out = declared_stages(spec.stages), load_curriculum(spec.curriculum), Path(out)
     demo = load_demo(demo_path)
     hands = demo_hands(spec.hand, demo.sides)
     if record_transitions is not None:
@@ -193,7 +194,7 @@ def _check_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
 def stage_keys() -> set[str]:
     """The run settings that concern single stages (each stage's config keys; the run's stages and method);
     the rest (demo, hand, curriculum, budget, weights) concern every piece."""
-    return {"stages", "method", "target", *(k for st in registry.stages() for k in st.config)}
+    return {"stages", "method", "target", *(k for st in declared_stages() for k in st.config)}
 
 
 def piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
@@ -201,12 +202,12 @@ def piece_scope(info: dict[str, Any], name: str) -> dict[str, Any]:
     stage, their settings and its stage's own (a ``+mpc`` run reuses the stage-1/2 checkpoints of its
     curriculum's; a change to stage 2's settings recomputes stage 2 and what comes after it, not stage 1)."""
     shared = {k: v for k, v in info.items() if k not in stage_keys()}
-    owner = next((st for st in registry.stages() if st.owns(name)), None)
+    owner = next((st for st in declared_stages() if st.owns(name)), None)
     if owner is None:  # the kinematic retarget
         return shared
     before = [
         st
-        for st in registry.stages(info["stages"])
+        for st in declared_stages(info["stages"])
         if list(registry.STAGES).index(st.name) < list(registry.STAGES).index(owner.name)
     ]
     own = {k: info[k] for st in (*before, owner) for k in st.config if k in info}
@@ -229,9 +230,9 @@ def identity(
     info = {
         "demo": demo.name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
         "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
-        "method": spec.method, **cfg.identity(spec.budget, spec.stages, spec),
+        "method": spec.method, **cfg.identity(spec.budget, declared_stages(spec.stages), spec),
         "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
-        "curriculum_settings": cur_settings, **registry.simulator_identity(spec.stages),
+        "curriculum_settings": cur_settings, **simulator_identity(spec.stages),
         # the target only where it is not MuJoCo, so that MuJoCo runs keep the identity they had before it
         **({"target": spec.target} if spec.target != "mujoco" else {}),
     }  # fmt: skip

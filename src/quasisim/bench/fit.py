@@ -17,10 +17,11 @@ from tqdm import tqdm
 from quasisim.data.demo import load_demo
 from quasisim.eval.tables import clips, header, prediction_summary, publish
 from quasisim.files import save_json_atomic
-from quasisim.method import replay, stage3
+from quasisim.method import replay
 from quasisim.method.config import TransferConfig
 from quasisim.method.curriculum import load_curriculum
 from quasisim.method.problem import kinematic_problem
+from quasisim.method.stages import fit_to_target
 from quasisim.runtime import free_compiled_programs
 from quasisim.sim.residual import ResidualConfig
 
@@ -40,11 +41,11 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
     cur = load_curriculum("default")
     p0 = prob.params(cur.contact(cur.stiffest))
     t0 = time.perf_counter()
-    train, test, _ = stage3.fit_windows(prob, q_kin, o, cfg.sampling)
+    train, test, _ = fit_to_target.fit_windows(prob, q_kin, o, cfg.sampling)
     w = cfg.weights.arrays()
     args = (demo.fps, prob.base_quat)
     t_collect = time.perf_counter() - t0
-    sim_fit, losses = stage3.fit(prob.model, p0, train, *args, prob.obj.mass, prob.obj.inertia, o, w)
+    sim_fit, losses = fit_to_target.fit(prob.model, p0, train, *args, prob.obj.mass, prob.obj.inertia, o, w)
     p_fit = sim_fit.apply(p0, prob.obj.mass, prob.obj.inertia)
     t_fit = time.perf_counter() - t0 - t_collect
     variants: dict[str, tuple[Any, Any, list[float], float]] = {
@@ -53,7 +54,7 @@ def fit_clip(demo_path: Path, hand_name: str, cfg: TransferConfig, residual: boo
     if residual and o.residual_steps > 0:
         for name, nets in NETWORK_ROWS.items():
             t1 = time.perf_counter()
-            m, p, ls = stage3.fit_networks(prob.model, p_fit, train, *args, o, w, ResidualConfig(), nets)
+            m, p, ls = fit_to_target.fit_networks(prob.model, p_fit, train, *args, o, w, ResidualConfig(), nets)
             variants[name] = (m, p, ls, time.perf_counter() - t1)
     rows = []
     for name, (m, p, ls, secs) in variants.items():

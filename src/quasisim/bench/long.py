@@ -57,10 +57,10 @@ def estimate(command: str, frames: int, render: bool) -> tuple[float, float]:
     from quasisim.data.demo import BASE_MB, BASE_S
     from quasisim.eval.evaluate import judging_cost
     from quasisim.eval.robust import RobustConfig
-    from quasisim.method import registry
     from quasisim.method.config import TransferConfig
     from quasisim.method.retarget import RETARGET_MB_PER_FRAME, RETARGET_S_PER_FRAME
     from quasisim.method.spec import TransferSpec
+    from quasisim.method.stage import declared_stages
     from quasisim.pipeline import cost_per_frame
 
     if command == "retarget":
@@ -70,7 +70,7 @@ def estimate(command: str, frames: int, render: bool) -> tuple[float, float]:
     else:
         spec = TransferSpec(method="sample-target", render=render).checked()
         cfg = TransferConfig.from_yaml()
-        s, mb = cost_per_frame(cfg.budget("fast"), cfg.budgets.get("fast"), registry.stages(spec.stages), spec)
+        s, mb = cost_per_frame(cfg.budget("fast"), cfg.budgets.get("fast"), declared_stages(spec.stages), spec)
     return (BASE_S + frames * s) / 60, (BASE_MB + frames * mb) / 1024
 
 

@@ -1,23 +1,29 @@
-"""Settings of ``quasisim transfer``: objective weights, step budgets and MPC, from ``configs/transfer.yaml``.
+"""Settings of ``quasisim transfer``: objective weights, step budgets and each stage's settings
+(:mod:`quasisim.method.options`), from ``configs/transfer.yaml``.
 
-The shipped YAML is the only source of default values: the dataclasses below have no defaults of their
-own, so a key missing from a user's YAML is an error naming it.
+The shipped YAML is the only source of default values: the settings dataclasses have no defaults of their
+own (fields added later excepted: theirs leave results as before), so a key missing from a user's YAML is an
+error naming it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from quasisim.config import apply_overrides, build, read_yaml
 from quasisim.errors import InputError, choice_error
-from quasisim.method.handoff import MODES as HANDOFF_MODES
-from quasisim.method.handoff import HandoffOptions
-from quasisim.method.mpc import MPCOptions
-from quasisim.method.sampling import SamplingOptions
-from quasisim.method.stage3 import FitOptions
+from quasisim.method.options import (
+    HANDOFF_MODES,
+    FitOptions,
+    HandoffOptions,
+    MPCOptions,
+    SamplingOptions,
+    Stage1Options,
+)
 from quasisim.optim.adam import StepBudget
 from quasisim.optim.objective import Weights
 
@@ -50,19 +56,6 @@ class Budget:
         """Substeps per frame of the simulators softer than the stiffest: ``substeps / soft_step_scale``,
         rounded, at least 1."""
         return max(1, round(self.substeps / self.soft_step_scale))
-
-
-@dataclass(frozen=True)
-class Stage1Options:
-    """Stage 1's settings.
-
-    Attributes:
-        human_point_seed: seed of the draw of the human hand's point set (the points the robot's point set
-            follows). Any seed is as good as another; runs that differ only in it measure how much a result
-            depends on such arbitrary choices (BENCHMARKS.md, run-to-run spread).
-    """
-
-    human_point_seed: int
 
 
 @dataclass(frozen=True)
@@ -112,17 +105,16 @@ class TransferConfig:
             raise choice_error("budget", name, list(self.budgets))
         return self.budgets[name]
 
-    def identity(self, budget: str, stages: tuple[str, ...], spec: Any = None) -> dict[str, Any]:
-        """The settings that determine the results of a run of ``stages``: the budget, the weights, and each
-        stage's own (its declared config keys, :class:`~quasisim.method.stage.Stage`; keys that are fields
-        of ``spec``, e.g. stage 3's ``networks``, are read from it when it is given)."""
-        from quasisim.method import registry
-
+    def identity(self, budget: str, stages: Sequence[Any], spec: Any = None) -> dict[str, Any]:
+        """The settings that determine the results of a run of ``stages`` (their declarations in run order,
+        :func:`quasisim.method.stage.declared_stages`): the budget, the weights, and each stage's own (its
+        declared config keys, :attr:`~quasisim.method.stage.Stage.config`; keys that are fields of ``spec``,
+        e.g. stage 3's ``networks``, are read from it when it is given)."""
         out: dict[str, Any] = {
             "budget_settings": _settings(self.budget(budget)),
             "weights": dataclasses.asdict(self.weights),
         }
-        for st in registry.stages(stages):
+        for st in stages:
             for key in st.config:
                 if hasattr(self, key):
                     out[key] = _settings(getattr(self, key))

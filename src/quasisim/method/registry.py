@@ -1,4 +1,5 @@
-"""The stages of the method and the named methods built from them (light: stage modules load when asked for).
+"""The stages of the method and the named methods built from them (light: names only; the stage modules
+load when :func:`quasisim.method.stage.declared_stages` asks for them).
 
 :data:`STAGES` lists every stage in the order a run takes them, each by the module that declares it (a
 :class:`~quasisim.method.stage.Stage` named ``STAGE``). Adding a stage is one module under
@@ -13,14 +14,12 @@ curriculum with sampling around its plan only where that fails strict success.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from quasisim.method.config import TransferConfig
-    from quasisim.method.stage import Stage
 
 # stage name (as in --stages) -> the module that declares it (or, added at run time, the Stage itself), in the
 # order a run takes them
@@ -29,32 +28,10 @@ STAGES: dict[str, Any] = {
     "1": "quasisim.method.stages.point_dynamics",
     "2": "quasisim.method.stages.contact_curriculum",
     "3": "quasisim.method.stages.fit_to_target",
-    "mpc": "quasisim.method.stages.closed_loop",
+    "mpc": "quasisim.method.stages.mpc",
     "sample": "quasisim.method.stages.sampling",
     "select": "quasisim.method.stages.selection",
 }
-
-
-def stage(name: str) -> Stage:
-    """The stage called ``name`` (one of :data:`STAGES`)."""
-    entry = STAGES[name]
-    st: Stage = importlib.import_module(entry).STAGE if isinstance(entry, str) else entry
-    if st.name != name:
-        raise RuntimeError(f"registry: {entry} declares stage {st.name!r}, registered as {name!r}")
-    return st
-
-
-def stages(names: tuple[str, ...] | list[str] | None = None) -> tuple[Stage, ...]:
-    """The stages ``names`` (default: all) in run order."""
-    return tuple(stage(n) for n in STAGES if names is None or n in names)
-
-
-def simulator_identity(names: tuple[str, ...] | list[str]) -> dict[str, int]:
-    """``{"simulator_revision": N}`` for a run with stages ``names`` of which one optimises in the
-    quasi-physical simulator, else ``{}`` (runs without it, e.g. sample-target, keep their identity)."""
-    from quasisim.sim.build import SIMULATOR_REVISION
-
-    return {"simulator_revision": SIMULATOR_REVISION} if any(st.uses_simulator for st in stages(names)) else {}
 
 
 def order(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:

@@ -1,9 +1,11 @@
-"""What a stage of the method is, what it is given and what it hands on (light: no JAX or MuJoCo at import).
+"""What a stage of the method is, what it is given and what it hands on, and the stages by name (light: no
+JAX or MuJoCo at import).
 
-A transfer runs a sequence of stages (:mod:`quasisim.method.registry`) over one :class:`Outcome`:
+A transfer runs a sequence of stages (named in :mod:`quasisim.method.registry`, loaded by
+:func:`declared_stages`) over one :class:`Outcome`:
 
     outcome = Outcome.start(context)
-    for stage in stages:
+    for stage in declared_stages(spec.stages):
         if outcome.done:  # a stage ended the run (the cascade's first step passed)
             break
         outcome = stage.run(context, outcome)
@@ -18,12 +20,15 @@ timing keys, benchmark run names) is derived from these declarations.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from quasisim.method import registry
 
 if TYPE_CHECKING:
     from quasisim.method.checkpoints import Checkpoints
@@ -163,3 +168,25 @@ class Stage:
     def owns(self, checkpoint: str) -> bool:
         """Whether ``checkpoint`` (a file name without ``.npz``) is one of this stage's."""
         return checkpoint == self.word or checkpoint.startswith(self.word + "_")
+
+
+def declared_stage(name: str) -> Stage:
+    """The stage called ``name`` (one of :data:`quasisim.method.registry.STAGES`), as its module declares it."""
+    entry = registry.STAGES[name]
+    st: Stage = importlib.import_module(entry).STAGE if isinstance(entry, str) else entry
+    if st.name != name:
+        raise RuntimeError(f"registry: {entry} declares stage {st.name!r}, registered as {name!r}")
+    return st
+
+
+def declared_stages(names: tuple[str, ...] | list[str] | None = None) -> tuple[Stage, ...]:
+    """The stages ``names`` (default: all) in run order."""
+    return tuple(declared_stage(n) for n in registry.STAGES if names is None or n in names)
+
+
+def simulator_identity(names: tuple[str, ...] | list[str]) -> dict[str, int]:
+    """``{"simulator_revision": N}`` for a run with stages ``names`` of which one optimises in the
+    quasi-physical simulator, else ``{}`` (runs without it, e.g. sample-target, keep their identity)."""
+    from quasisim.sim.build import SIMULATOR_REVISION
+
+    return {"simulator_revision": SIMULATOR_REVISION} if any(st.uses_simulator for st in declared_stages(names)) else {}

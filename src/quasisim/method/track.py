@@ -13,11 +13,11 @@ and acts on it with PD targets, frame by frame:
    a target of the nominal scene (:meth:`~quasisim.targets.base.Target.sync`; the world's hidden parameters are
    never read), roll ``samples`` windows of the next ``horizon`` frames out in it (the current plan's window,
    the untouched plan's window, and Gaussian perturbations of the current one on ``knots`` knots, the sampling
-   stage's noise, :func:`quasisim.method.sampling.sample_windows`) and keep the cheapest as the plan (receding
-   horizon, warm-started). The cost (:func:`quasisim.method.sampling.window_costs`) measures the distance to
-   the plan's own **nominal rollout** (object pose, metric keypoints; shifted by ``d``), not to the demo, so in
-   the nominal world the tracker reproduces the plan; ``strict_weight`` > 0 adds the hinge on the demo's
-   strict limits (2 cm, 30 deg) from ``strict_margin`` of them.
+   stage's noise, :func:`quasisim.method.stages.sampling.sample_windows`) and keep the cheapest as the plan
+   (receding horizon, warm-started). The cost (:func:`quasisim.method.stages.sampling.window_costs`) measures
+   the distance to the plan's own **nominal rollout** (object pose, metric keypoints; shifted by ``d``), not to
+   the demo, so in the nominal world the tracker reproduces the plan; ``strict_weight`` > 0 adds the hinge on
+   the demo's strict limits (2 cm, 30 deg) from ``strict_margin`` of them.
 
 Settings: ``configs/track.yaml`` (:class:`TrackOptions`). Cost per replay: about ``T / every`` re-plans of
 ``samples`` x ``horizon`` frames in the model. Time-varying linear feedback around the plan (finite-difference
@@ -107,8 +107,8 @@ class TrackOptions:
         return build(cls, {**data, "path": str(path)}, path)
 
     def sampling(self) -> Any:
-        """The :class:`~quasisim.method.sampling.SamplingOptions` whose noise this tracker draws."""
-        from quasisim.method.sampling import SamplingOptions
+        """The :class:`~quasisim.method.options.SamplingOptions` whose noise this tracker draws."""
+        from quasisim.method.options import SamplingOptions
 
         return SamplingOptions(
             samples=self.samples, horizon=self.horizon, knots=self.knots, noise_base_pos=self.noise_base_pos,
@@ -142,7 +142,7 @@ class Tracker:
         self, demo: Demo, scene: Scene, plan: np.ndarray, opts: TrackOptions, weights: Weights, target: str = "mujoco",
         nominal: TargetRollout | None = None,
     ) -> None:  # fmt: skip
-        from quasisim.method.sampling import scene_sampler
+        from quasisim.method.stages.sampling import scene_sampler
 
         self.demo, self.scene, self.opts, self.weights = demo, scene, opts, weights
         self.plan = np.asarray(plan, np.float64)
@@ -185,7 +185,7 @@ class Tracker:
 
     def _replan(self, t: int, obs: Observation) -> None:
         """Step 3: windows from the observed state rolled out in the model, the cheapest kept as the plan."""
-        from quasisim.method.sampling import window_costs
+        from quasisim.method.stages.sampling import window_costs
 
         o, H, T = self.opts, self.opts.horizon, len(self.plan)
         current = self._work[t : t + H + 1].copy()
@@ -205,7 +205,7 @@ class Tracker:
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         costs = window_costs(wins, pred, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols)
         if o.strict_weight > 0:
-            from quasisim.method.sampling import strict_hinge
+            from quasisim.method.stages.sampling import strict_hinge
 
             dp, dq = (r[w] for r in self._demo_ref)
             costs = costs + o.strict_weight * strict_hinge(

@@ -26,7 +26,7 @@ from quasisim.data.demo import load_demo
 from quasisim.errors import InputError
 from quasisim.files import npz_array, npz_number, npz_str, open_npz
 from quasisim.method.problem import Problem, make_problem
-from quasisim.method.sampling import STATE_KEYS, TRANSITIONS_FORMAT
+from quasisim.method.stages.sampling import STATE_KEYS, TRANSITIONS_FORMAT
 from quasisim.targets.build import demo_hands
 from quasisim.targets.scene import place_hands
 

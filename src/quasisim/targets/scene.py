@@ -59,7 +59,7 @@ class Table:
 class PhysicsOptions:
     """Target-simulator settings (SI units). ``friction`` is the sliding coefficient on every contact;
     ``gain_scale`` multiplies every PD gain (kp and kv) of the hands (1; else a perturbed target,
-    :mod:`quasisim.eval.robust`)."""
+    :mod:`quasisim.targets.perturb`)."""
 
     mujoco_dt: float = 0.002
     pybullet_dt: float = 0.0005

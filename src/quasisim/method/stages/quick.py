@@ -13,9 +13,9 @@ import numpy as np
 
 from quasisim.limits import strict_success
 from quasisim.method.problem import Problem
-from quasisim.method.sampling import run_sampling
 from quasisim.method.stage import Context, Outcome, Stage
 from quasisim.method.stages._common import q_expect
+from quasisim.method.stages.sampling import run_sampling
 from quasisim.targets import make_target
 
 

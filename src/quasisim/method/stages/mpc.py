@@ -12,6 +12,9 @@ planning from the kinematic retarget), ``mpc-soften`` (the same with each gradie
 stiffnesses drawn within +-10 %, randomized smoothing as in Bundled Gradients) and ``ours`` (planning from
 the stage-2 trajectory with the identified S). The loop drives any :class:`~quasisim.targets.base.Target`
 (``reset``, ``observe``, ``advance``); the command line runs it in MuJoCo only (``quasisim.method.spec``).
+
+The stage (``--stages ...,mpc``, :data:`STAGE`, :func:`run`) runs it from the plan with the simulator after
+stage 2 (or stage 3's fitted one) as the model; the plan's PD targets stay a candidate of the selection.
 """
 
 from __future__ import annotations
@@ -28,6 +31,9 @@ import numpy as np
 from tqdm import tqdm
 
 from quasisim.data.demo import Demo
+from quasisim.method.options import MPCOptions
+from quasisim.method.stage import Context, Outcome, Stage
+from quasisim.method.stages._common import q_expect
 from quasisim.optim.adam import adam_steps
 from quasisim.optim.objective import Weights, WindowObjective, make_window_objective, padded, window_references
 from quasisim.optim.trajectory import Trajectory, observed_state
@@ -38,24 +44,6 @@ from quasisim.targets.scene import Scene
 
 Array = jax.Array
 F32 = jnp.float32
-
-
-@dataclass(frozen=True)
-class MPCOptions:
-    """Closed-loop MPC settings (values: ``configs/transfer.yaml``).
-
-    Attributes:
-        horizon: frames optimised at each step (H; the paper's q).  steps: Adam steps per frame.  lr: Adam step size.
-        soften: number of stiffness samples per gradient (0: plain gradient; mpc-soften uses 4).
-        soften_range: relative half-width of the stiffness samples (0.1 = +-10 %).  seed: sampling seed.
-    """
-
-    horizon: int
-    steps: int
-    lr: float
-    soften: int
-    soften_range: float
-    seed: int
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,3 +139,34 @@ def _closed_loop(
     wall = time.perf_counter() - t0
     best, start = np.asarray(losses).reshape(-1, 2).T
     return MPCResult(applied[:T], target.recorded(frames, wall), best, start, wall)
+
+
+def run(ctx: Context, out: Outcome) -> Outcome:
+    """MPC from the plan, with the simulator after stage 2 (or stage 3's fitted one) as the model; the plan's
+    PD targets are kept for the selection as ``plan``."""
+    prob, cfg, spec = ctx.prob, ctx.cfg, ctx.spec
+    model, params = out.simulator(ctx)
+    traj: Trajectory = out.plan.traj
+
+    def mpc() -> dict[str, Any]:
+        r = run_mpc(prob.demo, prob.scene, model, params, traj.q_targets, cfg.mpc, cfg.weights, spec.progress)
+        return {"q_targets": r.q_targets, "window_loss": r.window_loss, "wall_s": np.array(r.wall_s)}
+
+    d = ctx.ck.get("mpc", mpc, q_expect(prob))
+    ctx.record.seconds["mpc"] = float(d["wall_s"])
+    ctx.record.curves["mpc window loss per frame"] = [float(x) for x in d["window_loss"]]
+    ctx.progress.write(f"mpc done in {ctx.record.seconds['mpc']:.0f} s")
+    seen = {**out.seen, "plan": out.q}
+    return out.replace(q=np.asarray(d["q_targets"], np.float64), planned=True, seen=seen)
+
+
+STAGE = Stage(
+    name="mpc",
+    word="mpc",
+    config=("mpc",),
+    s_per_frame=1.5,
+    run=run,
+    plans=True,
+    uses_simulator=True,
+    uses_target=True,
+)

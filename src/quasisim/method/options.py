@@ -1,0 +1,223 @@
+"""The settings of each stage of the method: the sections of ``configs/transfer.yaml`` that belong to one stage
+(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``), fields of
+:class:`~quasisim.method.config.TransferConfig` (light: no JAX or MuJoCo; the stage modules, the config and
+the closed-loop tracker read them from here)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from quasisim.errors import QuasisimError, choice_error
+
+
+@dataclass(frozen=True)
+class Stage1Options:
+    """Stage 1's settings.
+
+    Attributes:
+        human_point_seed: seed of the draw of the human hand's point set (the points the robot's point set
+            follows). Any seed is as good as another; runs that differ only in it measure how much a result
+            depends on such arbitrary choices (BENCHMARKS.md, run-to-run spread).
+    """
+
+    human_point_seed: int
+
+
+@dataclass(frozen=True)
+class HandoffOptions:
+    """Settings of the hand-off (``configs/transfer.yaml``, key ``stage2``).
+
+    Attributes:
+        mode: where the touching start is added: ``stiffest`` (at the hand-off to the curriculum's stiffest
+            simulator only), ``every`` (at every simulator whose ``d_c`` is smaller than the previous one's)
+            or ``none`` (the paper's hand-off: the previous result as it is).
+        iterations: Levenberg-Marquardt steps.  damping: lambda (m^2/rad^2: signed distance against joint motion).
+    """
+
+    mode: str
+    iterations: int
+    damping: float
+
+
+HANDOFF_MODES = ("stiffest", "every", "none")
+
+
+@dataclass(frozen=True)
+class MPCOptions:
+    """Closed-loop MPC settings (values: ``configs/transfer.yaml``).
+
+    Attributes:
+        horizon: frames optimised at each step (H; the paper's q).  steps: Adam steps per frame.  lr: Adam step size.
+        soften: number of stiffness samples per gradient (0: plain gradient; mpc-soften uses 4).
+        soften_range: relative half-width of the stiffness samples (0.1 = +-10 %).  seed: sampling seed.
+    """
+
+    horizon: int
+    steps: int
+    lr: float
+    soften: int
+    soften_range: float
+    seed: int
+
+
+SAMPLING_MODES = ("predictive", "mppi")
+
+
+@dataclass(frozen=True)
+class SamplingOptions:
+    """Predictive-sampling settings (see :mod:`quasisim.method.stages.sampling`; no defaults, they come from YAML).
+
+    Attributes:
+        samples: candidate windows per frame, the nominal included.  horizon: frames per window.
+        knots: noise knots per window.  noise_base_pos (m), noise_base_rot (rad), noise_joints (rad or m):
+            noise std per dof group.  noise_scales: per-candidate std multipliers, cycled.
+        mode: ``"predictive"`` (take the best window) or ``"mppi"`` (softmax-weighted mean).
+        temperature: MPPI softmax temperature (cost units).  seed: noise seed.  threads: rollout threads.
+        kinematic_alternative: in stage ``sample`` after other stages, also sample ``samples`` windows around
+            the kinematic retarget at every frame (no effect when the plan is the kinematic retarget).
+        strict_weight, strict_margin: the hinge on the strict limits in the window cost (step 4; weight 0: none).
+        backtrack, backtrack_samples, backtrack_budget: backing up when a frame leaves the strict limits
+            (step 6; 0 frames: never).  backtrack_retries: further back-ups from a frame that leaves the
+            limits again, each ``backtrack`` frames further back (step 6; 0: none).
+            backtrack_strict_weight: the hinge's weight on frames re-planned after a back-up (step 6;
+            None: ``strict_weight``).  backtrack_after_lost: go on backing up after a frame has stayed
+            outside the limits (step 6).  backtrack_limit: the fraction of the strict limits whose crossing
+            backs up (step 6; 1: the limits themselves).
+        robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
+            ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
+        backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
+        screen: draw ``screen`` x the windows and roll out only the kinematic pre-screen's cheapest (step 2;
+            1: no pre-screen).
+        replan: frames of the chosen window applied before planning again (step 5; at most ``horizon``;
+            1 on frames re-planned after a back-up).  replan_margin: frames after the first applied only while
+            the chosen candidate predicted the object within this fraction of the strict limits (step 5;
+            None: always).  widen_margin: steps that start with the object beyond this fraction of the strict
+            limits sample ``backtrack_samples`` x the windows (step 2; None: never).
+        prune_frames, prune_keep: every candidate runs the first ``prune_frames`` frames of its window, then
+            only the ``prune_keep`` fraction (at least ``samples``) with the lowest cost bound goes on (step 3;
+            0 frames: no pruning).
+        grip, grip_gap: the extra closure (rad or m) of finger joints held more than ``grip_gap`` from their
+            targets at a step's start, added to every window's frames (step 3; 0: none).
+        stop_when_lost: end the run at the first frame that stays outside the strict limits (step 6: the clip
+            can no longer pass strict success; the frames after it keep the plan's targets). The cascade's
+            first step (stage ``quick``) sets it; false in ``configs/transfer.yaml``.
+    """
+
+    samples: int
+    horizon: int
+    knots: int
+    noise_base_pos: float
+    noise_base_rot: float
+    noise_joints: float
+    noise_scales: tuple[float, ...]
+    mode: str
+    temperature: float
+    seed: int
+    threads: int
+    kinematic_alternative: bool
+    strict_weight: float = 0.0
+    strict_margin: float = 0.75
+    backtrack: int = 0
+    backtrack_samples: int = 4
+    backtrack_budget: int = 6
+    robust_copies: int = 0
+    robust_top: int = 8
+    robust_seed: int = 1
+    backtrack_copies: bool = False
+    screen: int = 1
+    replan: int = 1
+    replan_margin: float | None = None
+    widen_margin: float | None = None
+    backtrack_retries: int = 0
+    backtrack_strict_weight: float | None = None
+    prune_frames: int = 0
+    prune_keep: float = 0.5
+    backtrack_after_lost: bool = True
+    grip: float = 0.0
+    grip_gap: float = 0.02
+    backtrack_limit: float = 1.0
+    stop_when_lost: bool = False
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`QuasisimError` naming the first bad setting."""
+        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top", "screen", "replan"):
+            v = getattr(self, name)
+            if not _is_int(v) or v < 1:
+                raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
+        for name in ("backtrack", "backtrack_budget", "robust_copies", "backtrack_retries", "prune_frames"):
+            v = getattr(self, name)
+            if not _is_int(v) or v < 0:
+                raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
+        for name in ("seed", "robust_seed"):
+            if not _is_int(getattr(self, name)):
+                raise QuasisimError(f"sampling option '{name}' must be an integer, got {getattr(self, name)!r}")
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "grip",
+                     "grip_gap"):  # fmt: skip
+            v = getattr(self, name)
+            if not (_is_number(v) and v >= 0):
+                raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
+        sc = self.noise_scales
+        if not isinstance(sc, tuple) or not sc or not all(_is_number(s) and s >= 0 for s in sc):
+            raise QuasisimError(f"sampling option 'noise_scales' must be a non-empty tuple of numbers >= 0, got {sc!r}")
+        for name in ("kinematic_alternative", "backtrack_copies", "backtrack_after_lost", "stop_when_lost"):
+            if not isinstance(getattr(self, name), bool):
+                raise QuasisimError(f"sampling option '{name}' must be true or false, got {getattr(self, name)!r}")
+        w = self.backtrack_strict_weight
+        if w is not None and not (_is_number(w) and w >= 0):
+            raise QuasisimError(
+                f"sampling option 'backtrack_strict_weight' must be null or a finite number >= 0, got {w!r}"
+            )
+        for name in ("replan_margin", "widen_margin"):
+            m = getattr(self, name)
+            if m is not None and not (_is_number(m) and m > 0):
+                raise QuasisimError(f"sampling option '{name}' must be null or a finite number > 0, got {m!r}")
+        if not (_is_number(self.backtrack_limit) and 0 < self.backtrack_limit <= 1):
+            raise QuasisimError(
+                f"sampling option 'backtrack_limit' must be a number in (0, 1], got {self.backtrack_limit!r}"
+            )
+        if not (_is_number(self.prune_keep) and 0 < self.prune_keep <= 1):
+            raise QuasisimError(f"sampling option 'prune_keep' must be a number in (0, 1], got {self.prune_keep!r}")
+        if self.mode not in SAMPLING_MODES:
+            raise choice_error("sampling mode", self.mode, SAMPLING_MODES)
+        if not (_is_number(self.temperature) and self.temperature > 0):
+            raise QuasisimError(f"sampling option 'temperature' must be a finite number > 0, got {self.temperature!r}")
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, int | float | np.number) and not isinstance(v, bool) and math.isfinite(float(v))
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of the fit (values: ``configs/transfer.yaml``, ``stage3``).
+
+    Attributes:
+        horizon: frames per window (H).  held_out: fraction of the clip's last frames left out of the fit.
+        variants: noisy rollouts added to the buffer beside the current controls.  capacity: rollouts kept.
+        steps, lr: Adam steps and step size of the constants.  batch: windows per step.
+        residual_steps, residual_lr: the same for the residual networks (0 steps: no residual).
+        rounds: world-model rounds after the first fit (:func:`world_model_rounds`; 0: fit only).
+        seed: window sampling and variant noise.
+    """
+
+    horizon: int
+    held_out: float
+    variants: int
+    capacity: int
+    steps: int
+    lr: float
+    batch: int
+    residual_steps: int
+    residual_lr: float
+    rounds: int
+    seed: int
