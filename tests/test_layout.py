@@ -1,4 +1,4 @@
-"""The package's layers (docs/architecture.md): every import of one quasisim module by another, at the top of a
+"""The package's layers (README, "Layout"): every import of one quasisim module by another, at the top of a
 file, inside a function or under ``TYPE_CHECKING``, goes to a lower or the same layer, and no modules import
 each other in a circle. Read from the source (ast), so it costs nothing."""
 

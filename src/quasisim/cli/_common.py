@@ -68,6 +68,8 @@ def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True
 
 
 _OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
+
+
 def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
     """``text`` as comma-separated positive integers; a one-line error naming ``option`` otherwise."""
     try:

@@ -1,5 +1,4 @@
-"""What comes after the runs: view a result, export runs as a training set, fit a world model on the
-recorded transitions."""
+"""What comes after the runs: view a result, export runs as a training set."""
 
 from __future__ import annotations
 
