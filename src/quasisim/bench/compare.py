@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.batch import CLIP_FILE, method_seconds, seconds_keys
-from quasisim.bench.transfer import stiffest_simulator
+from quasisim.bench.transfer import loss_cell, stiffest_simulator
 from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
 from quasisim.eval.tables import header, publish, robust_cells
@@ -81,7 +81,7 @@ def compare_folders(folders: list[tuple[str, Path]], runs: list[str], out: Path,
     lines += ["|---" * (1 + len(labels) + len(loss_labels)) + "|"]
     for c in shared:
         cells = [_cell(per[x][c]) for x in labels]
-        losses = [f"{per[x][c]['stiffest_loss']:.4f}" if "stiffest_loss" in per[x][c] else "-" for x in loss_labels]
+        losses = [loss_cell(per[x][c]["stiffest_loss"]) if "stiffest_loss" in per[x][c] else "-" for x in loss_labels]
         lines.append(f"| {c} | " + " | ".join(cells + losses) + " |")
     rows = [
         {"clip": c, "folder": x, **{k: v for k, v in per[x][c].items() if k != "seconds"}}

@@ -170,7 +170,7 @@ def _markdown(
     yn = lambda b: "y" if b else "-"  # noqa: E731
     for r in rows:
         s = r["success"]
-        st = f"{r['stiffest_loss']:.4f} ({r['stiffest_start']})" if "stiffest_loss" in r else "-"
+        st = f"{loss_cell(r['stiffest_loss'])} ({r['stiffest_start']})" if "stiffest_loss" in r else "-"
         lines.append(
             f"| {r['clip']} | {r['method']} | {r['R_err_deg']:.1f} | {r['T_err_cm']:.2f} | {r['MPJPE_mm']:.1f} | "
             f"{r['CD_mm']:.1f} | "
@@ -180,16 +180,24 @@ def _markdown(
     return lines
 
 
+def loss_cell(x: float | None) -> str:
+    """A stage-2 loss as a table cell ("-": none finite)."""
+    return "-" if x is None else f"{x:.4f}"
+
+
 def _stiffest_line(rs: list[dict[str, Any]]) -> str:
     """ "; stage 2 in its stiffest simulator: mean loss x (median y), started from: ..." for runs with stage 2."""
     with_2 = [r for r in rs if "stiffest_loss" in r]
     if not with_2:
         return ""
-    loss = [r["stiffest_loss"] for r in with_2]
+    loss = [r["stiffest_loss"] for r in with_2 if r["stiffest_loss"] is not None]  # None: no finite loss
     starts = Counter(r["stiffest_start"] for r in with_2)
+    mean = f"mean loss {np.mean(loss):.4f} (median {np.median(loss):.4f}), " if loss else ""
     return (
-        f"; stage 2 in its stiffest simulator: mean loss {np.mean(loss):.4f} (median {np.median(loss):.4f}), "
-        "started from " + ", ".join(f"{k} {n}" for k, n in starts.most_common())
+        "; stage 2 in its stiffest simulator: "
+        + mean
+        + "started from "
+        + ", ".join(f"{k} {n}" for k, n in starts.most_common())
     )
 
 
