@@ -115,7 +115,7 @@ def _summary(
         succ = " / ".join(f"{100.0 * np.mean([r['success'][k] for r in rs]):.0f}" for k in SUCCESS_KEYS)
         moved = [r.get("object_motion", {}).get("lift_ok") for r in rs]
         lifted = "-" if None in moved else f"{sum(moved)} of {len(rs)}"
-        losses = [r["stiffest_loss"] for r in rs if "stiffest_loss" in r]
+        losses = [r["stiffest_loss"] for r in rs if r.get("stiffest_loss") is not None]
         loss = f"{np.mean(losses):.4f} / {np.median(losses):.4f}" if len(losses) == len(rs) else "-"  # all or none
         better = sum(
             per[x][c]["R_err_deg"] < base[c]["R_err_deg"] and per[x][c]["T_err_cm"] < base[c]["T_err_cm"] for c in clips
