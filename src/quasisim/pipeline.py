@@ -3,7 +3,8 @@
 :func:`run_transfer` reads like the method: kinematic retargeting gives the first trajectory; then the
 run's stages (named in :mod:`quasisim.method.registry`, loaded by
 :func:`~quasisim.method.stage.declared_stages`), each a module of :mod:`quasisim.method.stages`, in order:
-stage 1 transfers the demo through point dynamics in the curriculum's relaxed simulator, stage 2 follows the
+``quick`` (the default method's first step) samples in the target from the retarget and ends the run where
+that passes strict success; stage 1 transfers the demo through point dynamics in the curriculum's relaxed simulator, stage 2 follows the
 contact curriculum from soft to stiff, stage 3 fits the simulator to the target, closed-loop MPC tracks
 the result in the target with the quasi-physical simulator as its model (``mpc``) or the target itself
 (``sample``), and ``select`` keeps the best trajectory seen, judged in the target. Every finished piece is
