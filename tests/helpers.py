@@ -3,13 +3,31 @@
 from __future__ import annotations
 
 import os
-from types import SimpleNamespace
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import ModuleType, SimpleNamespace
 from typing import NoReturn
 
 import numpy as np
 import pytest
 
 UNDER_CI = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
+@contextmanager
+def swapped_modules(mods: dict[str, ModuleType]) -> Iterator[None]:
+    """``sys.modules`` with ``mods`` in it (stand-ins for modules a pickle names), as it was again afterwards."""
+    old = {k: sys.modules.get(k) for k in mods}
+    sys.modules.update(mods)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                del sys.modules[k]
+            else:
+                sys.modules[k] = v
 
 
 def missing_data(reason: str) -> NoReturn:

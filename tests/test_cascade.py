@@ -23,6 +23,7 @@ def test_the_method_follows_from_the_stages_and_a_preset_refuses_other_stages() 
     assert (TransferSpec().checked().method, TransferSpec().checked().stages) == ("cascade", CASCADE)
     assert TransferSpec(stages=("1", "2")).checked().method == "ours"
     assert TransferSpec(method="ours").checked().stages == FULL_STAGES
+    assert TransferSpec(stages=()).checked().stages == ()  # no stages given is not the default stages
     assert TransferSpec(method="sample-target").checked().stages == ("sample",)
     with pytest.raises(QuasisimError, match="method ours"):
         TransferSpec(method="cascade", stages=("1", "2")).checked()

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import pickle
-import sys
 import types
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import scipy.sparse as sp
 import trimesh
 from click.testing import CliRunner
 
+from helpers import swapped_modules
 from quasisim.cli import main
 from quasisim.data import mano
 from quasisim.data.convert_raw import RawOptions, convert_arctic, convert_grab
@@ -83,17 +83,9 @@ def write_model(path: Path, arrays: dict, protocol: int = 2) -> Path:
     """Pickle ``arrays`` as a MANO file (``Ch`` objects under the module name ``chumpy.ch``)."""
     pkg, fake = types.ModuleType("chumpy"), types.ModuleType("chumpy.ch")
     fake.Ch, pkg.ch = Ch, fake
-    old = {k: sys.modules.get(k) for k in ("chumpy", "chumpy.ch")}
-    sys.modules.update({"chumpy": pkg, "chumpy.ch": fake})
-    try:
+    with swapped_modules({"chumpy": pkg, "chumpy.ch": fake}):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps(arrays, protocol=protocol))
-    finally:
-        for k, v in old.items():
-            if v is None:
-                del sys.modules[k]
-            else:
-                sys.modules[k] = v
     return path
 
 

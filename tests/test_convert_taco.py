@@ -10,7 +10,6 @@ import contextlib
 import io
 import pickle
 import re
-import sys
 import types
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -20,6 +19,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from helpers import swapped_modules
 from quasisim.data import mano
 from quasisim.data.convert_taco import TacoOptions, convert_taco, load_pickle
 from quasisim.data.demo import load_demo
@@ -58,16 +58,8 @@ def _torch_modules() -> Iterator[None]:
     mods["torch"].device = _Torch.device
     mods["torch.storage"]._load_from_bytes = _Torch._load_from_bytes
     mods["torch._utils"]._rebuild_tensor_v2 = _Torch._rebuild_tensor_v2
-    old = {k: sys.modules.get(k) for k in mods}
-    sys.modules.update(mods)
-    try:
+    with swapped_modules(mods):
         yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                del sys.modules[k]
-            else:
-                sys.modules[k] = v
 
 
 def _legacy_save(data: np.ndarray, location: str = "cuda:0") -> bytes:

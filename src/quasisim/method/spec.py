@@ -75,7 +75,7 @@ class TransferSpec:
                 f"stages {','.join(self.stages)} given with method {method}, which runs its own "
                 f"({','.join(preset) or 'none'}): use method ours to run the stages given, or leave the stages out"
             )
-        stages = (self.stages or FULL_STAGES) if preset is None else preset
+        stages = (FULL_STAGES if self.stages is None else self.stages) if preset is None else preset
         bad = [s for s in stages if s not in registry.STAGES]
         if bad:
             raise choice_error("stage", bad[0], list(registry.STAGES))
