@@ -1,0 +1,134 @@
+"""`quasisim policy`: learned tracking policies (PPO from stable-baselines3; the optional extra rl)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import click
+
+from quasisim.cli._common import _OVERWRITE, _RANGES, TARGET_CHOICE, _friendly, _parse_sets, _setup_runtime, main
+from quasisim.errors import QuasisimError
+
+
+def _need_rl() -> None:
+    """A one-line error where the optional extra rl (stable-baselines3, PyTorch) is not installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("stable_baselines3") is None:
+        raise QuasisimError("quasisim policy needs the optional extra rl: pip install -e '.[rl]' (docs/policies.md)")
+
+
+@main.group()
+def policy() -> None:
+    """Learned tracking policies on a clip: train (PPO), evaluate like any result, plot learning curves."""
+
+
+def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
+    """``--set env.KEY=V`` / ``--set ppo.KEY=V`` -> (env overrides, PPO overrides)."""
+    parsed = _parse_sets(sets)
+    groups: dict[str, dict] = {"env": {}, "ppo": {}}
+    for k, v in parsed.items():
+        head, _, rest = k.partition(".")
+        if head not in groups or not rest:
+            raise QuasisimError(f"--set {k}: expected env.KEY (configs/track_env.yaml) or ppo.KEY (configs/ppo.yaml)")
+        groups[head][rest] = v
+    return groups["env"], groups["ppo"]
+
+
+@policy.command("train")
+@click.argument("clip", type=click.Path(path_type=Path))
+@click.option("--algo", type=click.Choice(["ppo"]), default="ppo", show_default=True, help="RL algorithm.")
+@click.option(
+    "--residual",
+    "residual",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Our result (run folder or controls.npz): train a residual on its PD targets (ours+residual). "
+    "Without it: dgrasp-tracking, PPO from scratch on the measured pose, the kinematic retarget observed.",
+)
+@click.option("--hand", default="shadow", show_default=True, help="Robot hand without --residual.")
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--steps", type=click.IntRange(1), default=200_000, show_default=True, help="Env steps in all.")
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Training folder.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    help="Override a setting: env.KEY=V (configs/track_env.yaml), ppo.KEY=V (configs/ppo.yaml).",
+)
+@click.option("--resume", is_flag=True, help="Continue the training in OUT from its last checkpoint.")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="A progress bar.")
+@_OVERWRITE
+@_friendly
+def policy_train(
+    clip: Path, algo: str, residual: Path | None, hand: str, target: str, steps: int, out: Path, seed: int,
+    sets: tuple[str, ...], resume: bool, progress: bool, overwrite: bool,
+) -> None:  # fmt: skip
+    """Train a tracking policy for CLIP in OUT (setup.json, checkpoints, logs/, policy.zip, training.json)."""
+    _need_rl()
+    _setup_runtime()
+    from quasisim.files import check_out_dir, run_lock
+    from quasisim.policy.train import SETUP, TrainSetup, prepare, train
+
+    check_out_dir(out)
+    with run_lock(out, f"policy train {clip}"):
+        if resume:
+            setup = TrainSetup.read(out)
+            if Path(setup.clip) != clip.resolve():
+                raise QuasisimError(f"--resume: {out} trains {setup.clip}, not {clip.resolve()}")
+        else:
+            if (out / SETUP).exists() and not overwrite:
+                raise QuasisimError(f"{out} holds a training already: --resume to continue it, --overwrite to restart")
+            for name in ("logs", "checkpoint.zip", "checkpoint.json", "policy.zip", "training.json"):
+                p = out / name
+                shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+            env_o, ppo_o = _split_sets(sets)
+            setup = prepare(clip, out, residual, hand, target, seed, env_o, ppo_o)
+        click.echo(f"{setup.method} on {Path(setup.clip).stem} in {setup.target}: up to {steps} env steps")
+        info = train(out, steps, resume=resume, progress=progress)
+    click.echo(f"wrote {out / 'policy.zip'}: {info['env_steps']} env steps in {info['wall_s']:.0f} s")
+
+
+@policy.command("evaluate")
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option(
+    "--robust",
+    type=click.IntRange(0, 1000),
+    default=8,
+    show_default=True,
+    help="Perturbed worlds (the seeded worlds of robust success; 0: none).",
+)
+@click.option("--render/--no-render", default=False, show_default=True, help="Render the report's video.")
+@_RANGES
+@_OVERWRITE
+@_friendly
+def policy_evaluate(folder: Path, out: Path, robust: int, render: bool, ranges: str, overwrite: bool) -> None:
+    """Replay the policy trained in FOLDER in its target: metrics.json (nominal and robust), report.html."""
+    _need_rl()
+    _setup_runtime()
+    from quasisim.cli._common import _outputs_free, _ranges, _summary
+    from quasisim.eval.evaluate import OUTPUTS
+    from quasisim.files import MANIFEST
+    from quasisim.policy.evaluate import evaluate_policy
+
+    names = _ranges(ranges)
+    if len(names) != 1:
+        raise QuasisimError("quasisim policy evaluate: one perturbation set per run (--ranges default or wide)")
+    _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
+    ev = evaluate_policy(folder, out, robust, names[0], render=render, progress=True)
+    label = ev.metrics["policy"]["method"]
+    _summary(f"{ev.scene.obj.name}: {label}", {label: ev.metrics}, out / "report.html")
+
+
+@policy.command("curves")
+@click.argument("folders", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Figure (.png or .svg).")
+@_friendly
+def policy_curves(folders: tuple[Path, ...], out: Path) -> None:
+    """The learning curves of training FOLDERS in one figure."""
+    from quasisim.policy.curves import plot_curves
+
+    click.echo(f"wrote {plot_curves(list(folders), out)}")

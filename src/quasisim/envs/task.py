@@ -1,0 +1,175 @@
+"""The tracking task, apart from any RL library: what a policy observes, how its action becomes PD targets,
+the DGrasp-style reward and the termination. The Gymnasium environment (:mod:`quasisim.envs.track`) and a
+trained policy replayed by the evaluation (:mod:`quasisim.policy.evaluate`) both use this one class, so a
+policy sees in evaluation exactly what it saw in training.
+
+Frames: the world is at frame ``t`` (observation ``obs``, :data:`quasisim.targets.base.Observation`); the
+action chooses the PD targets of frame ``t + 1``; the reward and termination judge frame ``t + 1``.
+
+* **Action** ``a`` (D,) in [-1, 1]: residual, ``q*_{t+1} = q^ref_{t+1} + s_res * a``; otherwise (DGrasp's
+  form) ``q*_{t+1} = q_t + s_delta * a`` from the measured pose ``q_t``; clipped to the joint limits.
+* **Reward** ``r = sum_k w_k exp(-e_k / s_k) - c |a|^2 / D`` with ``e_pos`` the object's position error (cm),
+  ``e_rot`` its rotation error (deg) against the demo, ``e_kp`` the mean distance of the robot's keypoints to
+  the demo's (cm), ``e_contact`` the mean distance (cm) of the fingertips that touch the object in the demo to
+  the demo's fingertips, both in the object's frame.
+* **Termination**: the first frame outside the strict limits (2 cm, 30 deg; ``terminate: strict``), a blow-up
+  (object faster than :data:`~quasisim.targets.base.MAX_OBJECT_SPEED`, or not finite), the clip's last frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from quasisim.data.demo import Demo
+from quasisim.envs.config import DofScale, TrackEnvConfig
+from quasisim.keypoints import FINGERTIPS, N_KEYPOINTS
+from quasisim.limits import STRICT_CM, STRICT_DEG
+from quasisim.targets.base import MAX_OBJECT_SPEED, Observation
+from quasisim.targets.scene import Scene
+
+
+def dof_scale(scene: Scene, s: DofScale) -> np.ndarray:
+    """(D,) the action scale of every dof of ``scene``'s hands: 3 base slides, 3 base hinges, the joints."""
+    return np.concatenate([np.r_[[s.base_pos] * 3, [s.base_rot] * 3, [s.joints] * (sl.stop - sl.start - 6)]
+                           for sl in scene.dof_slices])  # fmt: skip
+
+
+def _rot(quat: np.ndarray) -> Rotation:
+    """w x y z -> scipy (x y z w)."""
+    q = np.asarray(quat, np.float64)
+    return Rotation.from_quat(np.concatenate([q[..., 1:], q[..., :1]], axis=-1))
+
+
+def demo_contacts(demo: Demo, scene: Scene, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The demo's fingertip contacts: ``tips`` (F,) the robot keypoints that stand for human fingertips,
+    ``touch`` (T, F) whether the human fingertip is within ``radius`` m of the object's surface, ``local``
+    (T, F, 3) the human fingertip in the object's frame (m)."""
+    kp = scene.kp_human
+    tips = np.flatnonzero(np.isin(kp % N_KEYPOINTS, FINGERTIPS))
+    human = demo.human_joints[:, kp[tips]]  # (T, F, 3)
+    R = _rot(demo.object_quat).as_matrix()  # (T, 3, 3)
+    local = np.einsum("tji,tfj->tfi", R, human - demo.object_pos[:, None])
+    mesh = scene.obj.to_trimesh()
+    _, dist, _ = mesh.nearest.on_surface(local.reshape(-1, 3))
+    inside = mesh.contains(local.reshape(-1, 3))
+    touch = ((dist < radius) | inside).reshape(local.shape[:2])
+    return tips, touch, local
+
+
+@dataclass(frozen=True, eq=False)
+class TrackTask:
+    """One clip's tracking task: the demo, its nominal scene, the reference PD targets (T, D), the settings.
+
+    Built once per environment (or evaluation); its methods are pure functions of their arguments."""
+
+    demo: Demo
+    scene: Scene
+    reference: np.ndarray
+    cfg: TrackEnvConfig
+    residual: bool
+    # derived in __post_init__: the action scale (D,), the joint bounds, the metric keypoints (Km,) and the demo's
+    # keypoints for them (T, Km, 3), the fingertip contacts (demo_contacts), the demo object's rotations
+    scale: np.ndarray = field(init=False, repr=False)
+    bounds: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
+    metric: np.ndarray = field(init=False, repr=False)
+    human_kp: np.ndarray = field(init=False, repr=False)
+    tips: np.ndarray = field(init=False, repr=False)
+    touch: np.ndarray = field(init=False, repr=False)
+    tips_local: np.ndarray = field(init=False, repr=False)
+    demo_rot: Rotation = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        ref = np.asarray(self.reference, np.float64)
+        if ref.shape != (self.demo.n_frames, self.scene.n_dof):
+            raise ValueError(f"reference: expected ({self.demo.n_frames}, {self.scene.n_dof}), got {ref.shape}")
+        set_ = object.__setattr__
+        set_(self, "reference", ref)
+        set_(self, "scale", dof_scale(self.scene, self.cfg.residual_scale if self.residual else self.cfg.delta_scale))
+        set_(self, "bounds", self.scene.joint_bounds())
+        set_(self, "metric", np.flatnonzero(self.scene.kp_metric))
+        set_(self, "human_kp", self.demo.human_joints[:, self.scene.kp_human[self.metric]])  # (T, Km, 3)
+        tips, touch, local = demo_contacts(self.demo, self.scene, self.cfg.contact_radius)
+        set_(self, "tips", tips)
+        set_(self, "touch", touch)
+        set_(self, "tips_local", local)
+        set_(self, "demo_rot", _rot(self.demo.object_quat))
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.reference)
+
+    @property
+    def observation_size(self) -> int:
+        D, H, Km = self.scene.n_dof, self.cfg.horizon, len(self.metric)
+        return 1 + 2 * D + 12 + 3 * Km + H * (D + 3)
+
+    def observation(self, t: int, obs: Observation) -> np.ndarray:
+        """(observation_size,) float32: the clip's phase; the hands' pose against the reference and their
+        velocity (in action units per frame); the object's position (cm) and rotation (deg) errors against
+        the demo, its linear and angular velocity per frame, all in units of the strict limits; the robot
+        keypoints against the demo's (in 2 cm); then for each of the next ``horizon`` frames the reference's
+        change (action units) and the demo object's path from the object now (in 2 cm)."""
+        T, ref, s, fps = self.n_frames, self.reference, self.scale, self.scene.fps
+        future = np.minimum(np.arange(t + 1, t + 1 + self.cfg.horizon), T - 1)
+        pos, quat = np.asarray(obs["obj_pos"]), np.asarray(obs["obj_quat"])
+        rot_err = (self.demo_rot[t].inv() * _rot(quat)).as_rotvec()
+        kp = np.asarray(obs["keypoints"])[self.metric]
+        parts = [
+            [t / max(T - 1, 1)],
+            (obs["qpos"] - ref[t]) / s,
+            obs["qvel"] / fps / s,
+            100 * (pos - self.demo.object_pos[t]) / STRICT_CM,
+            np.degrees(rot_err) / STRICT_DEG,
+            100 * np.asarray(obs["obj_vel"]) / fps / STRICT_CM,
+            np.degrees(np.asarray(obs["obj_angvel"])) / fps / STRICT_DEG,
+            (100 * (kp - self.human_kp[t]) / STRICT_CM).ravel(),
+            ((ref[future] - ref[t]) / s).ravel(),
+            (100 * (self.demo.object_pos[future] - pos) / STRICT_CM).ravel(),
+        ]
+        return np.clip(np.concatenate([np.ravel(p) for p in parts]), -100.0, 100.0).astype(np.float32)
+
+    def targets(self, t: int, action: np.ndarray, obs: Observation) -> np.ndarray:
+        """(D,) the PD targets of frame ``t + 1`` for ``action`` (D,) in [-1, 1] (clipped): the action moves
+        them no further out of the joint limits than the pose it starts from (the reference or the measured
+        pose, which may lie a hair outside), so a zero residual is the reference exactly."""
+        a = np.clip(np.asarray(action, np.float64), -1.0, 1.0)
+        base = self.reference[t + 1] if self.residual else np.asarray(obs["qpos"], np.float64)
+        lo, hi = self.bounds
+        return np.clip(base + self.scale * a, np.minimum(lo, base), np.maximum(hi, base))
+
+    def errors(self, t: int, obs: Observation) -> dict[str, float]:
+        """Frame ``t``'s errors against the demo: ``object_pos`` (cm), ``object_rot`` (deg), ``keypoints``
+        (mean, cm), ``contact`` (mean over the demo's touching fingertips, cm; 0 where none touch)."""
+        pos, R = np.asarray(obs["obj_pos"]), _rot(obs["obj_quat"])
+        kp = np.asarray(obs["keypoints"])
+        touch = self.touch[t]
+        contact = 0.0
+        if touch.any():
+            local = R.inv().apply(kp[self.tips[touch]] - pos)
+            contact = float(100 * np.linalg.norm(local - self.tips_local[t, touch], axis=-1).mean())
+        return {
+            "object_pos": float(100 * np.linalg.norm(pos - self.demo.object_pos[t])),
+            "object_rot": float(np.degrees((self.demo_rot[t].inv() * R).magnitude())),
+            "keypoints": float(100 * np.linalg.norm(kp[self.metric] - self.human_kp[t], axis=-1).mean()),
+            "contact": contact,
+        }
+
+    def reward(self, t: int, obs: Observation, action: np.ndarray) -> tuple[float, dict[str, float]]:
+        """The reward of reaching frame ``t`` (observed ``obs``) with ``action``, and the errors it came from."""
+        e = self.errors(t, obs)
+        rw = self.cfg.reward
+        r = sum(term.weight * np.exp(-e[k] / term.scale) for k, term in rw.terms().items())
+        r -= rw.action_cost * float(np.mean(np.square(action)))
+        return float(r), e
+
+    def unstable(self, obs: Observation) -> bool:
+        """The simulation blew up: a state that is not finite or an object faster than MAX_OBJECT_SPEED."""
+        v = np.asarray(obs["obj_vel"])
+        finite = all(np.isfinite(np.asarray(obs[k])).all() for k in ("qpos", "obj_pos", "obj_quat"))
+        return not finite or float(np.linalg.norm(v)) > MAX_OBJECT_SPEED
+
+    def within_strict(self, errors: dict[str, float]) -> bool:
+        return errors["object_pos"] <= STRICT_CM and errors["object_rot"] <= STRICT_DEG

@@ -1,0 +1,149 @@
+"""``quasisim/Track-v0``: a Gymnasium environment that tracks one demonstration in a target simulator.
+
+One episode is one clip: the hands start at the reference's first PD targets with its initial velocity, the
+object at the scene's initial pose (as every replay of :mod:`quasisim.eval.robust` starts); each step is one
+control frame (:meth:`~quasisim.targets.base.Target.advance`). What the policy observes, how its action
+becomes PD targets, the reward and the termination are :class:`~quasisim.envs.task.TrackTask`'s. On reset,
+with ``randomize``, the world is a perturbed copy of the scene (:func:`~quasisim.targets.perturb.perturbed_scene`,
+the ranges of ``configs/robust.yaml``) seeded from ``(world_seed, a draw of the env's generator)``: seeded
+resets give the same worlds, and never the evaluation's (seed 0).
+
+    import gymnasium as gym, quasisim.envs
+    env = gym.make("quasisim/Track-v0", clip="grab_s1_cup_lift.npz", reference="out/cup/controls.npz",
+                   residual=True)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from quasisim.data.controls import Controls, load_controls
+from quasisim.data.demo import Demo, load_demo
+from quasisim.envs.config import TrackEnvConfig
+from quasisim.envs.task import TrackTask
+from quasisim.errors import InputError
+from quasisim.targets import TARGETS, Target, make_target
+from quasisim.targets.scene import Scene
+
+
+def load_reference(path: str | Path) -> tuple[Controls, Path]:
+    """The controls of a result: ``path`` is a ``controls.npz`` or a run folder holding one."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "controls.npz"
+        if not p.is_file():
+            raise InputError(path, None, "a run folder with controls.npz, or a controls .npz file", "no controls.npz")
+    return load_controls(p), p
+
+
+def task_for(
+    demo: Demo, controls: Controls, cfg: TrackEnvConfig, residual: bool, controls_path: Path | None = None
+) -> TrackTask:
+    """The tracking task of ``demo`` with ``controls`` as the reference (their hands, base frames, targets)."""
+    from quasisim.eval.evaluate import check_controls, hands_of
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    hands = hands_of(controls, controls_path)
+    check_controls(demo, controls, hands, controls_path)
+    scene = scene_for(demo, place_hands(hands, controls.base_rots))
+    return TrackTask(demo, scene, controls.q_targets, cfg, residual)
+
+
+def world_config(cfg: TrackEnvConfig) -> Any:
+    """The perturbation ranges of the training worlds: ``cfg.ranges`` with the training seed."""
+    from quasisim.eval.robust import replays
+
+    return dataclasses.replace(replays(None, cfg.ranges), seed=cfg.world_seed)
+
+
+class TrackEnv(gym.Env):
+    """Track a clip (see the module docstring).
+
+    Args:
+        clip: the demo (.npz, docs/demo_format.md).
+        reference: our result to track (run folder or ``controls.npz``); its hands and base frames are the
+            robot's. Required: ``quasisim policy train`` writes the kinematic retarget as the reference when
+            it is given no result.
+        residual: actions add to the reference's PD targets (else they move the measured pose, DGrasp's form).
+        target: the simulator (``mujoco`` or ``pybullet``).
+        config: a :class:`TrackEnvConfig` (default ``configs/track_env.yaml`` with ``overrides``).
+
+    ``reset(options={"world": i})`` uses training world ``i``; ``options={"world": None}`` the nominal scene.
+    Each step's ``info`` holds the frame, the errors against the demo (:meth:`TrackTask.errors`) and, at the
+    episode's end, ``tracked`` (the clip ended within the strict limits) and ``frames`` (frames reached).
+    """
+
+    metadata = {"render_modes": []}  # noqa: RUF012  (Gymnasium's class attribute)
+
+    def __init__(
+        self, clip: str | Path, reference: str | Path, residual: bool = False, target: str = "mujoco",
+        config: TrackEnvConfig | None = None, overrides: dict[str, Any] | None = None,
+    ) -> None:  # fmt: skip
+        if target not in TARGETS:
+            from quasisim.errors import choice_error
+
+            raise choice_error("target", target, tuple(TARGETS))
+        cfg = config or TrackEnvConfig.from_yaml(None, overrides)
+        controls, path = load_reference(reference)
+        self.task = task_for(load_demo(clip), controls, cfg, residual, path)
+        self.target = target
+        self._worlds = world_config(cfg)
+        D = self.task.scene.n_dof
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (D,), np.float32)
+        self.observation_space = gym.spaces.Box(-100.0, 100.0, (self.task.observation_size,), np.float32)
+        self._world: Target | None = None
+        self._t, self._obs, self._prev, self._ok = 0, None, None, True
+
+    def world_scene(self, i: int | None) -> Scene:
+        """Training world ``i`` (None: the nominal scene)."""
+        from quasisim.targets.perturb import perturbed_scene
+
+        return self.task.scene if i is None else perturbed_scene(self.task.scene, self._worlds, i)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        options = options or {}
+        if "world" in options:
+            i = options["world"]
+        else:
+            i = int(self.np_random.integers(2**31)) if self.task.cfg.randomize else None
+        if self._world is not None:
+            self._world.close()
+        self._world = make_target(self.target, self.world_scene(i))
+        q = self.task.reference
+        self._world.reset(q[0], (q[1] - q[0]) * self.task.scene.fps)
+        self._t, self._prev, self._ok = 0, q[0], True
+        self._obs = self._world.observe()
+        return self.task.observation(0, self._obs), {"world": -1 if i is None else i}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._world is None or self._obs is None:
+            raise RuntimeError("quasisim/Track-v0: call reset() before step()")
+        task, t = self.task, self._t
+        q = task.targets(t, action, self._obs)
+        self._world.advance(self._prev, q)
+        self._t, self._prev = t + 1, q
+        self._obs = obs = self._world.observe()
+        if task.unstable(obs):
+            info = {"frame": t + 1, "unstable": True, "tracked": False, "frames": t + 1}
+            return np.zeros(self.observation_space.shape, np.float32), 0.0, True, False, info
+        r, errors = task.reward(t + 1, obs, np.clip(action, -1, 1))
+        ok = task.within_strict(errors)
+        self._ok = self._ok and ok
+        end = t + 1 == task.n_frames - 1
+        done = end or (not ok and task.cfg.terminate == "strict")
+        info: dict[str, Any] = {"frame": t + 1, **errors}
+        if done:
+            info |= {"tracked": end and self._ok, "frames": t + 1}
+        return task.observation(t + 1, obs), r, done, False, info
+
+    def close(self) -> None:
+        if self._world is not None:
+            self._world.close()
+            self._world = None

@@ -1,0 +1,103 @@
+"""Judge a trained policy like every other result: replayed closed loop in the target, the same metrics, and
+robust success in the same seeded perturbed worlds (:mod:`quasisim.eval.robust`).
+
+The policy acts through :class:`LearnedPolicy`, the closed-loop controller protocol of robust success
+(:class:`quasisim.eval.robust.Policy`): it observes each frame of the world, never the world's parameters,
+and chooses the next PD targets with the policy's mean action (deterministic).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.envs.task import TrackTask
+from quasisim.errors import QuasisimError
+from quasisim.policy.train import POLICY, REFERENCE, TrainSetup
+
+
+class LearnedPolicy:
+    """A trained policy as a closed-loop controller of :mod:`quasisim.eval.robust` (one replay)."""
+
+    def __init__(self, task: TrackTask, model: Any) -> None:
+        self.task, self.model = task, model
+        self.applied: list[np.ndarray] = []
+        self.seconds = 0.0
+
+    def start(self, obs: dict[str, np.ndarray]) -> None:
+        self.applied = [self.task.reference[0].copy()]
+
+    def act(self, t: int, obs: dict[str, np.ndarray]) -> np.ndarray:
+        t0 = time.perf_counter()
+        a, _ = self.model.predict(self.task.observation(t, obs), deterministic=True)
+        q = self.task.targets(t, a, obs)
+        self.seconds += time.perf_counter() - t0
+        self.applied.append(q)
+        return q
+
+    def cost(self) -> dict[str, float]:
+        return {"policy_seconds": self.seconds, "steps": float(len(self.applied) - 1)}
+
+    def close(self) -> None:
+        return None
+
+
+def load_trained(folder: Path) -> tuple[TrainSetup, TrackTask, Any]:
+    """The setup, the task and the final model of training folder ``folder``."""
+    import torch
+    from stable_baselines3 import PPO
+
+    from quasisim.data.demo import load_demo
+    from quasisim.envs.config import TrackEnvConfig
+    from quasisim.envs.track import load_reference, task_for
+
+    setup = TrainSetup.read(folder)
+    if not (folder / POLICY).is_file():
+        raise QuasisimError(f"{folder}: no {POLICY} (training has not finished: quasisim policy train ... --resume)")
+    torch.set_num_threads(1)
+    controls, path = load_reference(folder / REFERENCE)
+    cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
+    task = task_for(load_demo(setup.clip), controls, cfg, setup.residual, path)
+    return setup, task, PPO.load(folder / POLICY, device="cpu")
+
+
+def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "default", render: bool = False,
+                    progress: bool = False) -> Any:  # fmt: skip
+    """Replay the policy of training folder ``folder`` in its target, nominal and in ``robust`` perturbed worlds
+    of ``ranges``; with ``out`` write the outputs of ``quasisim evaluate`` there (metrics.json holds the
+    policy's training cost under ``policy``). Returns the :class:`~quasisim.eval.evaluate.Evaluation`."""
+    import json
+
+    from quasisim.data.controls import Controls
+    from quasisim.eval.evaluate import Evaluation, mark_stability, scene_surface, write_outputs
+    from quasisim.eval.metrics import evaluate_rollout
+    from quasisim.eval.robust import replay, replays, robust_success
+    from quasisim.files import output_set
+    from quasisim.targets import make_target
+
+    setup, task, model = load_trained(folder)
+    demo, scene = task.demo, task.scene
+    ctl = LearnedPolicy(task, model)
+    with make_target(setup.target, scene) as world:
+        rollout = replay(world, task.reference, ctl)
+    metrics, pf = evaluate_rollout(demo, rollout, scene_surface(scene, rollout.qpos))
+    metrics = mark_stability(metrics, rollout.instability, f"{demo.name} in {setup.target}")
+    cfg = replays(robust, ranges)
+    if cfg.n:
+        metrics[cfg.closed_loop_key] = robust_success(demo, scene, task.reference, setup.target, cfg,
+                                           policy=lambda: LearnedPolicy(task, model))  # fmt: skip
+    training = folder / "training.json"
+    metrics["policy"] = {"method": setup.method, "algo": setup.algo, "closed_loop": True, "folder": str(folder),
+                         "training": json.loads(training.read_text()) if training.is_file() else {}}  # fmt: skip
+    ev = Evaluation(metrics, pf, rollout, scene)
+    if out is not None:
+        ref = Controls(hand="", demo=demo.name, method=setup.method, fps=demo.fps, base_rots=scene.base_rots,
+                       q_targets=np.asarray(ctl.applied), joint_names=scene.hands[0].joint_names)  # fmt: skip
+        info = {"policy": f"{setup.method} ({setup.algo}), {metrics['policy']['training'].get('env_steps', '?')} "
+                          f"env steps; reference: {setup.reference_source}"}  # fmt: skip
+        with output_set(out) as stage:
+            write_outputs(ev, demo, ref, setup.target, stage, render, None, info, None, progress)
+    return ev

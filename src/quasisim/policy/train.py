@@ -1,0 +1,197 @@
+"""Train a tracking policy with PPO (stable-baselines3) in ``quasisim/Track-v0``, resumable.
+
+A training folder ``OUT`` holds:
+
+* ``setup.json``: what is trained (:class:`TrainSetup`: the clip, the method, the target, the settings);
+* ``reference.npz``: the reference PD targets: our result (``ours+residual``) or the kinematic retarget
+  (``dgrasp-tracking``, which acts on the measured pose and sees the reference only in its observation);
+* ``checkpoint.zip`` + ``checkpoint.json``: the model and the steps and seconds so far, written atomically
+  every ``checkpoint_every`` env steps and at the end; ``--resume`` continues from them;
+* ``logs/<segment>/``: ``progress.csv`` and TensorBoard events, one segment per start or resume
+  (:mod:`quasisim.policy.curves` reads them);
+* ``policy.zip`` + ``training.json``: the final model and its cost (env steps, episodes, wall time).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quasisim.errors import InputError, QuasisimError
+from quasisim.files import atomic_path, save_json_atomic
+
+METHODS = {"dgrasp-tracking": False, "ours+residual": True}  # method -> residual actions
+SETUP, REFERENCE, CHECKPOINT, POLICY = "setup.json", "reference.npz", "checkpoint.zip", "policy.zip"
+
+
+@dataclass(frozen=True)
+class TrainSetup:
+    """What a training folder trains (``setup.json``)."""
+
+    clip: str
+    method: str
+    target: str
+    reference_source: str
+    seed: int = 0
+    algo: str = "ppo"
+    env_overrides: dict[str, Any] = field(default_factory=dict)
+    ppo_overrides: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def residual(self) -> bool:
+        return METHODS[self.method]
+
+    @classmethod
+    def read(cls, out: Path) -> TrainSetup:
+        p = out / SETUP
+        if not p.is_file():
+            raise InputError(out, None, f"a training folder of quasisim policy train (with {SETUP})", f"no {SETUP}")
+        try:
+            data = json.loads(p.read_text())
+            return cls(**data)
+        except (json.JSONDecodeError, TypeError) as e:
+            raise InputError(p, None, "the setup written by quasisim policy train", str(e)) from None
+
+
+def prepare(
+    clip: Path, out: Path, residual_run: Path | None, hand: str, target: str, seed: int,
+    env_overrides: dict[str, Any], ppo_overrides: dict[str, Any],
+) -> TrainSetup:  # fmt: skip
+    """Write ``setup.json`` and ``reference.npz`` into ``out``: our result's controls (``residual_run``, a run
+    folder or controls.npz) or, without one, the kinematic retarget of ``clip`` to ``hand``. The settings are
+    validated here, before any process starts."""
+    from quasisim.data.demo import load_demo
+    from quasisim.envs.config import TrackEnvConfig
+    from quasisim.envs.track import load_reference
+    from quasisim.eval.evaluate import check_controls, hands_of
+    from quasisim.policy.config import PPOConfig
+
+    TrackEnvConfig.from_yaml(None, env_overrides)
+    PPOConfig.from_yaml(None, ppo_overrides)
+    demo = load_demo(clip)
+    if residual_run is not None:
+        controls, path = load_reference(residual_run)
+        check_controls(demo, controls, hands_of(controls, path), path)
+        method, source = "ours+residual", str(Path(residual_run).resolve())
+    else:
+        from quasisim.method.retarget import kinematic_controls
+        from quasisim.targets.build import demo_hands
+
+        controls = kinematic_controls(demo_hands(hand, demo.sides), demo, hand)
+        method, source = "dgrasp-tracking", f"kinematic retarget to {hand}"
+    controls.save(out / REFERENCE)
+    setup = TrainSetup(str(Path(clip).resolve()), method, target, source, seed, "ppo", env_overrides, ppo_overrides)
+    save_json_atomic(out / SETUP, asdict(setup))
+    return setup
+
+
+def make_env(out: Path, setup: TrainSetup) -> Any:
+    """A function making one environment of the training (for stable-baselines3's vectorised envs)."""
+
+    def thunk() -> Any:
+        import gymnasium as gym
+
+        import quasisim.envs
+
+        return gym.make(quasisim.envs.TRACK_ID, clip=setup.clip, reference=out / REFERENCE,
+                        residual=setup.residual, target=setup.target, overrides=setup.env_overrides)  # fmt: skip
+
+    return thunk
+
+
+def _callbacks(out: Path, every: int, wall0: float) -> list[Any]:
+    """Checkpoints every ``every`` env steps (atomic) and the tracked fraction of the episodes in the logs."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Tracked(BaseCallback):
+        """Logs ``rollout/tracked``: the share of the episodes ended in the last rollout that reached the
+        clip's end within the strict limits, and ``rollout/frames``: the share of the clip they reached."""
+
+        def _on_rollout_start(self) -> None:
+            self.ended: list[tuple[bool, float]] = []
+
+        def _on_step(self) -> bool:
+            for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True):
+                if done and "frames" in info:
+                    self.ended.append((bool(info["tracked"]), float(info["frames"])))
+            return True
+
+        def _on_rollout_end(self) -> None:
+            if self.ended:
+                self.logger.record("rollout/tracked", float(np.mean([e[0] for e in self.ended])))
+                self.logger.record("rollout/frames", float(np.mean([e[1] for e in self.ended])))
+
+    class Checkpoint(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.last = 0
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps - self.last >= every:
+                self.last = self.num_timesteps
+                save_checkpoint(self.model, out, wall0)
+            return True
+
+    return [Tracked(), Checkpoint()]
+
+
+def save_checkpoint(model: Any, out: Path, wall0: float) -> None:
+    """``checkpoint.zip`` and ``checkpoint.json`` (steps, wall seconds so far), each replaced atomically."""
+    with atomic_path(out / CHECKPOINT) as tmp:
+        model.save(tmp)
+    save_json_atomic(out / "checkpoint.json", {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0})
+
+
+def _vec_env(out: Path, setup: TrainSetup, n: int) -> Any:
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
+
+    fns = [make_env(out, setup) for _ in range(n)]
+    return VecMonitor(SubprocVecEnv(fns, start_method="forkserver") if n > 1 else DummyVecEnv(fns))
+
+
+def train(out: Path, steps: int, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Train (or, with ``resume``, continue) the policy of training folder ``out`` up to ``steps`` env steps;
+    returns ``training.json``'s content."""
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import configure
+
+    from quasisim.policy.config import PPOConfig
+
+    setup = TrainSetup.read(out)
+    cfg = PPOConfig.from_yaml(None, setup.ppo_overrides)
+    torch.set_num_threads(max(1, cfg.n_envs))
+    ckpt = out / CHECKPOINT
+    done_s = 0.0
+    if resume and ckpt.is_file():
+        done_s = float(json.loads((out / "checkpoint.json").read_text())["wall_s"])
+    elif resume:
+        raise QuasisimError(f"{out}: nothing to resume (no {CHECKPOINT}); run without --resume")
+    venv = _vec_env(out, setup, cfg.n_envs)
+    try:
+        if resume:
+            model = PPO.load(ckpt, env=venv, device="cpu")
+        else:
+            model = PPO("MlpPolicy", venv, seed=setup.seed, device="cpu", verbose=0, **cfg.ppo_kwargs(setup.residual))
+        logs = out / "logs"
+        segment = logs / f"{len(list(logs.glob('*'))) if logs.is_dir() else 0:03d}"
+        model.set_logger(configure(str(segment), ["csv", "tensorboard"]))
+        wall0 = time.time() - done_s
+        remaining = steps - model.num_timesteps
+        if remaining > 0:
+            model.learn(remaining, callback=_callbacks(out, cfg.checkpoint_every, wall0), reset_num_timesteps=False,
+                        progress_bar=progress)  # fmt: skip
+        save_checkpoint(model, out, wall0)
+        with atomic_path(out / POLICY) as tmp:
+            model.save(tmp)
+        info = {"method": setup.method, "algo": setup.algo, "env_steps": int(model.num_timesteps),
+                "wall_s": time.time() - wall0, "n_envs": cfg.n_envs}  # fmt: skip
+        save_json_atomic(out / "training.json", info)
+        return info
+    finally:
+        venv.close()

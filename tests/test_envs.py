@@ -1,0 +1,144 @@
+"""The tracking environment ``quasisim/Track-v0`` (:mod:`quasisim.envs`).
+
+Gymnasium's own checker passes; a residual episode of zero actions in the nominal world is exactly the
+reference's MuJoCo replay (:meth:`Target.rollout`); seeded resets repeat the same worlds and transitions, also in
+a vector of processes; the reward is its closed form at zero error; leaving the strict limits ends an episode;
+bad input names the file and the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import quasisim.envs
+from helpers import cube_example
+from quasisim.envs.config import TrackEnvConfig
+from quasisim.envs.task import TrackTask
+from quasisim.errors import InputError
+from quasisim.targets import make_target
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """The bundled example (20 frames), its kinematic retarget (``kinematic.npz`` beside it) and their scene."""
+    return cube_example(tmp_path_factory.mktemp("envs"))
+
+
+def _env(clip, **kw) -> gym.Env:
+    path = clip[0]
+    return gym.make(quasisim.envs.TRACK_ID, clip=path, reference=path.parent / "kinematic.npz", **kw)
+
+
+def _episode(env, actions, **reset) -> tuple[list, list, dict]:
+    obs, _ = env.reset(**reset)
+    seen, rewards, info = [obs], [], {}
+    for a in actions:
+        obs, r, term, trunc, info = env.step(a)
+        seen.append(obs)
+        rewards.append(r)
+        if term or trunc:
+            break
+    return seen, rewards, info
+
+
+@pytest.mark.parametrize("residual", [True, False])
+def test_gymnasium_env_checker_passes(clip, residual) -> None:
+    env = _env(clip, residual=residual)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+def test_zero_residual_in_the_nominal_world_is_the_reference_replay(clip) -> None:
+    _, demo, controls, scene = clip
+    env = _env(clip, residual=True, overrides={"terminate": "unstable"})
+    zeros = [np.zeros(env.action_space.shape, np.float32)] * (demo.n_frames - 1)
+    _, _, info = _episode(env, zeros, options={"world": None})
+    world = env.unwrapped._world
+    assert info["frames"] == demo.n_frames - 1
+    end = world.observe()
+    with make_target("mujoco", scene) as tgt:
+        ref = tgt.rollout(controls.q_targets)
+    np.testing.assert_array_equal(end["obj_pos"], ref.object_pos[-1])
+    np.testing.assert_array_equal(end["qpos"], ref.qpos[-1])
+    env.close()
+
+
+def test_seeded_resets_repeat_worlds_and_transitions(clip) -> None:
+    rng = np.random.default_rng(0)
+    env = _env(clip, residual=True)
+    actions = rng.uniform(-1, 1, (19, env.action_space.shape[0])).astype(np.float32)
+    a = _episode(env, actions, seed=7)
+    b = _episode(env, actions, seed=7)
+    c = _episode(env, actions, seed=8)
+    np.testing.assert_array_equal(np.array(a[0]), np.array(b[0]))
+    assert a[1] == b[1]
+    assert not np.array_equal(a[0][0], c[0][0])  # another world: the object starts elsewhere
+    env.close()
+
+
+def test_a_vector_of_processes_matches_single_envs(clip) -> None:
+    path = clip[0]
+    kw = {"clip": path, "reference": path.parent / "kinematic.npz", "residual": True}
+    vec = gym.make_vec(quasisim.envs.TRACK_ID, num_envs=2, vectorization_mode="async",
+                       vector_kwargs={"context": "spawn"}, **kw)  # fmt: skip
+    obs, _ = vec.reset(seed=[3, 4])
+    a = np.full((2, vec.single_action_space.shape[0]), 0.3, np.float32)
+    obs1, r, *_ = vec.step(a)
+    vec.close()
+    for i, seed in enumerate((3, 4)):
+        env = _env(clip, residual=True)
+        o0, _ = env.reset(seed=seed)
+        o1, ri, *_ = env.step(a[i])
+        np.testing.assert_array_equal(o0, obs[i])
+        np.testing.assert_array_equal(o1, obs1[i])
+        assert ri == r[i]
+        env.close()
+
+
+def test_reward_at_zero_error_is_the_sum_of_the_weights(clip) -> None:
+    _, demo, controls, scene = clip
+    cfg = TrackEnvConfig.from_yaml()
+    task = TrackTask(demo, scene, controls.q_targets, cfg, residual=True)
+    t = 10
+    obs = {"obj_pos": demo.object_pos[t], "obj_quat": demo.object_quat[t],
+           "keypoints": demo.human_joints[t, scene.kp_human]}  # fmt: skip
+    a = np.full(scene.n_dof, 0.5)
+    r, e = task.reward(t, obs, a)
+    assert task.touch.any()  # the example's fingertips touch the cube: the contact term is tested
+    assert max(e.values()) < 1e-9
+    weights = sum(term.weight for term in cfg.reward.terms().values())
+    assert r == pytest.approx(weights - cfg.reward.action_cost * 0.25)
+    # the object 1 cm off: 1 cm of position error, and the touching fingertips 1 cm off in its frame
+    moved = {**obs, "obj_pos": demo.object_pos[t] + [0.01, 0, 0]}
+    r1, e1 = task.reward(t, moved, a)
+    assert e1["object_pos"] == pytest.approx(1.0) and e1["contact"] == pytest.approx(1.0)
+    lost = sum(w.weight * (1 - np.exp(-1.0 / w.scale)) for w in (cfg.reward.object_pos, cfg.reward.contact))
+    assert r - r1 == pytest.approx(lost)
+
+
+def test_leaving_the_strict_limits_ends_the_episode(clip) -> None:
+    env = _env(clip, residual=False, overrides={"randomize": False})
+    away = np.zeros(env.action_space.shape, np.float32)
+    away[2] = -1.0  # the base slides down 2 cm a frame: the hand cannot lift the cube
+    _, _, info = _episode(env, [away] * 19)
+    assert info["tracked"] is False
+    assert info["frames"] < 19
+    assert info["object_pos"] > 2.0 or info["object_rot"] > 30.0
+    env.close()
+
+
+def test_bad_input_names_the_file_and_the_field(clip, tmp_path) -> None:
+    path, demo, controls, _ = clip
+    short = dataclasses.replace(controls, q_targets=controls.q_targets[:-2])
+    short.save(tmp_path / "short.npz")
+    with pytest.raises(InputError, match=r"short\.npz.*q_targets"):
+        gym.make(quasisim.envs.TRACK_ID, clip=path, reference=tmp_path / "short.npz")
+    with pytest.raises(InputError, match="controls.npz"):
+        gym.make(quasisim.envs.TRACK_ID, clip=path, reference=tmp_path)
+    with pytest.raises(InputError, match="terminate"):
+        TrackEnvConfig.from_yaml(None, {"terminate": "never"})

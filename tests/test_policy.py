@@ -1,0 +1,94 @@
+"""``quasisim policy``: PPO trains in ``quasisim/Track-v0`` from the command line, resumes from its checkpoint,
+and the trained policy is judged like every other result (metrics in MuJoCo, nominal and in the seeded
+perturbed worlds, closed loop). Short runs on the bundled example; the real runs are in BENCHMARKS.md."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from helpers import cube_example
+
+pytest.importorskip("stable_baselines3", reason="the optional extra rl is not installed (pip install -e '.[rl]')")
+
+TINY = ["--set", "ppo.n_steps=64", "--set", "ppo.batch_size=64", "--set", "ppo.checkpoint_every=64", "--no-progress"]
+
+
+def _cli(*args: str, ok: bool = True) -> subprocess.CompletedProcess:
+    r = subprocess.run([sys.executable, "-m", "quasisim.cli", "policy", *map(str, args)], capture_output=True,
+                       text=True, timeout=600)  # fmt: skip
+    if ok:
+        assert r.returncode == 0, r.stderr[-3000:]
+    return r
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return cube_example(tmp_path_factory.mktemp("policy"))
+
+
+@pytest.fixture(scope="module")
+def trained(clip, tmp_path_factory):
+    """ours+residual on the example's kinematic retarget (standing in for our result): 128 steps on two
+    processes, then resumed to 256."""
+    path = clip[0]
+    out = tmp_path_factory.mktemp("trained") / "run"
+    _cli("train", path, "--residual", path.parent / "kinematic.npz", "--steps", 128, "--out", out, *TINY)
+    first = json.loads((out / "checkpoint.json").read_text())
+    _cli("train", path, "--steps", 256, "--out", out, "--resume", *TINY)
+    return out, first
+
+
+def test_training_resumes_from_its_checkpoint(trained) -> None:
+    out, first = trained
+    assert first["steps"] == 128
+    info = json.loads((out / "training.json").read_text())
+    assert info["env_steps"] == 256 and info["method"] == "ours+residual"
+    assert info["wall_s"] > first["wall_s"]  # the resumed segment adds its time to the first's
+    segments = sorted((out / "logs").glob("*/progress.csv"))
+    assert len(segments) == 2
+    from quasisim.policy.curves import read_curves
+
+    steps = read_curves(out)["steps"]
+    assert steps[0] == 128 and steps[-1] == 256 and np.all(np.diff(steps) > 0)
+
+
+def test_a_policy_is_judged_like_any_result(trained, tmp_path) -> None:
+    out, _ = trained
+    _cli("evaluate", out, "--out", tmp_path / "ev", "--robust", 2)
+    m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert set(m["success"]) >= {"strict", "20deg_20cm"}
+    assert m["robust_closed_loop"]["n"] == 2 and "robust" not in m  # every replay of a policy is closed loop
+    assert m["policy"]["training"]["env_steps"] == 256
+    assert (tmp_path / "ev" / "report.html").is_file()
+    # the evaluation is the policy's own replay: again, the same numbers
+    _cli("evaluate", out, "--out", tmp_path / "ev2", "--robust", 2)
+    m2 = json.loads((tmp_path / "ev2" / "metrics.json").read_text())
+    assert m2["robust_closed_loop"] == m["robust_closed_loop"] and m2["success"] == m["success"]
+
+
+def test_dgrasp_tracking_trains_from_the_kinematic_retarget(clip, tmp_path, trained) -> None:
+    path = clip[0]
+    out = tmp_path / "dgrasp"
+    _cli("train", path, "--steps", 64, "--out", out, "--set", "ppo.n_envs=1", *TINY)
+    setup = json.loads((out / "setup.json").read_text())
+    assert setup["method"] == "dgrasp-tracking" and setup["reference_source"].startswith("kinematic")
+    _cli("curves", out, trained[0], "--out", tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").stat().st_size > 10_000
+
+
+def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
+    path = clip[0]
+    out, _ = trained
+    again = _cli("train", path, "--steps", 64, "--out", out, *TINY, ok=False)
+    assert again.returncode == 2 and "--resume" in again.stderr and "Traceback" not in again.stderr
+    nothing = _cli("train", path, "--steps", 64, "--out", tmp_path / "none", "--resume", *TINY, ok=False)
+    assert nothing.returncode == 2 and "setup.json" in nothing.stderr
+    bad = _cli("train", path, "--steps", 64, "--out", tmp_path / "bad", "--set", "reward.x=1", ok=False)
+    assert bad.returncode == 2 and "env.KEY" in bad.stderr
+    unfinished = _cli("evaluate", tmp_path, "--out", tmp_path / "ev", ok=False)
+    assert unfinished.returncode == 2 and "setup.json" in unfinished.stderr
