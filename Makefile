@@ -17,7 +17,8 @@ $(VENV)/.installed: pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (quasisim needs Python 3.11)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,cluster,viewer]'
+	$(PY) -m pip install -q 'torch==2.13.0'  # the CPU build where pip finds it (PyPI's default is a CUDA build of GBs)
+	$(PY) -m pip install -q -e '.[dev,cluster,viewer,rl]'
 	@touch $@
 
 # The default method (the cascade: sampling MPC in MuJoCo first, the physics curriculum only where that fails

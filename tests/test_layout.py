@@ -19,6 +19,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("targets",),  # MuJoCo and PyBullet, the scene, perturbed worlds
     ("method",),  # retargeting, the stages, the tracker
     ("eval",),  # metrics, robust success, reports, tables, exports
+    ("envs",),  # the Gymnasium tracking environment
+    ("policy",),  # learned tracking policies (PPO): training, evaluation, learning curves
     ("pipeline",),  # one demo end to end
     ("batch",),  # many demos on Ray
     ("bench",),  # benchmarks

@@ -92,3 +92,38 @@ def bench_fit(
 
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_fit_bench(data_dir, names, pattern, hand, out, residual, _parse_sets(sets))
+
+
+@bench.command("policy")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--clips", "clip_names", required=True, help="Comma-separated clip names.")
+@click.option("--runs", "runs", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+              help="Folder of our results (RUNS/<clip>/<run>/controls.npz and metrics.json with --robust N).")  # fmt: skip
+@click.option("--run", "run", default="cascade", show_default=True, help="Which run of each clip is ours.")
+@click.option("--steps", type=click.IntRange(1), default=81920, show_default=True, help="Env steps per policy.")
+@click.option("--robust", type=click.IntRange(1, 1000), default=8, show_default=True, help="Perturbed worlds.")
+@click.option("--workers", type=click.IntRange(1), default=2, show_default=True,
+              help="Processes for the closed-loop replays of ours.")  # fmt: skip
+@click.option("--methods", default="ours+residual,dgrasp-tracking", show_default=True, help="Policies to train.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/policy"), show_default=True)
+@_friendly
+def bench_policy(
+    data_dir: Path, clip_names: str, runs: Path, run: str, steps: int, robust: int, workers: int, methods: str,
+    out: Path,
+) -> None:  # fmt: skip
+    """Learned tracking policies (ours+residual, dgrasp-tracking) beside ours open and closed loop, per clip;
+    resumable (finished policies are kept, unfinished ones resume from their checkpoints)."""
+    from quasisim.cli.policy import _need_rl
+
+    _need_rl()
+    _outputs_free(out)
+    _setup_runtime()
+    from quasisim.bench.policy import POLICY_METHODS, run_policy_bench
+    from quasisim.errors import choice_error
+
+    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
+    for m in chosen:
+        if m not in POLICY_METHODS:
+            raise choice_error("--methods entry", m, POLICY_METHODS)
+    names = [c.strip() for c in clip_names.split(",") if c.strip()]
+    run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen)

@@ -165,7 +165,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
 
     setup = TrainSetup.read(out)
     cfg = PPOConfig.from_yaml(None, setup.ppo_overrides)
-    torch.set_num_threads(max(1, cfg.n_envs))
+    torch.set_num_threads(1)  # the env processes have the other cores; more threads only spin against them
     ckpt = out / CHECKPOINT
     done_s = 0.0
     if resume and ckpt.is_file():
