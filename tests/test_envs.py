@@ -143,3 +143,15 @@ def test_bad_input_names_the_file_and_the_field(clip, tmp_path) -> None:
         gym.make(quasisim.envs.TRACK_ID, clip=path, reference=tmp_path)
     with pytest.raises(InputError, match="terminate"):
         TrackEnvConfig.from_yaml(None, {"terminate": "never"})
+
+
+def test_a_blow_up_ends_the_episode_with_no_reward(clip) -> None:
+    """MuJoCo resets a state whose accelerations blow up (and warns): the episode must end there, unrewarded,
+    not go on from the reset state."""
+    env = _env(clip, residual=False, overrides={"randomize": False, "terminate": "unstable"})
+    env.reset()
+    world = env.unwrapped._world
+    world.data.qvel[world.mm.hand_dof] = 1e12  # hands MuJoCo will not integrate (the object at rest)
+    _, r, terminated, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert terminated and r == 0.0 and info["unstable"] and info["tracked"] is False
+    env.close()

@@ -74,16 +74,6 @@ def test_a_policy_is_judged_like_any_result(trained, tmp_path) -> None:
     assert m2["R_err_deg"] == m["R_err_deg"] and m2["T_err_cm"] == m["T_err_cm"]
 
 
-def test_dgrasp_tracking_trains_from_the_kinematic_retarget(clip, tmp_path, trained) -> None:
-    path = clip[0]
-    out = tmp_path / "dgrasp"
-    _cli("train", path, "--steps", 64, "--out", out, "--set", "ppo.n_envs=1", *TINY)
-    setup = json.loads((out / "setup.json").read_text())
-    assert setup["method"] == "dgrasp-tracking" and setup["reference_source"].startswith("kinematic")
-    _cli("curves", out, trained[0], "--out", tmp_path / "curves.png")
-    assert (tmp_path / "curves.png").stat().st_size > 10_000
-
-
 def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
     path = clip[0]
     out, _ = trained
@@ -121,6 +111,11 @@ def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:
     assert len(trained) == 2 and all(row["env_steps"] == 1024 for row in trained)
     text = (out / "policy.md").read_text()
     assert "| ours+residual | 1 |" in text and path.stem in text
+    dgrasp = out / path.stem / "dgrasp-tracking" / "train"
+    setup = json.loads((dgrasp / "setup.json").read_text())
+    assert setup["method"] == "dgrasp-tracking" and setup["reference_source"].startswith("kinematic")
+    _cli("curves", dgrasp, out / path.stem / "ours+residual" / "train", "--out", tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").stat().st_size > 10_000
     # a second run keeps the trained policies and their judgements
     before = (out / path.stem / "ours+residual" / "eval" / "metrics.json").stat().st_mtime_ns
     r2 = subprocess.run([sys.executable, "-m", "quasisim.cli", *map(str, args)], capture_output=True, text=True,

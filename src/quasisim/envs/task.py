@@ -13,7 +13,8 @@ action chooses the PD targets of frame ``t + 1``; the reward and termination jud
   the demo's (cm), ``e_contact`` the mean distance (cm) of the fingertips that touch the object in the demo to
   the demo's fingertips, both in the object's frame.
 * **Termination**: the first frame outside the strict limits (2 cm, 30 deg; ``terminate: strict``), a blow-up
-  (object faster than :data:`~quasisim.targets.base.MAX_OBJECT_SPEED`, or not finite), the clip's last frame.
+  (object faster than :data:`~quasisim.targets.base.MAX_OBJECT_SPEED`, a state not finite, or a warning of the
+  simulator, which for MuJoCo means it has reset the state), the clip's last frame.
 """
 
 from __future__ import annotations

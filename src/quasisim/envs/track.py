@@ -130,7 +130,8 @@ class TrackEnv(gym.Env):
         self._world.advance(self._prev, q)
         self._t, self._prev = t + 1, q
         self._obs = obs = self._world.observe()
-        if task.unstable(obs):
+        warned = any(self._world.extras().get("sim_warnings", {}).values())  # MuJoCo resets a blown-up state
+        if warned or task.unstable(obs):
             info = {"frame": t + 1, "unstable": True, "tracked": False, "frames": t + 1}
             return np.zeros(self.observation_space.shape, np.float32), 0.0, True, False, info
         r, errors = task.reward(t + 1, obs, np.clip(action, -1, 1))

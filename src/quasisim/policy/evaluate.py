@@ -8,12 +8,14 @@ and chooses the next PD targets with the policy's mean action (deterministic).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from quasisim.data.controls import Controls
 from quasisim.envs.task import TrackTask
 from quasisim.errors import QuasisimError
 from quasisim.policy.train import POLICY, REFERENCE, TrainSetup
@@ -45,8 +47,8 @@ class LearnedPolicy:
         return None
 
 
-def load_trained(folder: Path) -> tuple[TrainSetup, TrackTask, Any]:
-    """The setup, the task and the final model of training folder ``folder``."""
+def load_trained(folder: Path) -> tuple[TrainSetup, TrackTask, Any, Controls]:
+    """The setup, the task, the final model and the reference controls of training folder ``folder``."""
     import torch
     from stable_baselines3 import PPO
 
@@ -61,7 +63,7 @@ def load_trained(folder: Path) -> tuple[TrainSetup, TrackTask, Any]:
     controls, path = load_reference(folder / REFERENCE)
     cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
     task = task_for(load_demo(setup.clip), controls, cfg, setup.residual, path)
-    return setup, task, PPO.load(folder / POLICY, device="cpu")
+    return setup, task, PPO.load(folder / POLICY, device="cpu"), controls
 
 
 def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "default", render: bool = False,
@@ -71,14 +73,13 @@ def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "
     policy's training cost under ``policy``). Returns the :class:`~quasisim.eval.evaluate.Evaluation`."""
     import json
 
-    from quasisim.data.controls import Controls
     from quasisim.eval.evaluate import Evaluation, mark_stability, scene_surface, write_outputs
     from quasisim.eval.metrics import evaluate_rollout
     from quasisim.eval.robust import replay, replays, robust_success
     from quasisim.files import output_set
     from quasisim.targets import make_target
 
-    setup, task, model = load_trained(folder)
+    setup, task, model, reference = load_trained(folder)
     demo, scene = task.demo, task.scene
     ctl = LearnedPolicy(task, model)
     with make_target(setup.target, scene) as world:
@@ -94,10 +95,9 @@ def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "
                          "training": json.loads(training.read_text()) if training.is_file() else {}}  # fmt: skip
     ev = Evaluation(metrics, pf, rollout, scene)
     if out is not None:
-        ref = Controls(hand="", demo=demo.name, method=setup.method, fps=demo.fps, base_rots=scene.base_rots,
-                       q_targets=np.asarray(ctl.applied), joint_names=scene.hands[0].joint_names)  # fmt: skip
+        applied = dataclasses.replace(reference, method=setup.method, q_targets=np.asarray(ctl.applied), extras={})
         info = {"policy": f"{setup.method} ({setup.algo}), {metrics['policy']['training'].get('env_steps', '?')} "
                           f"env steps; reference: {setup.reference_source}"}  # fmt: skip
         with output_set(out) as stage:
-            write_outputs(ev, demo, ref, setup.target, stage, render, None, info, None, progress)
+            write_outputs(ev, demo, applied, setup.target, stage, render, None, info, None, progress)
     return ev

@@ -169,7 +169,8 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
     ckpt = out / CHECKPOINT
     done_s = 0.0
     if resume and ckpt.is_file():
-        done_s = float(json.loads((out / "checkpoint.json").read_text())["wall_s"])
+        meta = out / "checkpoint.json"  # written after the model: a kill between the two leaves the older one
+        done_s = float(json.loads(meta.read_text())["wall_s"]) if meta.is_file() else 0.0
     elif resume:
         raise QuasisimError(f"{out}: nothing to resume (no {CHECKPOINT}); run without --resume")
     venv = _vec_env(out, setup, cfg.n_envs)
