@@ -55,6 +55,11 @@ def test_training_resumes_from_its_checkpoint(trained) -> None:
 
     steps = read_curves(out)["steps"]
     assert steps[0] == 128 and steps[-1] == 256 and np.all(np.diff(steps) > 0)
+    # validated at every checkpoint from the fresh model on, across the resume; the best one kept
+    validation = json.loads((out / "validation.json").read_text())
+    assert [h[0] for h in validation["history"]] == [0, 64, 128, 192, 256]
+    best = max(validation["history"], key=lambda h: tuple(h[1:]))
+    assert info["best"]["score"] == best[1:] and (out / "best.zip").is_file()
 
 
 def test_a_policy_is_judged_like_any_result(trained, tmp_path) -> None:
@@ -72,6 +77,8 @@ def test_a_policy_is_judged_like_any_result(trained, tmp_path) -> None:
     same = lambda r: {k: v for k, v in r.items() if k not in timing}  # noqa: E731
     assert same(m2["robust_closed_loop"]) == same(m["robust_closed_loop"]) and m2["success"] == m["success"]
     assert m2["R_err_deg"] == m["R_err_deg"] and m2["T_err_cm"] == m["T_err_cm"]
+    _cli("evaluate", out, "--out", tmp_path / "final", "--robust", 0, "--model", "final")
+    assert json.loads((tmp_path / "final" / "metrics.json").read_text())["policy"]["model"] == "final"
 
 
 def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
@@ -106,9 +113,11 @@ def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:
     assert r.returncode == 0, r.stderr[-3000:]
     rows = json.loads((out / "policy.json").read_text())
     methods = {row["method"] for row in rows}
-    assert methods == {"ours+residual", "dgrasp-tracking", "ours (cascade) open loop", "ours (cascade) closed loop"}
+    policies = {"ours+residual", "dgrasp-tracking"}
+    assert methods == {*policies, *(f"{m} (final model)" for m in policies), "ours (cascade) open loop",
+                       "ours (cascade) closed loop"}  # fmt: skip
     trained = [row for row in rows if row["env_steps"] is not None]
-    assert len(trained) == 2 and all(row["env_steps"] == 1024 for row in trained)
+    assert len(trained) == 4 and all(row["env_steps"] == 1024 for row in trained)
     text = (out / "policy.md").read_text()
     assert "| ours+residual | 1 |" in text and path.stem in text
     dgrasp = out / path.stem / "dgrasp-tracking" / "train"

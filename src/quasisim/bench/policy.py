@@ -3,7 +3,7 @@
 For every clip: ``ours+residual`` (PPO residual on our result, :mod:`quasisim.policy`) and ``dgrasp-tracking``
 (PPO from scratch, the kinematic retarget observed) trained to ``steps`` env steps in
 ``OUT/<clip>/<method>/train`` (resumed where a checkpoint is, skipped where finished) and judged in
-``OUT/<clip>/<method>/eval``; our result (``RUNS/<clip>/<run>``) open loop (its metrics.json) and closed loop
+``OUT/<clip>/<method>/eval`` (the best validated model) and ``eval-final`` (the last one); our result (``RUNS/<clip>/<run>``) open loop (its metrics.json) and closed loop
 (the tracker of :mod:`quasisim.method.track`, cached beside the run by :func:`quasisim.bench.closed_loop.add_closed_loop`).
 All four meet the same seeded perturbed worlds (``configs/robust.yaml``, seed 0, ``robust`` replays).
 """
@@ -37,8 +37,8 @@ def _train(clip: Path, folder: Path, method: str, ours: Path, steps: int, seed: 
     return train(folder, steps, resume=resume, progress=False)
 
 
-def _evaluate(train_dir: Path, eval_dir: Path, robust: int) -> dict[str, Any]:
-    """The policy's metrics (judged again only where the policy changed since)."""
+def _evaluate(train_dir: Path, eval_dir: Path, robust: int, which: str) -> dict[str, Any]:
+    """The metrics of the policy's model ``which`` (judged again only where the policy changed since)."""
     from quasisim.policy.evaluate import evaluate_policy
 
     m = eval_dir / "metrics.json"
@@ -50,7 +50,7 @@ def _evaluate(train_dir: Path, eval_dir: Path, robust: int) -> dict[str, Any]:
             and old.get(ROBUST_KEY + CLOSED_LOOP_SUFFIX, {}).get("n") == robust
         ):
             return old
-    return evaluate_policy(train_dir, eval_dir, robust).metrics
+    return evaluate_policy(train_dir, eval_dir, robust, which=which).metrics
 
 
 def run_policy_bench(
@@ -68,8 +68,9 @@ def run_policy_bench(
         for c in clips:
             folder = out / c / method
             info = _train(data_dir / f"{c}.npz", folder / "train", method, runs / c / run, steps, seed)
-            m = _evaluate(folder / "train", folder / "eval", robust)
-            rows.append(_row(c, method, m, m[ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))
+            for which, label, sub in (("best", method, "eval"), ("final", f"{method} (final model)", "eval-final")):
+                m = _evaluate(folder / "train", folder / sub, robust, which)
+                rows.append(_row(c, label, m, m[ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))
     ours = [{"clip": c, "method": run} | json.loads((runs / c / run / "metrics.json").read_text()) for c in clips]
     ours = add_closed_loop(ours, runs, {c: data_dir / f"{c}.npz" for c in clips}, robust, ("default",), "mujoco",
                            workers)  # fmt: skip

@@ -102,10 +102,14 @@ def policy_train(
     help="Perturbed worlds (the seeded worlds of robust success; 0: none).",
 )
 @click.option("--render/--no-render", default=False, show_default=True, help="Render the report's video.")
+@click.option("--model", "which", type=click.Choice(["best", "final"]), default="best", show_default=True,
+              help="best: the model that did best in validation (best.zip); final: the last one (policy.zip).")  # fmt: skip
 @_RANGES
 @_OVERWRITE
 @_friendly
-def policy_evaluate(folder: Path, out: Path, robust: int, render: bool, ranges: str, overwrite: bool) -> None:
+def policy_evaluate(
+    folder: Path, out: Path, robust: int, render: bool, which: str, ranges: str, overwrite: bool
+) -> None:  # fmt: skip
     """Replay the policy trained in FOLDER in its target: metrics.json (nominal and robust), report.html."""
     _need_rl()
     _setup_runtime()
@@ -118,7 +122,7 @@ def policy_evaluate(folder: Path, out: Path, robust: int, render: bool, ranges: 
     if len(names) != 1:
         raise QuasisimError("quasisim policy evaluate: one perturbation set per run (--ranges default or wide)")
     _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
-    ev = evaluate_policy(folder, out, robust, names[0], render=render, progress=True)
+    ev = evaluate_policy(folder, out, robust, names[0], render=render, progress=True, which=which)
     label = ev.metrics["policy"]["method"]
     _summary(f"{ev.scene.obj.name}: {label}", {label: ev.metrics}, out / "report.html")
 

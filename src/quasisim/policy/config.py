@@ -15,7 +15,7 @@ PPO_PATH = Path(__file__).resolve().parent.parent / "configs" / "ppo.yaml"
 @dataclass(frozen=True)
 class PPOConfig:
     """stable-baselines3 PPO's settings (their names) and ours: ``n_envs`` processes, ``checkpoint_every``
-    env steps, ``net_arch`` and the initial exploration noise ``log_std_init`` (``log_std_init_residual`` for
+    env steps (each checkpoint validated in the nominal world and ``validate_worlds`` training worlds), ``net_arch`` and the initial exploration noise ``log_std_init`` (``log_std_init_residual`` for
     a residual policy) of the policy."""
 
     n_envs: int = 2
@@ -32,10 +32,13 @@ class PPOConfig:
     log_std_init_residual: float = -2.5
     net_arch: tuple[int, ...] = (256, 256)
     checkpoint_every: int = 10000
+    validate_worlds: int = 8
     path: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         where = self.path or None
+        if self.validate_worlds < 0:
+            raise InputError(where, "validate_worlds", "a count >= 0", str(self.validate_worlds))
         for name in ("n_envs", "n_steps", "batch_size", "n_epochs", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise InputError(where, name, "an integer >= 1", str(getattr(self, name)))
@@ -54,7 +57,15 @@ class PPOConfig:
 
     def ppo_kwargs(self, residual: bool) -> dict[str, Any]:
         """The keyword arguments of ``stable_baselines3.PPO`` (for a residual policy or not)."""
-        ours = ("n_envs", "log_std_init", "log_std_init_residual", "net_arch", "checkpoint_every", "path")
+        ours = (
+            "n_envs",
+            "log_std_init",
+            "log_std_init_residual",
+            "net_arch",
+            "checkpoint_every",
+            "validate_worlds",
+            "path",
+        )
         d = {k: v for k, v in asdict(self).items() if k not in ours}
         arch, std = list(self.net_arch), self.log_std_init_residual if residual else self.log_std_init
         return d | {"policy_kwargs": {"log_std_init": std, "net_arch": {"pi": arch, "vf": arch}}}

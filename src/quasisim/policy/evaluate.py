@@ -1,15 +1,12 @@
 """Judge a trained policy like every other result: replayed closed loop in the target, the same metrics, and
 robust success in the same seeded perturbed worlds (:mod:`quasisim.eval.robust`).
 
-The policy acts through :class:`LearnedPolicy`, the closed-loop controller protocol of robust success
-(:class:`quasisim.eval.robust.Policy`): it observes each frame of the world, never the world's parameters,
-and chooses the next PD targets with the policy's mean action (deterministic).
+The policy acts through :class:`~quasisim.policy.controller.LearnedPolicy` (its mean action, closed loop).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
 from pathlib import Path
 from typing import Any
 
@@ -18,37 +15,15 @@ import numpy as np
 from quasisim.data.controls import Controls
 from quasisim.envs.task import TrackTask
 from quasisim.errors import QuasisimError
-from quasisim.policy.train import POLICY, REFERENCE, TrainSetup
+from quasisim.policy.controller import LearnedPolicy
+from quasisim.policy.train import BEST, POLICY, REFERENCE, TrainSetup
+
+MODELS = {"best": BEST, "final": POLICY}  # --model: the best validated checkpoint, or the last one
 
 
-class LearnedPolicy:
-    """A trained policy as a closed-loop controller of :mod:`quasisim.eval.robust` (one replay)."""
-
-    def __init__(self, task: TrackTask, model: Any) -> None:
-        self.task, self.model = task, model
-        self.applied: list[np.ndarray] = []
-        self.seconds = 0.0
-
-    def start(self, obs: dict[str, np.ndarray]) -> None:
-        self.applied = [self.task.reference[0].copy()]
-
-    def act(self, t: int, obs: dict[str, np.ndarray]) -> np.ndarray:
-        t0 = time.perf_counter()
-        a, _ = self.model.predict(self.task.observation(t, obs), deterministic=True)
-        q = self.task.targets(t, a, obs)
-        self.seconds += time.perf_counter() - t0
-        self.applied.append(q)
-        return q
-
-    def cost(self) -> dict[str, float]:
-        return {"policy_seconds": self.seconds, "steps": float(len(self.applied) - 1)}
-
-    def close(self) -> None:
-        return None
-
-
-def load_trained(folder: Path) -> tuple[TrainSetup, TrackTask, Any, Controls]:
-    """The setup, the task, the final model and the reference controls of training folder ``folder``."""
+def load_trained(folder: Path, which: str = "best") -> tuple[TrainSetup, TrackTask, Any, Controls]:
+    """The setup, the task, the model ``which`` (:data:`MODELS`) and the reference controls of training
+    folder ``folder``."""
     import torch
     from stable_baselines3 import PPO
 
@@ -57,17 +32,21 @@ def load_trained(folder: Path) -> tuple[TrainSetup, TrackTask, Any, Controls]:
     from quasisim.envs.track import load_reference, task_for
 
     setup = TrainSetup.read(folder)
+    if which not in MODELS:
+        from quasisim.errors import choice_error
+
+        raise choice_error("model", which, tuple(MODELS))
     if not (folder / POLICY).is_file():
         raise QuasisimError(f"{folder}: no {POLICY} (training has not finished: quasisim policy train ... --resume)")
     torch.set_num_threads(1)
     controls, path = load_reference(folder / REFERENCE)
     cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
     task = task_for(load_demo(setup.clip), controls, cfg, setup.residual, path)
-    return setup, task, PPO.load(folder / POLICY, device="cpu"), controls
+    return setup, task, PPO.load(folder / MODELS[which], device="cpu"), controls
 
 
 def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "default", render: bool = False,
-                    progress: bool = False) -> Any:  # fmt: skip
+                    progress: bool = False, which: str = "best") -> Any:  # fmt: skip
     """Replay the policy of training folder ``folder`` in its target, nominal and in ``robust`` perturbed worlds
     of ``ranges``; with ``out`` write the outputs of ``quasisim evaluate`` there (metrics.json holds the
     policy's training cost under ``policy``). Returns the :class:`~quasisim.eval.evaluate.Evaluation`."""
@@ -79,7 +58,7 @@ def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "
     from quasisim.files import output_set
     from quasisim.targets import make_target
 
-    setup, task, model, reference = load_trained(folder)
+    setup, task, model, reference = load_trained(folder, which)
     demo, scene = task.demo, task.scene
     ctl = LearnedPolicy(task, model)
     with make_target(setup.target, scene) as world:
@@ -91,7 +70,8 @@ def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "
         metrics[cfg.closed_loop_key] = robust_success(demo, scene, task.reference, setup.target, cfg,
                                            policy=lambda: LearnedPolicy(task, model))  # fmt: skip
     training = folder / "training.json"
-    metrics["policy"] = {"method": setup.method, "algo": setup.algo, "closed_loop": True, "folder": str(folder),
+    metrics["policy"] = {"method": setup.method, "algo": setup.algo, "model": which, "closed_loop": True,
+                         "folder": str(folder),
                          "training": json.loads(training.read_text()) if training.is_file() else {}}  # fmt: skip
     ev = Evaluation(metrics, pf, rollout, scene)
     if out is not None:

@@ -9,7 +9,10 @@ A training folder ``OUT`` holds:
   every ``checkpoint_every`` env steps and at the end; ``--resume`` continues from them;
 * ``logs/<segment>/``: ``progress.csv`` and TensorBoard events, one segment per start or resume
   (:mod:`quasisim.policy.curves` reads them);
-* ``policy.zip`` + ``training.json``: the final model and its cost (env steps, episodes, wall time).
+* ``best.zip`` + ``validation.json``: the model that did best in validation (the nominal world and training
+  worlds, never the evaluation's), checked at every checkpoint from the fresh model on (:class:`Selector`);
+* ``policy.zip`` + ``training.json``: the final model and the training's cost (env steps, wall time, of which
+  validation), with the step and score of the best model.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from quasisim.files import atomic_path, save_json_atomic
 
 METHODS = {"dgrasp-tracking": False, "ours+residual": True}  # method -> residual actions
 SETUP, REFERENCE, CHECKPOINT, POLICY = "setup.json", "reference.npz", "checkpoint.zip", "policy.zip"
+BEST, VALIDATION = "best.zip", "validation.json"  # the best validated model (Selector)
 
 
 @dataclass(frozen=True)
@@ -104,8 +108,47 @@ def make_env(out: Path, setup: TrainSetup) -> Any:
     return thunk
 
 
-def _callbacks(out: Path, every: int, wall0: float) -> list[Any]:
-    """Checkpoints every ``every`` env steps (atomic) and the tracked fraction of the episodes in the logs."""
+class Selector:
+    """Validates the model at every checkpoint (:func:`~quasisim.policy.controller.validate`: the nominal world and
+    ``validate_worlds`` training worlds) and keeps the best one seen in ``best.zip``, the fresh model included
+    (a residual policy's is our result, nearly untouched); ``validation.json`` holds every score and the seconds
+    spent, across resumes."""
+
+    def __init__(self, out: Path, setup: TrainSetup, worlds: int) -> None:
+        from quasisim.data.demo import load_demo
+        from quasisim.envs.config import TrackEnvConfig
+        from quasisim.envs.track import load_reference, task_for, world_config
+
+        controls, path = load_reference(out / REFERENCE)
+        env_cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
+        self.task = task_for(load_demo(setup.clip), controls, env_cfg, setup.residual, path)
+        self.out, self.target, self.worlds, self.ranges = out, setup.target, worlds, world_config(env_cfg)
+        old = out / VALIDATION
+        self.state = json.loads(old.read_text()) if old.is_file() else {"history": [], "seconds": 0.0, "best": None}
+
+    def __call__(self, model: Any) -> Any:
+        """Validate ``model`` (once per step count); returns its score."""
+        from quasisim.policy.controller import Score, validate
+
+        steps = int(model.num_timesteps)
+        if self.state["history"] and self.state["history"][-1][0] == steps:
+            return Score(*self.state["history"][-1][1:])
+        t0 = time.perf_counter()
+        score = validate(self.task, model, self.target, self.worlds, self.ranges.seed, self.ranges)
+        best = self.state["best"]
+        if best is None or score > Score(*best["score"]):
+            with atomic_path(self.out / BEST) as tmp:
+                model.save(tmp)
+            self.state["best"] = {"steps": steps, "score": list(score)}
+        self.state["history"].append([steps, *score])
+        self.state["seconds"] += time.perf_counter() - t0
+        save_json_atomic(self.out / VALIDATION, self.state)
+        return score
+
+
+def _callbacks(out: Path, every: int, wall0: float, select: Selector) -> list[Any]:
+    """Checkpoints with validation every ``every`` env steps (atomic) and the tracked fraction of the episodes
+    in the logs."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Tracked(BaseCallback):
@@ -127,13 +170,16 @@ def _callbacks(out: Path, every: int, wall0: float) -> list[Any]:
                 self.logger.record("rollout/frames", float(np.mean([e[1] for e in self.ended])))
 
     class Checkpoint(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.last = 0
+        def _on_training_start(self) -> None:
+            self.last = self.num_timesteps
+            select(self.model)  # the fresh (or resumed) model is a candidate too
 
         def _on_step(self) -> bool:
             if self.num_timesteps - self.last >= every:
                 self.last = self.num_timesteps
+                score = select(self.model)
+                for k, v in score._asdict().items():
+                    self.logger.record(f"validation/{k}", float(v))
                 save_checkpoint(self.model, out, wall0)
             return True
 
@@ -183,15 +229,18 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
         segment = logs / f"{len(list(logs.glob('*'))) if logs.is_dir() else 0:03d}"
         model.set_logger(configure(str(segment), ["csv", "tensorboard"]))
         wall0 = time.time() - done_s
+        select = Selector(out, setup, cfg.validate_worlds)
         remaining = steps - model.num_timesteps
         if remaining > 0:
-            model.learn(remaining, callback=_callbacks(out, cfg.checkpoint_every, wall0), reset_num_timesteps=False,
-                        progress_bar=progress)  # fmt: skip
+            model.learn(remaining, callback=_callbacks(out, cfg.checkpoint_every, wall0, select),
+                        reset_num_timesteps=False, progress_bar=progress)  # fmt: skip
+        select(model)
         save_checkpoint(model, out, wall0)
         with atomic_path(out / POLICY) as tmp:
             model.save(tmp)
         info = {"method": setup.method, "algo": setup.algo, "env_steps": int(model.num_timesteps),
-                "wall_s": time.time() - wall0, "n_envs": cfg.n_envs}  # fmt: skip
+                "wall_s": time.time() - wall0, "n_envs": cfg.n_envs, "validation_s": select.state["seconds"],
+                "best": select.state["best"]}  # fmt: skip
         save_json_atomic(out / "training.json", info)
         return info
     finally:
