@@ -703,3 +703,14 @@ def test_bad_input(case: Case, base: Path, tmp_path: Path) -> None:
     assert any(m in lines[0] for m in markers), lines[0]
     assert _snapshot(d) == before, "the command wrote or changed files"
     assert not Path("/proc/quasisim_out").exists()
+
+
+def test_input_errors_cross_process_boundaries() -> None:
+    """A worker's InputError reaches the driver intact (a process pool pickles it), not as a pickling crash."""
+    import pickle
+
+    from quasisim.errors import InputError
+
+    e = InputError("clip.npz", "object_quat", "unit quaternions", "|q| = 0.5")
+    back = pickle.loads(pickle.dumps(e))
+    assert type(back) is InputError and str(back) == str(e) and back.field == "object_quat"

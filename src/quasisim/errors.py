@@ -38,6 +38,10 @@ class InputError(QuasisimError, ValueError):
             msg += f", got {got}"
         super().__init__(msg)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled with its own arguments, so it crosses process boundaries (a pool's worker to the driver)."""
+        return type(self), (self.path, self.field, self.expected, self.got)
+
 
 def choice_error(kind: str, value: object, options: list[str] | tuple[str, ...]) -> QuasisimError:
     """An error for an unknown option that lists the valid ones."""
