@@ -37,6 +37,29 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+INTERRUPTED = "interrupted; rerun the same command to resume"
+
+
+def _interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """A resumable command stopped by Ctrl-C (or SIGTERM, which :func:`_setup_runtime` turns into exit
+    143) ends with one line and the shell's status for it: 130 (143), no traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt:
+            code = 130
+        except SystemExit as e:
+            if e.code != 143:
+                raise
+            code = 143
+        click.echo(INTERRUPTED, err=True)
+        sys.exit(code)
+
+    return wrapper
+
+
 class _OneLineErrors(click.Group):
     """The top-level group: click's usage errors (bad or missing options) as one line on stderr, exit code 2."""
 
