@@ -160,13 +160,17 @@ def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
 def test_bench_batch_layouts_parse_and_refuse_bad_ones(tmp_path: Path) -> None:
     from click.testing import CliRunner
 
+    from quasisim.bench.batch import Layout
     from quasisim.cli import main
     from quasisim.cli.bench import _layout
 
-    assert _layout("2x1") == (2, 1, True) and _layout("2x1-unpinned") == (2, 1, False)
-    for bad in ("2x1-pinned", "2", "0x1", "axb"):
+    assert _layout("2x1") == Layout(2, 1, True) and _layout("2x1-unpinned") == Layout(2, 1, False)
+    # a cluster of 2 nodes of 1 CPU, and one node of 2 CPUs: two workers of one thread either way
+    assert _layout("cluster:2x1") == Layout(2, 1, True, nodes=2) and _layout("cluster:1x2") == Layout(2, 1, True, 1)
+    assert [_layout(x).folder for x in ("2x1", "2x1-unpinned", "cluster:2x1")] == ["w2t1", "w2t1u", "n2c1"]
+    for bad in ("2x1-pinned", "2", "0x1", "axb", "cluster:2x1-unpinned", "nodes:2x1", "cluster:0x1"):
         r = CliRunner().invoke(main, ["bench", "batch", str(tmp_path), "--layouts", bad, "--out", str(tmp_path / "o")])
-        assert r.exit_code != 0 and "WORKERSxTHREADS[-unpinned]" in r.output, (bad, r.output)
+        assert r.exit_code != 0 and "WORKERSxTHREADS[-unpinned] or cluster:NODESxCPUS" in r.output, (bad, r.output)
 
 
 def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:

@@ -215,3 +215,29 @@ def test_ray_auto_finds_the_cluster_of_ray_start(tmp_path: Path, monkeypatch: py
             resolve("auto")
     with pytest.raises(QuasisimError, match="expected HOST:PORT"):
         resolve("nowhere")
+
+
+def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
+    """Ray turns a SystemExit raised by a signal handler while it waits into exit status 1: during a batch
+    SIGTERM raises KeyboardInterrupt instead, and the command exits 143 (Ctrl-C: 130) with one line."""
+    import quasisim.raycluster as rc
+    from quasisim.cli._common import INTERRUPTED, _interruptible
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    try:
+        with pytest.raises(SystemExit) as e:
+            _interruptible(interrupted)()
+        assert e.value.code == 130
+        before = signal.getsignal(signal.SIGTERM)
+        with pytest.raises(KeyboardInterrupt), rc.sigterm_interrupts():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        assert rc.terminated() and signal.getsignal(signal.SIGTERM) == before
+        with pytest.raises(SystemExit) as e:
+            _interruptible(interrupted)()
+        assert e.value.code == 143
+    finally:
+        rc._TERMINATED.clear()
+    assert INTERRUPTED == "interrupted; rerun the same command to resume"

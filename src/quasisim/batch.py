@@ -388,7 +388,7 @@ def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, scratc
     rows.extend(result["rows"])
     peak[str(result["pid"])] = result["peak_rss_mb"]
     cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
-    nodes[job.clip] = result["node"]
+    nodes[job.clip] = result.get("node", "")  # "": a worker of an older quasisim
 
 
 def leads(s: Settings, n_todo: int) -> bool:
@@ -409,10 +409,18 @@ def run_lead_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) 
 def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
     """Yield (job, result or error text) as the workers finish, with a progress bar over clips; with
     :func:`leads`, the first readable clip runs alone on every core before the others are handed out."""
-    from tqdm import tqdm
+    from quasisim.raycluster import sigterm_interrupts
 
     if not todo:
         return
+    with sigterm_interrupts():
+        yield from _dispatch_on_ray(todo, s, scratch)
+
+
+def _dispatch_on_ray(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
+    """:func:`_dispatch` once SIGTERM interrupts: Ray started or reached, the clips run, Ray shut down."""
+    from tqdm import tqdm
+
     ray = _ray_init(s)
     try:
         task = ray.remote(num_cpus=s.threads, max_retries=s.max_retries)(run_job)

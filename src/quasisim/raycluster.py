@@ -170,10 +170,38 @@ def _one_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {lines[0] if lines else ''}"[:300]
 
 
+_TERMINATED = threading.Event()
+
+
+def terminated() -> bool:
+    """Whether a KeyboardInterrupt came from SIGTERM (:func:`sigterm_interrupts`) rather than Ctrl-C."""
+    return _TERMINATED.is_set()
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    _TERMINATED.set()
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt inside (the clean-up of Ctrl-C; :func:`terminated` tells them apart):
+    Ray turns a SystemExit raised by a signal handler while it waits (``ray.wait``, ``ray.get``) into exit
+    status 1, a KeyboardInterrupt it passes on."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
+
+
 @contextmanager
 def _sigterm_kept() -> Iterator[None]:
-    """``ray.init`` makes SIGTERM exit with status 15: the command's own handler (exit 143, as Ctrl-C's
-    clean-up) is put back."""
+    """``ray.init`` makes SIGTERM exit with status 15: the handler from before is put back."""
     main = threading.current_thread() is threading.main_thread()
     before = signal.getsignal(signal.SIGTERM) if main else None
     try:
@@ -194,7 +222,11 @@ def connect(address: str, env: dict[str, str], min_cpus: int) -> Any:
         with _sigterm_kept():
             ray.init(address=addr, runtime_env={"env_vars": env}, log_to_driver=False, logging_level="ERROR")
     except Exception as e:
-        raise QuasisimError(f"could not connect to the Ray cluster at {addr} ({_one_line(e)}); {TOKEN_HELP}") from None
+        mode = os.environ.get("RAY_AUTH_MODE", "")
+        hint = f"; RAY_AUTH_MODE is {mode!r} here: unset it or set it to 'token'" if mode != "token" and mode else ""
+        raise QuasisimError(
+            f"could not connect to the Ray cluster at {addr} ({_one_line(e)}); {TOKEN_HELP}{hint}"
+        ) from None
     cpus = max((n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]), default=0)
     if cpus < min_cpus:
         ray.shutdown()
