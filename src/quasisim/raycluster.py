@@ -310,7 +310,9 @@ class LocalCluster:
         return e
 
     def _start_node(self, i: int, cpus: int, extra: dict[str, str]) -> None:
-        common = ["--num-cpus", str(cpus), "--disable-usage-stats", "--block"]
+        # ports of its own where Ray has fixed defaults (another Ray on this machine may hold them)
+        common = ["--num-cpus", str(cpus), "--dashboard-agent-listen-port", str(_free_port()), "--disable-usage-stats",
+                  "--block"]  # fmt: skip
         if i == 0:
             args = _ray_cli("start", "--head", "--port", "0", "--include-dashboard=false",
                             "--ray-client-server-port", str(_free_port()), *common)  # fmt: skip
