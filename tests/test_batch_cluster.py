@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quasisim.batch import HOLD_ENV
+from quasisim.batch import GATE_ENV, HOLD_ENV
 from quasisim.errors import QuasisimError
 from quasisim.raycluster import LocalCluster, processes_with, resolve, token_available
 
@@ -131,7 +131,7 @@ def local_run(clips_dir: Path, token_env: None, tmp_path_factory: pytest.TempPat
         cluster.remove()
 
 
-@pytest.mark.slow  # a one-node cluster beside a local batch run twice (~45 s)
+@pytest.mark.slow  # a one-node cluster beside a local batch run twice (~70 s on 2 busy cores)
 def test_local_batch_ignores_other_rays_stops_on_ctrl_c_and_resumes(local_run: LocalRun) -> None:
     r = local_run
     # beside a live cluster that RAY_ADDRESS names: one line says so, the batch starts its own Ray
@@ -155,13 +155,15 @@ def test_local_batch_ignores_other_rays_stops_on_ctrl_c_and_resumes(local_run: L
     assert "Traceback" not in r.auto_stale.stderr
 
 
-@pytest.mark.slow  # two `ray start` nodes, a batch of 5 clips, one node killed (~35 s)
-def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, local_run: LocalRun, tmp_path: Path) -> None:
+@pytest.mark.slow  # two `ray start` nodes, a batch of 5 clips, one node killed; a local batch beside (~65 s)
+def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None, tmp_path: Path) -> None:
     """Clips run on both nodes; the second node's raylet is killed while it holds a clip, which Ray retries
-    on the head: every clip done once, with the local batch's results, and no process of the cluster left."""
+    on the head: every clip done once, with the results of a local batch (run beside the live cluster, to its
+    end), and no process of the cluster left."""
     hold, out = tmp_path / "hold", tmp_path / "out"
     hold.mkdir()
-    cluster = LocalCluster.start((1, 1), node_env={1: {HOLD_ENV: str(hold)}})  # node 1 holds its second clip
+    # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips
+    cluster = LocalCluster.start((1, 1), node_env={0: {GATE_ENV: str(hold)}, 1: {HOLD_ENV: str(hold)}})
     try:
         assert b"Token authentication is enabled" in cluster.log(0).read_bytes()  # Ray's default, a token here
         raylet, node1 = cluster.raylet(1)
@@ -182,13 +184,17 @@ def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, local_run: Loca
         )  # every clip once
         assert nodes[first] == node1 and nodes[held] != node1  # the held clip ran again on the head
         assert not list(out.glob(".*.incoming"))  # no clip folder half written
+        assert cluster.procs[1].poll() is not None  # the second node's `ray start` ended with its raylet
+        # a local batch beside the live cluster (its address file where Ray looks) runs to its end, on its own Ray
+        local = _completed(_batch(clips_dir, tmp_path / "local", env={"RAY_TMPDIR": str(cluster.temp)}))
+        assert local.returncode == 0, local.stderr[-2000:]
+        assert f"note: a Ray cluster runs at {cluster.address}" in local.stderr
         for c in nodes:
             assert json.loads((out / c / "metrics.json").read_text()) == json.loads(
-                (local_run.out / c / "metrics.json").read_text()
+                (tmp_path / "local" / c / "metrics.json").read_text()
             ), c
-            with np.load(out / c / "controls.npz") as a, np.load(local_run.out / c / "controls.npz") as b:
+            with np.load(out / c / "controls.npz") as a, np.load(tmp_path / "local" / c / "controls.npz") as b:
                 np.testing.assert_array_equal(a["q_targets"], b["q_targets"], err_msg=c)
-        assert cluster.procs[1].poll() is not None  # the second node's `ray start` ended with its raylet
     finally:
         left = cluster.stop()
         cluster.remove()

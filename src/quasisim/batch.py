@@ -44,6 +44,7 @@ BATCH_FILE = "batch.json"
 SKIP_OUTPUT = ("checkpoints",)  # stays in the worker's scratch folder
 FAULT_ENV = "QUASISIM_BATCH_FAULT"  # tests: "<clip>" makes that clip's first attempt kill its worker
 HOLD_ENV = "QUASISIM_BATCH_HOLD"  # tests: a folder; every clip but the first started with it waits there
+GATE_ENV = "QUASISIM_BATCH_GATE"  # tests: a folder; clips wait until it shows a held clip
 
 
 @dataclass(frozen=True)
@@ -199,16 +200,23 @@ def _fault_hook(clip: str, scratch: Path) -> Any:
 
 
 def _hold(clip: str, limit_s: float = 120.0) -> None:
-    """Tests of interrupts and lost nodes: in a worker whose environment names a folder ``$QUASISIM_BATCH_HOLD``,
-    every clip but the first one started with it writes ``<clip>.started`` there and waits (until its worker is
-    killed, or ``limit_s``)."""
-    d = os.environ.get(HOLD_ENV)
-    if not d:
-        return
-    first = not any(Path(d).glob("*.started"))
-    (Path(d) / f"{clip}.started").write_text(str(os.getpid()))
+    """Tests of interrupts and lost nodes (no effect otherwise). In a worker whose environment names a folder
+    ``$QUASISIM_BATCH_HOLD``, every clip but the first one started with it writes ``<clip>.started`` there and
+    waits (until its worker is killed, or ``limit_s``); with ``$QUASISIM_BATCH_GATE`` (a folder), a clip waits
+    until that folder shows a held clip (two ``.started`` files), so that another node gets clips meanwhile."""
+    hold, gate = os.environ.get(HOLD_ENV), os.environ.get(GATE_ENV)
+    if hold:
+        waits = any(Path(hold).glob("*.started"))  # not the first clip
+        (Path(hold) / f"{clip}.started").write_text(str(os.getpid()))
+        if waits:
+            _sleep_until(lambda: False, limit_s)
+    elif gate:
+        _sleep_until(lambda: len(list(Path(gate).glob("*.started"))) >= 2, limit_s)
+
+
+def _sleep_until(done: Any, limit_s: float) -> None:
     t0 = time.monotonic()
-    while not first and time.monotonic() - t0 < limit_s:
+    while not done() and time.monotonic() - t0 < limit_s:
         time.sleep(0.2)
 
 
