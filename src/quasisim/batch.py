@@ -30,7 +30,7 @@ import resource
 import shutil
 import time
 import traceback
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -214,7 +214,8 @@ def _hold(clip: str, limit_s: float = 120.0) -> None:
         _sleep_until(lambda: len(list(Path(gate).glob("*.started"))) >= 2, limit_s)
 
 
-def _sleep_until(done: Any, limit_s: float) -> None:
+def _sleep_until(done: Callable[[], bool], limit_s: float) -> None:
+    """Sleep until ``done()`` or for ``limit_s``."""
     t0 = time.monotonic()
     while not done() and time.monotonic() - t0 < limit_s:
         time.sleep(0.2)
@@ -275,14 +276,8 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
         prefix = f"{r.name}/" if r.name else ""
         out_files |= {prefix + k: v for k, v in _read_tree(run_dir).items()}
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {
-        "files": out_files,
-        "rows": rows,
-        "peak_rss_mb": peak_mb,
-        "pid": os.getpid(),
-        "cores": cores,
-        "node": _node(),
-    }
+    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
+            "node": _node()}  # fmt: skip
 
 
 # ---- the driver's side -------------------------------------------------------------------------------
