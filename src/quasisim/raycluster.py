@@ -165,6 +165,17 @@ def _send_token() -> None:
         Config.initialize("")
 
 
+def _import_ray() -> Any:
+    """The ``ray`` module, or an error saying how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise QuasisimError(
+            "batches run on Ray, which is not installed here: pip install 'quasisim[cluster]' (make setup installs it)"
+        ) from None
+    return ray
+
+
 def _one_line(e: BaseException) -> str:
     lines = [x.strip() for x in str(e).splitlines() if x.strip()]
     return f"{type(e).__name__}: {lines[0] if lines else ''}"[:300]
@@ -216,7 +227,7 @@ def connect(address: str, env: dict[str, str], min_cpus: int) -> Any:
     of it has ``min_cpus`` CPUs (a clip's task could never start)."""
     addr = resolve(address)
     _send_token()
-    import ray
+    ray = _import_ray()
 
     try:
         with _sigterm_kept():
@@ -244,7 +255,7 @@ def start_local(num_cpus: int, env: dict[str, str]) -> Any:
     if other:
         print(f"note: {other}; this batch starts a Ray of its own (--ray auto runs it on the cluster of `ray start`)",
               file=sys.stderr)  # fmt: skip
-    import ray
+    ray = _import_ray()
 
     before = os.environ.pop("RAY_ADDRESS", None)
     try:
