@@ -266,7 +266,9 @@ def start_local(num_cpus: int, env: dict[str, str]) -> Any:
             )  # fmt: skip
     except Exception as e:
         raise QuasisimError(
-            f"could not start Ray on this machine ({_one_line(e)}); see Ray's logs in {ray_temp_dir()}"
+            f"could not start a Ray of this batch's own on this machine ({_one_line(e)}); Ray's logs are in "
+            f"{ray_temp_dir()}/session_latest/logs (a full /tmp or /dev/shm is the usual cause; RAY_TMPDIR moves "
+            "Ray's files elsewhere)"
         ) from None
     finally:
         if before is not None:
