@@ -552,9 +552,9 @@ def run_batch_command(
     print(text)
     t = throughput(res)
     if res.n_run:
-        print(
-            f"{res.n_run} clip(s) in {res.wall_s:.0f} s with {s.workers} worker(s): {t['clips_per_hour']:.1f} clips/hour"
-        )
+        where = f"on {t['nodes_used']} node(s) of the Ray cluster at {ray_address}" if ray_address else ""
+        print(f"{res.n_run} clip(s) in {res.wall_s:.0f} s {where or f'with {s.workers} worker(s)'}: "
+              f"{t['clips_per_hour']:.1f} clips/hour")  # fmt: skip
     print(f"wrote {out / BATCH_FILE}, {out / 'batch.md'} and one folder per clip")
     return res
 

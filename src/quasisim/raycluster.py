@@ -238,7 +238,9 @@ def connect(address: str, env: dict[str, str], min_cpus: int) -> Any:
         raise QuasisimError(
             f"could not connect to the Ray cluster at {addr} ({_one_line(e)}); {TOKEN_HELP}{hint}"
         ) from None
-    cpus = max((n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]), default=0)
+    alive = [n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]]
+    cpus = max(alive, default=0)
+    print(f"on the Ray cluster at {addr}: {len(alive)} node(s), {sum(alive):g} CPUs", file=sys.stderr)
     if cpus < min_cpus:
         ray.shutdown()
         raise QuasisimError(
