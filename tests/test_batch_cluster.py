@@ -12,7 +12,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,9 +68,10 @@ def _batch(clips_dir: Path, out: Path, *extra: str, env: dict[str, str]) -> subp
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait(cond: object, timeout: float, what: str, proc: subprocess.Popen[str] | None = None) -> None:
+def _wait(cond: Callable[[], bool], timeout: float, what: str, proc: subprocess.Popen[str] | None = None) -> None:
+    """Until ``cond()``; fails after ``timeout`` s or when ``proc`` ends first."""
     t0 = time.monotonic()
-    while not cond():  # type: ignore[operator]
+    while not cond():
         if proc is not None and proc.poll() is not None:
             raise AssertionError(f"the batch ended before {what}: {proc.communicate()[1][-2000:]}")
         assert time.monotonic() - t0 < timeout, f"no {what} after {timeout} s"
@@ -87,6 +88,9 @@ def _gone(marker: str, timeout: float = 20.0) -> list[int]:
 
 @dataclass(frozen=True)
 class LocalRun:
+    """What :func:`local_run` saw: the batch folder, each command's outcome, the processes of the interrupted
+    batch left after it, the clip finished before the interrupt and its controls' time stamp."""
+
     out: Path
     interrupted: subprocess.CompletedProcess[str]
     left_after_interrupt: list[int]
