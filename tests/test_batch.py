@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -160,13 +161,17 @@ def test_cli_batch_bad_option_is_one_line(tmp_path: Path) -> None:
 def test_bench_batch_layouts_parse_and_refuse_bad_ones(tmp_path: Path) -> None:
     from click.testing import CliRunner
 
+    from quasisim.bench.batch import Layout
     from quasisim.cli import main
     from quasisim.cli.bench import _layout
 
-    assert _layout("2x1") == (2, 1, True) and _layout("2x1-unpinned") == (2, 1, False)
-    for bad in ("2x1-pinned", "2", "0x1", "axb"):
+    assert _layout("2x1") == Layout(2, 1, True) and _layout("2x1-unpinned") == Layout(2, 1, False)
+    # a cluster of 2 nodes of 1 CPU, and one node of 2 CPUs: two workers of one thread either way
+    assert _layout("cluster:2x1") == Layout(2, 1, True, nodes=2) and _layout("cluster:1x2") == Layout(2, 1, True, 1)
+    assert [_layout(x).folder for x in ("2x1", "2x1-unpinned", "cluster:2x1")] == ["w2t1", "w2t1u", "n2c1"]
+    for bad in ("2x1-pinned", "2", "0x1", "axb", "cluster:2x1-unpinned", "nodes:2x1", "cluster:0x1"):
         r = CliRunner().invoke(main, ["bench", "batch", str(tmp_path), "--layouts", bad, "--out", str(tmp_path / "o")])
-        assert r.exit_code != 0 and "WORKERSxTHREADS[-unpinned]" in r.output, (bad, r.output)
+        assert r.exit_code != 0 and "WORKERSxTHREADS[-unpinned] or cluster:NODESxCPUS" in r.output, (bad, r.output)
 
 
 def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:
@@ -186,3 +191,55 @@ def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:
     (tmp_path / "zz.npz").write_bytes(b"broken")
     jobs = [Job(tmp_path / f"{c}.npz", ()) for c in [*names, "zz"]]
     assert [j.clip for j in spread_objects(jobs)] == ["a1", "b1", "c1", "zz", "a2", "b2", "a3"]
+
+
+def test_bench_batch_cluster_layouts_run_on_clusters_of_their_own(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """cluster:NODESxCPUS starts that cluster (ray start processes of its own), runs the batch on it with
+    --ray's path and stops it, even when the batch fails; a local layout starts none. The table names both."""
+    import quasisim.bench.batch as bb
+
+    calls: list[Any] = []
+
+    class FakeCluster:
+        address = "127.0.0.1:6379"
+
+        @classmethod
+        def start(cls, cpus: tuple[int, ...]) -> FakeCluster:
+            calls.append(("start", cpus))
+            return cls()
+
+        def stop(self) -> list[int]:
+            calls.append("stop")
+            return []
+
+        def remove(self) -> None:
+            calls.append("remove")
+
+    def fake_run(jobs: list[Job], d: Path, s: Settings) -> str:
+        calls.append(("run", s.ray_address, s.workers, s.threads))
+        return "result"
+
+    monkeypatch.setattr(bb, "LocalCluster", FakeCluster)
+    monkeypatch.setattr(bb, "run_batch", fake_run)
+    assert bb._run_layout([], tmp_path, bb.Layout(2, 1, True, nodes=2), {}) == "result"
+    assert bb._run_layout([], tmp_path, bb.Layout(2, 1, True, nodes=1), {}) == "result"
+    assert bb._run_layout([], tmp_path, bb.Layout(2, 1), {}) == "result"
+    assert calls == [
+        ("start", (1, 1)), ("run", "127.0.0.1:6379", 2, 1), "stop", "remove",
+        ("start", (2,)), ("run", "127.0.0.1:6379", 2, 1), "stop", "remove",
+        ("run", None, 2, 1),
+    ]  # fmt: skip
+    calls.clear()
+    monkeypatch.setattr(bb, "run_batch", lambda jobs, d, s: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        bb._run_layout([], tmp_path, bb.Layout(2, 1, True, nodes=2), {})
+    assert calls == [("start", (1, 1)), "stop", "remove"]
+    row = {"workers": 2, "threads": 1, "pinned": True, "failures": {}, "clips_run": 4, "wall_s": 60.0,
+           "clips_per_hour": 240.0, "peak_rss_mb_per_worker": {"1": 900.0}, "same_controls": True}  # fmt: skip
+    rows = [{**row, "layout": bb.Layout(2, 1, True, 1).label, "nodes_used": 1},
+            {**row, "layout": bb.Layout(2, 1, True, 2).label, "nodes_used": 2, "clips_per_hour": 120.0}]  # fmt: skip
+    text = "\n".join(bb._markdown(rows, SPEC.checked(), 4))
+    assert "| cluster: 1 node(s) x 2 CPU | 2 | 1 | yes | 1 | 4 | 0 | 60 | 240.0 | 1.00x |" in text
+    assert "| cluster: 2 node(s) x 1 CPU | 2 | 1 | yes | 2 | 4 | 0 | 60 | 120.0 | 0.50x |" in text

@@ -22,7 +22,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("envs",),  # the Gymnasium tracking environment
     ("policy",),  # learned tracking policies (PPO): training, evaluation, learning curves
     ("pipeline",),  # one demo end to end
-    ("batch",),  # many demos on Ray
+    ("batch", "raycluster"),  # many demos on Ray; which Ray, and clusters of our own
     ("bench",),  # benchmarks
     ("cli",),  # the command line
 )

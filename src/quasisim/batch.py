@@ -11,12 +11,16 @@ aside and renamed) with ``clip.json`` (the clip's metrics and settings) in it, a
   resumes from its checkpoints in the scratch folder (``OUT/.work`` by default).
 - A worker that dies (killed, out of memory) has its clip retried (``max_retries``); a clip that fails
   with an error is reported with it and the batch goes on.
-- Local by default (``ray.init`` with this machine's cores); ``ray_address`` runs the same tasks on an
-  existing Ray cluster (its workers need quasisim installed; scratch paths are per node).
+- Local by default: a Ray of the batch's own with this machine's cores, whatever other Ray runs here;
+  ``ray_address`` (``auto``: the cluster ``ray start`` made on this machine) runs the same tasks on an existing
+  Ray cluster (its workers need quasisim installed; scratch paths are per node; a node that dies has its
+  clips retried elsewhere). :mod:`quasisim.raycluster` finds and reaches Ray.
+- Interrupted (Ctrl-C, SIGTERM), a local batch takes its Ray down with it; the same command resumes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -26,7 +30,7 @@ import resource
 import shutil
 import time
 import traceback
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +43,8 @@ CLIP_FILE = "clip.json"  # written last into a clip's folder: its metrics and wh
 BATCH_FILE = "batch.json"
 SKIP_OUTPUT = ("checkpoints",)  # stays in the worker's scratch folder
 FAULT_ENV = "QUASISIM_BATCH_FAULT"  # tests: "<clip>" makes that clip's first attempt kill its worker
+HOLD_ENV = "QUASISIM_BATCH_HOLD"  # tests: a folder; every clip but the first started with it waits there
+GATE_ENV = "QUASISIM_BATCH_GATE"  # tests: a folder; clips wait until it shows a held clip
 
 
 @dataclass(frozen=True)
@@ -193,6 +199,40 @@ def _fault_hook(clip: str, scratch: Path) -> Any:
     return hook
 
 
+def _hold(clip: str, limit_s: float = 120.0) -> None:
+    """Tests of interrupts and lost nodes (no effect otherwise). In a worker whose environment names a folder
+    ``$QUASISIM_BATCH_HOLD``, every clip but the first one started with it writes ``<clip>.started`` there and
+    waits (until its worker is killed, or ``limit_s``); with ``$QUASISIM_BATCH_GATE`` (a folder), a clip waits
+    until that folder shows a held clip (two ``.started`` files), so that another node gets clips meanwhile."""
+    hold, gate = os.environ.get(HOLD_ENV), os.environ.get(GATE_ENV)
+    if hold:
+        waits = any(Path(hold).glob("*.started"))  # not the first clip
+        (Path(hold) / f"{clip}.started").write_text(str(os.getpid()))
+        if waits:
+            _sleep_until(lambda: False, limit_s)
+    elif gate:
+        _sleep_until(lambda: len(list(Path(gate).glob("*.started"))) >= 2, limit_s)
+
+
+def _sleep_until(done: Callable[[], bool], limit_s: float) -> None:
+    """Sleep until ``done()`` or for ``limit_s``."""
+    t0 = time.monotonic()
+    while not done() and time.monotonic() - t0 < limit_s:
+        time.sleep(0.2)
+
+
+def _node() -> str:
+    """The Ray node this worker runs on (its id; the host name outside Ray)."""
+    import socket
+
+    try:
+        import ray
+
+        return str(ray.get_runtime_context().get_node_id()) if ray.is_initialized() else socket.gethostname()
+    except ImportError:
+        return socket.gethostname()
+
+
 def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> dict[str, Any]:
     """Run ``job``'s transfers in ``scratch`` (resumed from the checkpoints there); returns their output
     files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
@@ -200,6 +240,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
     from quasisim.pipeline import run_transfer
     from quasisim.runtime import configure, free_compiled_programs, pin_to_free_cores
 
+    _hold(job.clip)
     cores = pin_to_free_cores(s.threads) if s.pin_cores else None  # before JAX's CPU backend starts
     configure()
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
@@ -235,7 +276,8 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
         prefix = f"{r.name}/" if r.name else ""
         out_files |= {prefix + k: v for k, v in _read_tree(run_dir).items()}
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores}
+    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
+            "node": _node()}  # fmt: skip
 
 
 # ---- the driver's side -------------------------------------------------------------------------------
@@ -243,8 +285,8 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
 
 @dataclass
 class BatchResult:
-    """Rows (one per clip and run), failures ({clip: error}), timing of a batch, and per worker process
-    ({pid: ...}) its peak memory and the cores it was pinned to (None: not pinned)."""
+    """Rows (one per clip and run), failures ({clip: error}), timing of a batch, per worker process
+    ({pid: ...}) its peak memory and the cores it was pinned to (None: not pinned), and the node of each clip."""
 
     rows: list[dict[str, Any]]
     failures: dict[str, str]
@@ -254,6 +296,7 @@ class BatchResult:
     peak_rss_mb: dict[str, float]
     cores: dict[str, list[int] | None] = field(default_factory=dict)
     lead: dict[str, Any] | None = None  # the clip run alone on every core first (:func:`leads`): clip, pid
+    nodes: dict[str, str] = field(default_factory=dict)  # {clip: the Ray node it ran on}
 
 
 def finished_runs(out: Path, job: Job, s: Settings, any_revision: bool = False) -> dict[str, dict[str, Any]]:
@@ -293,19 +336,16 @@ def _persist(out: Path, job: Job, s: Settings, result: dict[str, Any]) -> None:
 
 
 def _ray_init(s: Settings) -> Any:
-    import ray
+    """``ray`` for this batch: a local Ray of its own, or the cluster of ``s.ray_address``
+    (:mod:`quasisim.raycluster`; a failure is one line naming the address)."""
+    from quasisim.raycluster import connect, start_local
 
     # XLA has no flag for a thread count; one core per worker: Eigen's thread pool off (MuJoCo's threads are set apart)
     threads = f"--xla_cpu_multi_thread_eigen={'true' if s.threads > 1 else 'false'}"
     env = {"XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {threads}".strip()}  # the driver's flags, kept
     if s.ray_address:
-        ray.init(address=s.ray_address, runtime_env={"env_vars": env}, log_to_driver=False)
-    else:
-        ray.init(
-            num_cpus=s.workers * s.threads, include_dashboard=False, log_to_driver=False,
-            runtime_env={"env_vars": env}, logging_level="ERROR",
-        )  # fmt: skip
-    return ray
+        return connect(s.ray_address, env, s.threads)
+    return start_local(s.workers * s.threads, env)
 
 
 def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> BatchResult:
@@ -324,23 +364,34 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
     failures: dict[str, str] = {}
     peak: dict[str, float] = {}
     cores: dict[str, list[int] | None] = {}
+    nodes: dict[str, str] = {}
     t0 = time.perf_counter()
     lead = None
-    for job, result in _dispatch(spread_objects(todo), s, scratch) if todo else ():
-        if isinstance(result, dict) and result.get("lead"):
-            lead = {"clip": job.clip, "pid": result["pid"]}
-        if isinstance(result, str):
-            failures[job.clip] = result
-        else:
-            _persist(out, job, s, result)
-            if not s.keep_scratch:
-                shutil.rmtree(scratch / job.clip, ignore_errors=True)
-            rows += result["rows"]
-            peak[str(result["pid"])] = result["peak_rss_mb"]
-            cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
-        if on_clip is not None:
-            on_clip(rows, failures)
-    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores, lead)
+    # closed at once when the loop ends early (Ctrl-C, an error): a local Ray goes down with it
+    with contextlib.closing(_dispatch(spread_objects(todo), s, scratch)) as results:
+        for job, result in results:
+            _take(job, result, out, s, scratch, (rows, failures, peak, cores, nodes))
+            if isinstance(result, dict) and result.get("lead"):
+                lead = {"clip": job.clip, "pid": result["pid"]}
+            if on_clip is not None:
+                on_clip(rows, failures)
+    return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores, lead, nodes)
+
+
+def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, scratch: Path, acc: tuple[Any, ...]) -> None:
+    """One clip's result into the batch: its folder written (or its error kept) and its row, memory, cores
+    and node added to ``acc`` (rows, failures, peak, cores, nodes)."""
+    rows, failures, peak, cores, nodes = acc
+    if isinstance(result, str):
+        failures[job.clip] = result
+        return
+    _persist(out, job, s, result)
+    if not s.keep_scratch:
+        shutil.rmtree(scratch / job.clip, ignore_errors=True)
+    rows.extend(result["rows"])
+    peak[str(result["pid"])] = result["peak_rss_mb"]
+    cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
+    nodes[job.clip] = result.get("node", "")  # "": a worker of an older quasisim
 
 
 def leads(s: Settings, n_todo: int) -> bool:
@@ -361,6 +412,16 @@ def run_lead_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) 
 def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
     """Yield (job, result or error text) as the workers finish, with a progress bar over clips; with
     :func:`leads`, the first readable clip runs alone on every core before the others are handed out."""
+    from quasisim.raycluster import sigterm_interrupts
+
+    if not todo:
+        return
+    with sigterm_interrupts():
+        yield from _dispatch_on_ray(todo, s, scratch)
+
+
+def _dispatch_on_ray(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
+    """:func:`_dispatch` once SIGTERM interrupts: Ray started or reached, the clips run, Ray shut down."""
     from tqdm import tqdm
 
     ray = _ray_init(s)
@@ -378,7 +439,7 @@ def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job
                         break
             yield from _run_group(ray, task, s, rest, scratch, bar)
     finally:
-        ray.shutdown()
+        ray.shutdown(wait_for_processes=not s.ray_address)  # a local Ray's processes are gone when it returns
 
 
 def _run_group(
@@ -491,9 +552,9 @@ def run_batch_command(
     print(text)
     t = throughput(res)
     if res.n_run:
-        print(
-            f"{res.n_run} clip(s) in {res.wall_s:.0f} s with {s.workers} worker(s): {t['clips_per_hour']:.1f} clips/hour"
-        )
+        where = f"on {t['nodes_used']} node(s) of the Ray cluster at {ray_address}" if ray_address else ""
+        print(f"{res.n_run} clip(s) in {res.wall_s:.0f} s {where or f'with {s.workers} worker(s)'}: "
+              f"{t['clips_per_hour']:.1f} clips/hour")  # fmt: skip
     print(f"wrote {out / BATCH_FILE}, {out / 'batch.md'} and one folder per clip")
     return res
 
@@ -504,6 +565,7 @@ def throughput(res: BatchResult) -> dict[str, Any]:
         "clips_run": res.n_run, "wall_s": res.wall_s,
         "clips_per_hour": 3600.0 * res.n_run / res.wall_s if res.n_run and res.wall_s > 0 else None,
         "peak_rss_mb_per_worker": res.peak_rss_mb, "cores_per_worker": res.cores, "lead_clip": res.lead,
+        "node_per_clip": res.nodes, "nodes_used": len(set(res.nodes.values())),
     }  # fmt: skip
 
 

@@ -37,6 +37,32 @@ def _friendly(fn: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+INTERRUPTED = "interrupted; rerun the same command to resume"
+
+
+def _interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """A resumable command stopped by Ctrl-C (or SIGTERM: exit 143 from :func:`_setup_runtime`'s handler,
+    or a KeyboardInterrupt while Ray waits, :func:`quasisim.raycluster.sigterm_interrupts`) ends with one
+    line and the shell's status for it: 130 (143), no traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from quasisim.raycluster import terminated
+
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt:
+            code = 143 if terminated() else 130
+        except SystemExit as e:
+            if e.code != 143:
+                raise
+            code = 143
+        click.echo(INTERRUPTED, err=True)
+        sys.exit(code)
+
+    return wrapper
+
+
 class _OneLineErrors(click.Group):
     """The top-level group: click's usage errors (bad or missing options) as one line on stderr, exit code 2."""
 

@@ -4,6 +4,7 @@ long, failures); the studies are in bench_studies."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -15,6 +16,7 @@ from quasisim.cli._common import (
     _TRACK_SET,
     TARGET_CHOICE,
     _friendly,
+    _interruptible,
     _outputs_free,
     _parse_sets,
     _positive_ints,
@@ -26,6 +28,9 @@ from quasisim.cli._common import (
 )
 from quasisim.errors import QuasisimError
 from quasisim.method.spec import METHODS, TransferSpec, parse_stages
+
+if TYPE_CHECKING:
+    from quasisim.bench.batch import Layout
 
 
 @main.group()
@@ -139,7 +144,10 @@ def bench_sim(
     default=None,
     help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
 )
-@click.option("--ray", "ray_address", default=None, help="Address of an existing Ray cluster (default: local Ray).")
+@click.option(
+    "--ray", "ray_address", default=None,
+    help="Run on an existing Ray cluster: auto (the one `ray start` made here) or HOST:PORT (default: local Ray).",
+)  # fmt: skip
 @click.option(
     "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
 )
@@ -164,6 +172,7 @@ def bench_sim(
 @_TRACK_SET
 @_RANGES
 @_LEAD_CLIP
+@_interruptible
 @_friendly
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
@@ -237,39 +246,50 @@ def bench_compare(folders: tuple[str, ...], run: str, kinematic: bool, out: Path
 @click.option("--stages", default=None, help="As in transfer (method ours).")
 @click.option(
     "--layouts", default="1x1,2x1,1x2", show_default=True,
-    help="WORKERSxTHREADS per layout, in order; -unpinned: workers not pinned to cores of their own (2x1-unpinned).",
+    help="Per layout, in order: WORKERSxTHREADS of a local batch (-unpinned: workers not pinned to cores of their "
+    "own, 2x1-unpinned), or cluster:NODESxCPUS, a Ray cluster of that many nodes started on this machine for the "
+    "layout (cluster:1x2,cluster:2x1: one node of 2 CPUs against two nodes of 1 CPU).",
 )  # fmt: skip
 @click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/batch"), show_default=True)
+@_interruptible
 @_friendly
 def bench_batch(
     data_dir: Path, clip_names: str, pattern: str, method: str, stages: str, layouts: str, sets: tuple[str, ...],
     out: Path,
 ) -> None:  # fmt: skip
-    """Clips per hour of `quasisim batch` with 1 and 2 Ray workers on the same clips (same command)."""
+    """Clips per hour of `quasisim batch` with 1 and 2 Ray workers, or on Ray clusters of 1 and 2 nodes, on
+    the same clips (same command)."""
     _outputs_free(out)
     _setup_runtime()
     from quasisim.bench.batch import run_batch_bench
 
     try:
         lay = tuple(_layout(x.strip()) for x in layouts.split(",") if x.strip())
-        assert lay and all(min(x[:2]) >= 1 for x in lay)
+        assert lay
     except (ValueError, AssertionError):
         raise QuasisimError(
-            f"--layouts expects WORKERSxTHREADS[-unpinned],... (e.g. 1x1,2x1,2x1-unpinned), got {layouts!r}"
+            f"--layouts expects WORKERSxTHREADS[-unpinned] or cluster:NODESxCPUS, comma-separated (e.g. "
+            f"1x1,2x1,2x1-unpinned or cluster:1x2,cluster:2x1), got {layouts!r}"
         ) from None
     spec = TransferSpec(method=method, stages=_stages(stages), render=False, progress=False).checked()
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))  # type: ignore[arg-type]
+    run_batch_bench(data_dir, names, pattern, spec, lay, out, _parse_sets(sets))
 
 
-def _layout(text: str) -> tuple[int, int, bool]:
-    """``2x1`` -> (2, 1, pinned); ``2x1-unpinned`` -> (2, 1, not pinned)."""
-    shape, _, flag = text.partition("-")
-    if flag not in ("", "unpinned"):
+def _layout(text: str) -> Layout:
+    """``2x1`` -> 2 local workers of 1 thread, pinned; ``2x1-unpinned``: not pinned; ``cluster:2x1`` -> a
+    cluster of 2 nodes of 1 CPU each (a worker of 1 thread per CPU)."""
+    from quasisim.bench.batch import Layout
+
+    kind, _, rest = text.rpartition(":")
+    shape, _, flag = rest.partition("-")
+    if kind not in ("", "cluster") or flag not in ("", "unpinned") or (kind and flag):
         raise ValueError(text)
-    w, t = (int(x) for x in shape.split("x"))
-    return w, t, flag == ""
+    a, b = (int(x) for x in shape.split("x"))
+    if min(a, b) < 1:
+        raise ValueError(text)
+    return Layout(a * b, 1, True, a) if kind else Layout(a, b, flag == "")
 
 
 @bench.command("profile")

@@ -18,6 +18,7 @@ from quasisim.cli._common import (
     TARGET_CHOICE,
     _ablation_flags,
     _friendly,
+    _interruptible,
     _outputs_free,
     _parse_sets,
     _ranges,
@@ -250,7 +251,8 @@ def transfer(
     "--ray",
     "ray_address",
     default=None,
-    help="Address of an existing Ray cluster (default: local Ray on this machine).",
+    help="Run on an existing Ray cluster: auto (the one `ray start` made on this machine, or $RAY_ADDRESS) or "
+    "HOST:PORT (default: a Ray of the batch's own on this machine, whatever else runs here).",
 )
 @click.option(
     "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
@@ -276,6 +278,7 @@ def transfer(
 @_LEAD_CLIP
 @_ROBUST
 @_ablation_flags
+@_interruptible
 @_friendly
 def batch(
     data_dir: Path, out: Path, method: str | None, stages: str | None, curriculum: str, hand: str, target: str, budget: str,

@@ -1,0 +1,253 @@
+"""``quasisim batch`` beside and on Ray clusters started here with ``ray start`` (token authentication as Ray
+defaults it): a local batch never attaches to another Ray (a live cluster, its address file left behind,
+``RAY_ADDRESS``), Ctrl-C ends a batch with status 130 and nothing of its Ray left and the same command resumes,
+and a batch on a cluster of two nodes loses one of them in the middle of a clip and still does every clip
+exactly once, with the results of a local batch. Every Ray process here is ours, stopped by its id."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quasisim.batch import GATE_ENV, HOLD_ENV
+from quasisim.errors import QuasisimError
+from quasisim.raycluster import LocalCluster, processes_with, resolve, token_available
+
+pytest.importorskip("ray", reason="Ray is installed with the 'cluster' extra (make setup installs it)")
+
+N_CLIPS = 5
+
+
+@pytest.fixture(scope="module")
+def clips_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Five short clips (copies of the two synthetic examples under other names)."""
+    import shutil
+
+    from quasisim.data.synthetic import EXAMPLES, write_example
+
+    d = tmp_path_factory.mktemp("cluster_clips")
+    src = [write_example(name, d, n_frames=12) for name in EXAMPLES]
+    for k in range(N_CLIPS):
+        shutil.copy(src[k % len(src)], d / f"{src[k % len(src)].stem}_{k}.npz")
+    for p in src:
+        p.unlink()
+    return d
+
+
+@pytest.fixture(scope="module")
+def token_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """A token where Ray looks for one (on a machine where a local Ray ever ran, ~/.ray/auth_token is there:
+    then nothing changes), so that ``ray start --head`` turns token authentication on by default; the mode
+    itself is left to Ray (no RAY_AUTH_MODE)."""
+    mp = pytest.MonkeyPatch()
+    mp.delenv("RAY_AUTH_MODE", raising=False)
+    mp.delenv("RAY_ADDRESS", raising=False)
+    if not token_available():
+        path = tmp_path_factory.mktemp("ray_token") / "auth_token"
+        path.write_text(os.urandom(32).hex())
+        mp.setenv("RAY_AUTH_TOKEN_PATH", str(path))
+    yield
+    mp.undo()
+
+
+def _batch(clips_dir: Path, out: Path, *extra: str, env: dict[str, str]) -> subprocess.Popen[str]:
+    """``quasisim batch`` (the cheapest method, the kinematic retarget judged in MuJoCo) in a subprocess."""
+    cmd = [sys.executable, "-m", "quasisim.cli", "batch", str(clips_dir), "--out", str(out), "--method", "kinematic",
+           "--workers", "2", "--threads", "1", *extra]  # fmt: skip
+    env = {**os.environ, **env}
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait(cond: Callable[[], bool], timeout: float, what: str, proc: subprocess.Popen[str] | None = None) -> None:
+    """Until ``cond()``; fails after ``timeout`` s or when ``proc`` ends first."""
+    t0 = time.monotonic()
+    while not cond():
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(f"the batch ended before {what}: {proc.communicate()[1][-2000:]}")
+        assert time.monotonic() - t0 < timeout, f"no {what} after {timeout} s"
+        time.sleep(0.2)
+
+
+def _gone(marker: str, timeout: float = 20.0) -> list[int]:
+    """The processes still marked with ``marker`` after up to ``timeout`` s (workers exit after their raylet)."""
+    t0 = time.monotonic()
+    while (left := processes_with(marker)) and time.monotonic() - t0 < timeout:
+        time.sleep(0.2)
+    return left
+
+
+@dataclass(frozen=True)
+class LocalRun:
+    """What :func:`local_run` saw: the batch folder, each command's outcome, the processes of the interrupted
+    batch left after it, the clip finished before the interrupt and its controls' time stamp."""
+
+    out: Path
+    interrupted: subprocess.CompletedProcess[str]
+    left_after_interrupt: list[int]
+    resumed: subprocess.CompletedProcess[str]
+    first_clip: str
+    first_stamp: int
+    auto_stale: subprocess.CompletedProcess[str]
+    address: str
+
+
+def _completed(p: subprocess.Popen[str], timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    out, err = p.communicate(timeout=timeout)
+    return subprocess.CompletedProcess(p.args, p.returncode, out, err)
+
+
+@pytest.fixture(scope="module")
+def local_run(clips_dir: Path, token_env: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalRun]:
+    """A local batch beside a live `ray start` cluster (its address file in Ray's temp folder, and
+    RAY_ADDRESS naming it) interrupted with SIGINT after its first clip (the others held); the cluster then
+    stopped (its address file stays, as after a crash) and the same command run again; `--ray auto` then."""
+    base = tmp_path_factory.mktemp("local_run")
+    out, hold = base / "out", base / "hold"
+    hold.mkdir()
+    cluster = LocalCluster.start((1,))
+    try:
+        env = {"RAY_TMPDIR": str(cluster.temp)}
+        p = _batch(clips_dir, out, env={**env, "RAY_ADDRESS": cluster.address, HOLD_ENV: str(hold)})
+        _wait(lambda: any(out.glob("*/clip.json")), 240, "finished clip", p)
+        _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 60, "held clip", p)  # the others are running
+        p.send_signal(signal.SIGINT)
+        interrupted = _completed(p, 60)
+        left = _gone(f"{HOLD_ENV}={hold}")  # only the batch's own processes carry it
+        first = next(out.glob("*/clip.json")).parent
+        stamp = (first / "controls.npz").stat().st_mtime_ns
+        assert not cluster.stop()  # SIGTERM ended every process of it
+        assert (cluster.temp / "ray" / "ray_current_cluster").is_file()  # left behind, as by a crashed cluster
+        resumed = _completed(_batch(clips_dir, out, env=env))
+        auto = _completed(_batch(clips_dir, base / "auto", "--ray", "auto", env=env))
+        yield LocalRun(out, interrupted, left, resumed, first.name, stamp, auto, cluster.address)
+    finally:
+        cluster.stop()
+        cluster.remove()
+
+
+@pytest.mark.slow  # a one-node cluster beside a local batch run twice (~70 s on 2 busy cores)
+def test_local_batch_ignores_other_rays_stops_on_ctrl_c_and_resumes(local_run: LocalRun) -> None:
+    r = local_run
+    # beside a live cluster that RAY_ADDRESS names: one line says so, the batch starts its own Ray
+    assert f"note: RAY_ADDRESS is set ({r.address})" in r.interrupted.stderr
+    assert "starts a Ray of its own" in r.interrupted.stderr
+    # Ctrl-C: status 130, one line, no traceback, none of its Ray processes (raylet, GCS, workers) left
+    assert r.interrupted.returncode == 130, r.interrupted.stderr[-2000:]
+    assert "interrupted; rerun the same command to resume" in r.interrupted.stderr
+    assert "Traceback" not in r.interrupted.stderr
+    assert r.left_after_interrupt == []
+    # the same command with the cluster gone and its address file left: resumes, finished clip untouched
+    assert r.resumed.returncode == 0, r.resumed.stderr[-2000:]
+    assert "where no Ray answers" in r.resumed.stderr and "starts a Ray of its own" in r.resumed.stderr
+    res = json.loads((r.out / "batch.json").read_text())
+    assert res["clips_run"] == N_CLIPS - 1 and not res["failures"] and len(res["rows"]) == N_CLIPS
+    assert (r.out / r.first_clip / "controls.npz").stat().st_mtime_ns == r.first_stamp
+    # --ray auto with only that stale file: one line naming the address and what to do, status 2
+    assert r.auto_stale.returncode == 2, r.auto_stale.stderr[-2000:]
+    last = r.auto_stale.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: no Ray cluster answers at {r.address}") and "ray start --head" in last
+    assert "Traceback" not in r.auto_stale.stderr
+
+
+@pytest.mark.slow  # two `ray start` nodes, a batch of 5 clips, one node killed; a local batch beside (~65 s)
+def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None, tmp_path: Path) -> None:
+    """Clips run on both nodes; the second node's raylet is killed while it holds a clip, which Ray retries
+    on the head: every clip done once, with the results of a local batch (run beside the live cluster, to its
+    end), and no process of the cluster left."""
+    hold, out = tmp_path / "hold", tmp_path / "out"
+    hold.mkdir()
+    # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips
+    cluster = LocalCluster.start((1, 1), node_env={0: {GATE_ENV: str(hold)}, 1: {HOLD_ENV: str(hold)}})
+    try:
+        assert b"Token authentication is enabled" in cluster.log(0).read_bytes()  # Ray's default, a token here
+        raylet, node1 = cluster.raylet(1)
+        # the explicit address: Ray sends no token unless told (RAY_AUTH_MODE), quasisim tells it
+        p = _batch(clips_dir, out, "--ray", cluster.address, env={})
+        _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 240, "held clip on the second node", p)
+        first, held = (f.stem for f in sorted(hold.glob("*.started"), key=lambda f: f.stat().st_mtime_ns))
+        os.kill(raylet, signal.SIGKILL)
+        r = _completed(p)
+        assert r.returncode == 0, r.stderr[-3000:]
+        res = json.loads((out / "batch.json").read_text())
+        nodes = res["node_per_clip"]
+        assert not res["failures"] and res["clips_run"] == N_CLIPS and res["nodes_used"] == 2
+        assert (
+            sorted(row["clip"] for row in res["rows"])
+            == sorted(nodes)
+            == sorted(p.stem for p in clips_dir.glob("*.npz"))
+        )  # every clip once
+        assert nodes[first] == node1 and nodes[held] != node1  # the held clip ran again on the head
+        assert not list(out.glob(".*.incoming"))  # no clip folder half written
+        assert cluster.procs[1].poll() is not None  # the second node's `ray start` ended with its raylet
+        # a local batch beside the live cluster (its address file where Ray looks) runs to its end, on its own Ray
+        local = _completed(_batch(clips_dir, tmp_path / "local", env={"RAY_TMPDIR": str(cluster.temp)}))
+        assert local.returncode == 0, local.stderr[-2000:]
+        assert f"note: a Ray cluster runs at {cluster.address}" in local.stderr
+        for c in nodes:
+            assert json.loads((out / c / "metrics.json").read_text()) == json.loads(
+                (tmp_path / "local" / c / "metrics.json").read_text()
+            ), c
+            with np.load(out / c / "controls.npz") as a, np.load(tmp_path / "local" / c / "controls.npz") as b:
+                np.testing.assert_array_equal(a["q_targets"], b["q_targets"], err_msg=c)
+    finally:
+        left = cluster.stop()
+        cluster.remove()
+    assert not left and not _gone(str(cluster.temp), 5)
+
+
+def test_ray_auto_finds_the_cluster_of_ray_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--ray auto: RAY_ADDRESS, else the address file of `ray start` in Ray's temp folder; checked to answer."""
+    import socket
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setenv("RAY_TMPDIR", str(tmp_path))
+    with pytest.raises(QuasisimError, match="no Ray cluster started with `ray start`"):
+        resolve("auto")
+    with socket.socket() as srv:
+        srv.bind(("127.0.0.1", 0))
+        srv.listen()
+        addr = f"127.0.0.1:{srv.getsockname()[1]}"
+        (tmp_path / "ray").mkdir()
+        (tmp_path / "ray" / "ray_current_cluster").write_text(addr + "\n")
+        assert resolve("auto") == addr and resolve(addr) == addr
+        monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+        with pytest.raises(QuasisimError, match=r"no Ray cluster answers at 127.0.0.1:1 \(from RAY_ADDRESS"):
+            resolve("auto")
+    with pytest.raises(QuasisimError, match="expected HOST:PORT"):
+        resolve("nowhere")
+
+
+def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
+    """Ray turns a SystemExit raised by a signal handler while it waits into exit status 1: during a batch
+    SIGTERM raises KeyboardInterrupt instead, and the command exits 143 (Ctrl-C: 130) with one line."""
+    import quasisim.raycluster as rc
+    from quasisim.cli._common import INTERRUPTED, _interruptible
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    try:
+        with pytest.raises(SystemExit) as e:
+            _interruptible(interrupted)()
+        assert e.value.code == 130
+        before = signal.getsignal(signal.SIGTERM)
+        with pytest.raises(KeyboardInterrupt), rc.sigterm_interrupts():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        assert rc.terminated() and signal.getsignal(signal.SIGTERM) == before
+        with pytest.raises(SystemExit) as e:
+            _interruptible(interrupted)()
+        assert e.value.code == 143
+    finally:
+        rc._TERMINATED.clear()
+    assert INTERRUPTED == "interrupted; rerun the same command to resume"
