@@ -16,7 +16,7 @@ from quasisim.data.controls import Controls
 from quasisim.envs.task import TrackTask
 from quasisim.errors import QuasisimError
 from quasisim.policy.controller import LearnedPolicy
-from quasisim.policy.train import BEST, POLICY, REFERENCE, TrainSetup
+from quasisim.policy.train import BEST, POLICY, TrainSetup, training_task
 
 MODELS = {"best": BEST, "final": POLICY}  # --model: the best validated checkpoint, or the last one
 
@@ -27,10 +27,6 @@ def load_trained(folder: Path, which: str = "best") -> tuple[TrainSetup, TrackTa
     import torch
     from stable_baselines3 import PPO
 
-    from quasisim.data.demo import load_demo
-    from quasisim.envs.config import TrackEnvConfig
-    from quasisim.envs.track import load_reference, task_for
-
     setup = TrainSetup.read(folder)
     if which not in MODELS:
         from quasisim.errors import choice_error
@@ -39,9 +35,7 @@ def load_trained(folder: Path, which: str = "best") -> tuple[TrainSetup, TrackTa
     if not (folder / POLICY).is_file():
         raise QuasisimError(f"{folder}: no {POLICY} (training has not finished: quasisim policy train ... --resume)")
     torch.set_num_threads(1)
-    controls, path = load_reference(folder / REFERENCE)
-    cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
-    task = task_for(load_demo(setup.clip), controls, cfg, setup.residual, path)
+    task, controls = training_task(folder, setup)
     return setup, task, PPO.load(folder / MODELS[which], device="cpu"), controls
 
 

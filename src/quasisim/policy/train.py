@@ -108,6 +108,17 @@ def make_env(out: Path, setup: TrainSetup) -> Any:
     return thunk
 
 
+def training_task(out: Path, setup: TrainSetup) -> tuple[Any, Any]:
+    """The :class:`~quasisim.envs.task.TrackTask` of training folder ``out`` and its reference controls."""
+    from quasisim.data.demo import load_demo
+    from quasisim.envs.config import TrackEnvConfig
+    from quasisim.envs.track import load_reference, task_for
+
+    controls, path = load_reference(out / REFERENCE)
+    cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
+    return task_for(load_demo(setup.clip), controls, cfg, setup.residual, path), controls
+
+
 class Selector:
     """Validates the model at every checkpoint (:func:`~quasisim.policy.controller.validate`: the nominal world and
     ``validate_worlds`` training worlds) and keeps the best one seen in ``best.zip``, the fresh model included
@@ -115,14 +126,10 @@ class Selector:
     spent, across resumes."""
 
     def __init__(self, out: Path, setup: TrainSetup, worlds: int) -> None:
-        from quasisim.data.demo import load_demo
-        from quasisim.envs.config import TrackEnvConfig
-        from quasisim.envs.track import load_reference, task_for, world_config
+        from quasisim.envs.track import world_config
 
-        controls, path = load_reference(out / REFERENCE)
-        env_cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
-        self.task = task_for(load_demo(setup.clip), controls, env_cfg, setup.residual, path)
-        self.out, self.target, self.worlds, self.ranges = out, setup.target, worlds, world_config(env_cfg)
+        self.task, _ = training_task(out, setup)
+        self.out, self.target, self.worlds, self.ranges = out, setup.target, worlds, world_config(self.task.cfg)
         old = out / VALIDATION
         self.state = json.loads(old.read_text()) if old.is_file() else {"history": [], "seconds": 0.0, "best": None}
 
