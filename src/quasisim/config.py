@@ -70,6 +70,12 @@ def _deepcopy(d: Any) -> Any:
     return d
 
 
+def load(cls: type[T], path: str | Path, overrides: dict[str, Any] | None = None) -> T:
+    """``cls`` (a frozen dataclass with a ``path`` field) from the YAML file ``path`` with dotted-key
+    ``overrides``, validated (:func:`build`)."""
+    return build(cls, {**apply_overrides(read_yaml(path), overrides), "path": str(path)}, path)
+
+
 def build(cls: type[T], data: dict[str, Any], path: str | Path | None, prefix: str = "") -> T:
     """Construct frozen dataclass ``cls`` from a mapping, checking keys and basic types.
 

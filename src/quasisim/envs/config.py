@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.config import load
 from quasisim.errors import InputError
 
 TRACK_ENV_PATH = Path(__file__).resolve().parent.parent / "configs" / "track_env.yaml"
@@ -80,5 +80,4 @@ class TrackEnvConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> TrackEnvConfig:
-        path = Path(path or TRACK_ENV_PATH)
-        return build(cls, {**apply_overrides(read_yaml(path), overrides), "path": str(path)}, path)
+        return load(cls, Path(path or TRACK_ENV_PATH), overrides)

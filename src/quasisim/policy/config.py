@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.config import load
 from quasisim.errors import InputError
 
 PPO_PATH = Path(__file__).resolve().parent.parent / "configs" / "ppo.yaml"
@@ -52,8 +52,7 @@ class PPOConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PPOConfig:
-        path = Path(path or PPO_PATH)
-        return build(cls, {**apply_overrides(read_yaml(path), overrides), "path": str(path)}, path)
+        return load(cls, Path(path or PPO_PATH), overrides)
 
     def ppo_kwargs(self, residual: bool) -> dict[str, Any]:
         """The keyword arguments of ``stable_baselines3.PPO`` (for a residual policy or not)."""

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.config import apply_overrides, build, read_yaml
+from quasisim.config import load
 from quasisim.errors import InputError
 from quasisim.targets.scene import Scene
 
@@ -63,9 +63,7 @@ class RobustConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> RobustConfig:
-        path = Path(path or ROBUST_PATH)
-        data = apply_overrides(read_yaml(path), overrides)
-        return build(cls, {**data, "path": str(path)}, path)
+        return load(cls, Path(path or ROBUST_PATH), overrides)
 
     @property
     def closed_loop_key(self) -> str:
