@@ -90,3 +90,72 @@ def test_the_cascade_runs_the_curriculum_where_sampling_loses_the_object(tmp_pat
     # the first step stopped early: its partial result is not a candidate of the selection
     costs = json.loads(str(np.load(tmp_path / "run" / "controls.npz")["extra_selection_costs"]))
     assert "sample-target" not in costs and {"kinematic", "curriculum"} <= set(costs)
+
+
+def test_robust_choice_keeps_the_plan_passing_strict_closed_loop_in_the_most_training_worlds(monkeypatch) -> None:
+    """Among candidates that pass strict nominally: most training worlds strict, then the lower objective; a
+    candidate failing nominally is never judged or kept; equal trajectories are judged once."""
+    from quasisim.method.options import RobustSelectOptions
+    from quasisim.method.stages import selection
+
+    q = {n: np.full((3, 2), i, np.float64) for i, n in enumerate("abcd")}
+    q["a2"] = q["a"].copy()
+    closed = {0: 0.5, 1: 0.75, 2: 0.75, 3: 1.0}
+    judged = []
+
+    def fake_closed(prob, target, traj, opts, weights):
+        judged.append(int(traj[0, 0]))
+        return closed[int(traj[0, 0])]
+
+    monkeypatch.setattr(selection, "closed_loop_success", fake_closed)
+    monkeypatch.setattr(selection, "passes_strict", lambda prob, target, traj: int(traj[0, 0]) != 3)  # d fails
+    costs = {"a": 0.1, "b": 0.3, "c": 0.2, "d": 0.0, "a2": 0.1}
+    ro = RobustSelectOptions(worlds=4)
+    best, scores = selection.robust_choice(None, "mujoco", q, costs, ro, None)
+    assert best == "c" and set(scores) == {"a", "a2", "b", "c"} and sorted(judged) == [0, 1, 2]
+    closed[1] = 1.0  # b now passes in every world: kept although its objective is higher
+    assert selection.robust_choice(None, "mujoco", q, costs, ro, None)[0] == "b"
+    monkeypatch.setattr(selection, "passes_strict", lambda *a: False)
+    assert selection.robust_choice(None, "mujoco", q, costs, ro, None) == (None, {})
+
+
+def test_closed_loop_success_tracks_in_training_worlds_never_the_evaluations(tmp_path: Path, monkeypatch) -> None:
+    """The gate's worlds: robust.yaml's ranges drawn with robust_select.seed (the evaluation's seed is 0), each
+    replayed closed loop; the fraction passing strict."""
+    import quasisim.targets.perturb as perturb
+    from quasisim.eval.robust import replays
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.options import RobustSelectOptions
+    from quasisim.method.stages.selection import closed_loop_success
+
+    _, demo, controls, scene = cube_example(tmp_path)
+    worlds, real = [], perturb.perturbed_scene
+    monkeypatch.setattr(perturb, "perturbed_scene", lambda sc, cfg, i: worlds.append((cfg.seed, i)) or real(sc, cfg, i))
+    prob = type("P", (), {"demo": demo, "scene": scene})()
+    weights = TransferConfig.from_yaml().weights
+    assert closed_loop_success(prob, "mujoco", controls.q_targets, RobustSelectOptions(worlds=0), weights) is None
+    ro = RobustSelectOptions(worlds=2, seed=3, tracker="track_realtime.yaml")
+    frac = closed_loop_success(prob, "mujoco", controls.q_targets, ro, weights)
+    assert worlds == [(3, 0), (3, 1)] and replays(8).seed not in {s for s, _ in worlds}
+    assert frac == 0.0  # the kinematic retarget does not lift the cube, closed loop or not
+
+
+@pytest.mark.slow
+def test_the_cascade_gate_asks_for_closed_loop_success_in_training_worlds(tmp_path: Path, monkeypatch) -> None:
+    """A quick result that passes strict nominally, judged closed loop in 2 training worlds: with the gate at 0
+    the run ends there (the note gives the closed-loop figure); where those worlds say no, the curriculum runs."""
+    from quasisim.method.stages import quick
+
+    path, *_ = cube_example(tmp_path)
+    (tmp_path / "tiny.yaml").write_text(CURRICULUM)
+    on = {**TINY, "robust_select.worlds": 2, "robust_select.gate": 0.0}
+    _, summary, ck = _run(path, tmp_path / "open", on, str(tmp_path / "tiny.yaml"))
+    assert ck == ["kinematic", "quick"]
+    assert any("closed loop in" in n and "of 2 training worlds" in n for n in summary["notes"]), summary["notes"]
+    monkeypatch.setattr(quick, "closed_loop_success", lambda *a: 0.5)
+    _, summary, ck = _run(path, tmp_path / "gated", {**on, "robust_select.gate": 0.75}, str(tmp_path / "tiny.yaml"))
+    assert "stage1_human" in ck and {"stage1", "stage2", "sample", "select"} <= set(summary["seconds"])
+    assert any("closed loop in only 50 % of 2 training worlds" in n for n in summary["notes"])
+    # the quick result stays a candidate of the selection, which judged the nominal passers closed loop
+    costs = json.loads(str(np.load(tmp_path / "gated" / "controls.npz")["extra_selection_costs"]))
+    assert "sample-target" in costs

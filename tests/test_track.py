@@ -130,6 +130,8 @@ def test_in_the_nominal_world_the_tracker_follows_the_plans_rollout(clip) -> Non
         run = replay(world, q, tracker)
         tracker.close()
     assert tracker.replans == len(range(0, len(q) - 1, 2))
+    c = tracker.cost()  # the time per control step: re-planning steps and following ones (every 2)
+    assert len(tracker.step_seconds) == len(q) - 1 and 0 < c["step_ms_p50"] <= c["step_ms_p95"]
     assert np.abs(run.object_pos - nominal.object_pos).max() < 2e-3
     assert np.abs(run.keypoints - nominal.keypoints).max() < 5e-3
 
@@ -254,3 +256,87 @@ def test_two_hands_are_tracked_and_shifted_together(tmp_path) -> None:
     for sl in scene.dof_slices:
         np.testing.assert_allclose(moved[:, sl.start : sl.start + 3], np.broadcast_to(d, (len(moved), 3)))
         assert not moved[:, sl.start + 3 : sl.stop].any()
+
+
+class _Recorder:
+    """A policy that applies the plan as it is and keeps what it was shown."""
+
+    def __init__(self, q: np.ndarray) -> None:
+        self.q, self.seen = q, []
+
+    def start(self, obs):
+        pass
+
+    def act(self, t, obs):
+        self.seen.append(obs)
+        return self.q[t + 1]
+
+    def cost(self):
+        return {}
+
+    def close(self):
+        pass
+
+
+def test_sensing_noise_and_latency_reach_the_controller_and_never_the_world(clip, sampled) -> None:
+    from quasisim.eval.robust import finger_columns
+    from quasisim.targets.perturb import Sensor
+
+    _, _, _, scene = clip
+    q = sampled
+    cfg = replays(1, "sensing")
+    assert cfg.senses and cfg.latency == 1 and cfg.obs_pos == pytest.approx(0.002) and not replays(1).senses
+    fingers = finger_columns(scene)
+    assert fingers.sum() == scene.hands[0].n_joints and not fingers[:6].any()
+    world_scene = perturbed_scene(scene, cfg, 0)
+    with make_target("mujoco", world_scene) as world:
+        blind = replay(world, q)  # open loop: what the world does with the plan
+        rec = _Recorder(q)
+        run = replay(world, q, rec, sensor=Sensor(cfg, 0, fingers))
+        # the same plan applied through a noisy, late sensor: the world runs bit for bit as open loop
+        np.testing.assert_array_equal(run.object_pos, blind.object_pos)
+        np.testing.assert_array_equal(run.qpos, blind.qpos)
+        late = _Recorder(q)
+        replay(
+            world,
+            q,
+            late,
+            sensor=Sensor(dataclasses.replace(cfg, obs_pos=0.0, obs_rot=0.0, obs_joints=0.0), 0, fingers),
+        )
+    seen = rec.seen  # what the controller was shown at frames 0 .. T-2 (it acts T-1 times)
+    assert len(seen) == len(q) - 1
+    # latency 1, no noise: at frame t the controller sees the world's frame t - 1 (frame 0 at the start)
+    for t, obs in enumerate(late.seen):
+        np.testing.assert_array_equal(obs["obj_pos"], run.object_pos[max(0, t - 1)])
+        np.testing.assert_array_equal(obs["qpos"], run.qpos[max(0, t - 1)])
+    # with noise: object position off by ~obs_pos per axis, finger joints by ~obs_joints, the base exact
+    dp = np.array([o["obj_pos"] for o in seen]) - run.object_pos[np.maximum(0, np.arange(len(seen)) - 1)]
+    dq = np.array([o["qpos"] for o in seen]) - run.qpos[np.maximum(0, np.arange(len(seen)) - 1)]
+    assert 0.5 * cfg.obs_pos < dp.std() < 1.5 * cfg.obs_pos
+    assert 0.5 * cfg.obs_joints < dq[:, fingers].std() < 1.5 * cfg.obs_joints
+    assert np.abs(dq[:, ~fingers]).max() == 0.0
+    rot = [np.degrees(2 * np.arccos(min(1.0, abs(float(np.dot(o["obj_quat"], run.object_quat[max(0, t - 1)]))))))
+           for t, o in enumerate(seen)]  # fmt: skip
+    assert 1.0 < np.mean(rot) < 6.0  # 2 deg per axis: about 3.2 deg on average
+
+
+def test_a_late_observation_is_brought_up_to_date_through_the_targets_applied_since(clip, sampled) -> None:
+    """Latency: an observation stamped two frames old is synced into the model and advanced through the two
+    targets applied since; the tracker re-plans from that prediction, close to the world's state now."""
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    with make_target("mujoco", scene) as world, Tracker(demo, scene, q, FAST, weights) as tr:
+        world.reset(q[0], (q[1] - q[0]) * scene.fps)
+        obs, prev, past = world.observe(), q[0], []
+        tr.start(obs)
+        for t in range(12):
+            past.append(obs)
+            nxt = tr.act(t, obs)
+            world.advance(prev, nxt)
+            prev, obs = nxt, world.observe()
+        late = {**past[-2], "frame": np.array(10)}  # frame 10's state, seen at frame 12
+        now = tr._now(12, late)
+    assert np.linalg.norm(past[-2]["obj_pos"] - obs["obj_pos"]) > 2e-3  # the cube moved in those two frames
+    assert np.linalg.norm(now["obj_pos"] - obs["obj_pos"]) < 2e-4
+    assert np.abs(now["qpos"] - obs["qpos"]).max() < 2e-3
+    assert tr._now(12, obs) is obs  # a current observation is taken as it is

@@ -109,12 +109,13 @@ def markdown(
     lines = [
         "### Robust success open vs closed loop",
         "",
-        "Fractions of the perturbed replays that pass (%), open loop / closed loop; the tracker's cost per replay; "
-        "`replays / sampling`: the closed-loop replays' seconds over the run's sampling stage's. Tracker: "
+        "Fractions of the perturbed replays that pass (%), open loop / closed loop; the tracker's cost per replay and "
+        "its time per control step (median / 95th percentile, ms, the mean over replays); `replays / plan`: the "
+        "closed-loop replays' seconds over the run's own (its stages'). Tracker: "
         "configs/track.yaml" + (" with " + ", ".join(f"{k}={v}" for k, v in track.items()) if track else "") + ".",
         "",
-        "| set | method | clips | strict open | strict closed | 20/20 open | 20/20 closed | s per replay | re-plans "
-        "per replay | share of steps re-planned | replays / sampling |",
+        "| set | method | clips | strict open | strict closed | 20/20 open | 20/20 closed | s per replay | ms per "
+        "step p50 / p95 | re-plans per replay | replays / plan |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key in keys:
@@ -122,8 +123,8 @@ def markdown(
             rs = [r for r in rows if r["method"] == run and r.get(key) and r.get(key + CLOSED_LOOP_SUFFIX)]
             if rs:
                 lines.append(_summary_row(key, run, rs))
-    lines += ["", "| clip | method | set | strict open / closed | 20/20 open / closed | s per replay | re-plans |",
-              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += ["", "| clip | method | set | strict open / closed | 20/20 open / closed | s per replay | ms per step "
+              "p50 / p95 |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in rows:
         for key in keys:
             o, c = r.get(key), r.get(key + CLOSED_LOOP_SUFFIX)
@@ -131,7 +132,7 @@ def markdown(
                 continue
             cells = " | ".join(f"{100 * o[k]:.0f} / {100 * c[k]:.0f}" for k in ROBUST_KEYS)
             lines.append(f"| {r['clip']} | {r['method']} | {key} | {cells} | {c['seconds_per_replay']:.1f} | "
-                         f"{c['tracker']['replans']:.0f} |")  # fmt: skip
+                         f"{step_ms([c])} |")  # fmt: skip
     return lines
 
 
@@ -139,11 +140,19 @@ def _summary_row(key: str, run: str, rs: list[dict[str, Any]]) -> str:
     c = [r[key + CLOSED_LOOP_SUFFIX] for r in rs]
     pct = lambda xs: f"{100.0 * np.mean(xs):.0f}"  # noqa: E731
     cols = [pct([r[key][k] for r in rs]) + " | " + pct([x[k] for x in c]) for k in ROBUST_KEYS]
-    ratio = [x["seconds_per_replay"] * x["n"] / r["seconds"]["sample"] for x, r in zip(c, rs, strict=True)
-             if r.get("seconds", {}).get("sample")]  # fmt: skip
+    ratio = [x["seconds_per_replay"] * x["n"] / r["wall_s"] for x, r in zip(c, rs, strict=True) if r.get("wall_s")]
     return (
         f"| {key} | {run} | {len(rs)} | {' | '.join(cols)} | {np.mean([x['seconds_per_replay'] for x in c]):.1f} | "
-        f"{np.mean([x['tracker']['replans'] for x in c]):.0f} | {pct([x['tracker']['replan_share'] for x in c])} % | "
+        f"{step_ms(c)} | {np.mean([x['tracker']['replans'] for x in c]):.0f} | "
         + (f"{np.mean(ratio):.2f} (max {np.max(ratio):.2f})" if ratio else "-")
         + " |"
     )
+
+
+def step_ms(results: list[dict[str, Any]]) -> str:
+    """The tracker's time per control step over closed-loop results, "p50 / p95" ms (means over runs; "-" for
+    results cached before the tracker timed its steps)."""
+    t = [r["tracker"] for r in results if "step_ms_p50" in r["tracker"]]
+    if not t:
+        return "-"
+    return f"{np.mean([x['step_ms_p50'] for x in t]):.0f} / {np.mean([x['step_ms_p95'] for x in t]):.0f}"

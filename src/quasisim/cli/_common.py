@@ -120,10 +120,35 @@ _TRACK_SET = click.option(
     "--track-set", "track_sets", multiple=True,
     help="With --closed-loop: override a tracker setting of configs/track.yaml, e.g. --track-set every=1.",
 )  # fmt: skip
+_TRACKER = click.option(
+    "--tracker", default="track.yaml", show_default=True,
+    help="With --closed-loop: the tracker's settings, a file of configs/ (track.yaml; track_realtime.yaml: a "
+    "control step within 50 ms on one core) or a YAML path; --track-set overrides single settings.",
+)  # fmt: skip
+
+
+def _track_overrides(tracker: str, track_sets: tuple[str, ...]) -> dict[str, Any]:
+    """``--tracker`` and ``--track-set`` as overrides of ``configs/track.yaml`` (only the settings that differ
+    from it), validated."""
+    import dataclasses
+
+    from quasisim.method.track import TrackOptions
+
+    def plain(o: Any) -> dict[str, Any]:
+        return {k: v for k, v in dataclasses.asdict(o).items() if k != "path"}
+
+    chosen, base = plain(TrackOptions.preset(tracker)), plain(TrackOptions.from_yaml())
+    out = {k: list(v) if isinstance(v, tuple) else v for k, v in chosen.items() if v != base[k]}
+    out |= _parse_sets(track_sets)
+    TrackOptions.from_yaml(None, out)  # a bad setting fails here, before anything runs
+    return out
+
+
 _RANGES = click.option(
     "--ranges", default="default", show_default=True,
     help="Perturbation sets of robust success, comma-separated: default (configs/robust.yaml), wide "
-    "(configs/robust_wide.yaml: about 2x the ranges and a push on the object mid-clip).",
+    "(configs/robust_wide.yaml: about 2x the ranges and a push on the object mid-clip), sensing "
+    "(configs/robust_sensing.yaml: the default worlds, seen closed loop through pose noise and one frame of latency).",
 )  # fmt: skip
 
 

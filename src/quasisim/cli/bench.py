@@ -14,6 +14,7 @@ from quasisim.cli._common import (
     _ROBUST,
     _SPEC,
     _TRACK_SET,
+    _TRACKER,
     TARGET_CHOICE,
     _friendly,
     _interruptible,
@@ -24,6 +25,7 @@ from quasisim.cli._common import (
     _robust_sets,
     _setup_runtime,
     _stages,
+    _track_overrides,
     main,
 )
 from quasisim.errors import QuasisimError
@@ -169,6 +171,7 @@ def bench_sim(
     help="After the batch, replay every finished run in the perturbed worlds of --ranges open and closed loop "
     "(--robust N replays each; cached per run, resumable) and add the closed-loop tables.",
 )  # fmt: skip
+@_TRACKER
 @_TRACK_SET
 @_RANGES
 @_LEAD_CLIP
@@ -177,7 +180,8 @@ def bench_sim(
 def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
-    record: bool, robust: int | None, closed_loop: bool, track_sets: tuple[str, ...], ranges: str, lead_clip: bool,
+    record: bool, robust: int | None, closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str,
+    lead_clip: bool,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -200,10 +204,7 @@ def bench_transfer(
     loop = None
     if closed_loop:
         _robust_sets(robust, ranges, closed_loop)
-        from quasisim.method.track import TrackOptions
-
-        TrackOptions.from_yaml(None, _parse_sets(track_sets))  # a bad setting fails here, before any clip runs
-        loop = (_ranges(ranges), _parse_sets(track_sets))
+        loop = (_ranges(ranges), _track_overrides(tracker, track_sets))
     run_transfer_bench(
         data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust, closed_loop=loop
     )

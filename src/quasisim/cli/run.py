@@ -15,6 +15,7 @@ from quasisim.cli._common import (
     _ROBUST,
     _SPEC,
     _TRACK_SET,
+    _TRACKER,
     TARGET_CHOICE,
     _ablation_flags,
     _friendly,
@@ -26,6 +27,7 @@ from quasisim.cli._common import (
     _setup_runtime,
     _stages,
     _summary,
+    _track_overrides,
     main,
 )
 from quasisim.errors import QuasisimError
@@ -105,13 +107,14 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
 @click.option("--force", is_flag=True, help="Replay controls made for another demo (a different content hash).")
 @_ROBUST
 @_CLOSED_LOOP
+@_TRACKER
 @_TRACK_SET
 @_RANGES
 @_OVERWRITE
 @_friendly
 def evaluate(
     demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, robust: int | None,
-    closed_loop: bool, track_sets: tuple[str, ...], ranges: str, overwrite: bool,
+    closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str, overwrite: bool,
 ) -> None:  # fmt: skip
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
@@ -134,13 +137,13 @@ def evaluate(
         robust_cfg = _robust_sets(robust, ranges, closed_loop)
         cost = judging_cost(render, robust_cfg, closed_loop)
         warn_long_clip(d, *cost, "evaluation" + (" with rendering" if render else ""))
-        tracker = None
+        maker = None
         if closed_loop:
             from quasisim.method.track import TrackOptions
             from quasisim.method.track import closed_loop as make_tracker
 
-            tracker = make_tracker(TrackOptions.from_yaml(None, _parse_sets(track_sets)))
-        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg, closed_loop=tracker)
+            maker = make_tracker(TrackOptions.from_yaml(None, _track_overrides(tracker, track_sets)))
+        ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg, closed_loop=maker)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
     _summary(f"{d.name}: {label} in {target}", {label: ev.metrics}, out / "report.html")

@@ -9,29 +9,37 @@ closed loop, a policy (:class:`Policy`, e.g. :class:`quasisim.method.track.Track
 world frame by frame and chooses the targets. Both meet the same seeded worlds, so they compare clip by clip.
 
 The perturbations themselves (:class:`~quasisim.targets.perturb.RobustConfig`, :func:`perturbed_scene`,
-:func:`push_of` and the metrics keys they name) are :mod:`quasisim.targets.perturb`'s, since the sampling
-stage draws them too; they are imported here under the same names.
+:func:`push_of`, :class:`Sensor`, :func:`replay` and the metrics keys they name) are
+:mod:`quasisim.targets.perturb`'s, since the method meets them too (the sampling stage's copies, the cascade's
+closed-loop gate); they are imported here under the same names.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
 from quasisim.data.demo import Demo
 from quasisim.targets.perturb import CLOSED_LOOP_SUFFIX as CLOSED_LOOP_SUFFIX
-from quasisim.targets.perturb import CONFIGS, ROBUST_PATH, RobustConfig, perturbed_scene, push_of
+from quasisim.targets.perturb import CONFIGS, ROBUST_PATH, RobustConfig, Sensor, perturbed_scene, push_of
 from quasisim.targets.perturb import ROBUST_KEY as ROBUST_KEY
+from quasisim.targets.perturb import Policy as Policy
+from quasisim.targets.perturb import finger_columns as finger_columns
+from quasisim.targets.perturb import replay as replay
 from quasisim.targets.scene import Scene
 
-RANGES = {"default": ROBUST_PATH, "wide": CONFIGS / "robust_wide.yaml"}  # --ranges NAME
+RANGES = {  # --ranges NAME
+    "default": ROBUST_PATH, "wide": CONFIGS / "robust_wide.yaml", "sensing": CONFIGS / "robust_sensing.yaml",
+}  # fmt: skip
 # metrics.json key of each shipped perturbation set -> what it perturbs (reports, tables)
 ROBUST_SETS = {
     "robust": "object mass, friction, initial object position, PD gains; configs/robust.yaml",
     "robust_wide": "about 2x those ranges and a push on the object mid-clip; configs/robust_wide.yaml",
+    "robust_sensing": "the default worlds seen through noise (2 mm, 2 deg, 0.01 rad) and one frame of latency; "
+    "configs/robust_sensing.yaml",
 }
 
 
@@ -43,46 +51,6 @@ def replays(n: int | None, ranges: str = "default") -> RobustConfig:
 
         raise choice_error("perturbation ranges", ranges, tuple(RANGES))
     return RobustConfig.from_yaml(RANGES[ranges], None if n is None else {"n": n})
-
-
-class Policy(Protocol):
-    """A closed-loop controller (:class:`quasisim.method.track.Tracker`): ``start`` on the world's first
-    observation, ``act(t, obs)`` -> the PD targets (D,) for frame ``t + 1``; ``cost()`` what it spent
-    (numbers, averaged over replays); ``close()``."""
-
-    def start(self, obs: dict[str, np.ndarray]) -> None: ...
-    def act(self, t: int, obs: dict[str, np.ndarray]) -> np.ndarray: ...
-    def cost(self) -> dict[str, float]: ...
-    def close(self) -> None: ...
-
-
-def replay(world: Any, q_targets: np.ndarray, policy: Policy | None = None,
-           push: tuple[int, np.ndarray] | None = None, qd0: np.ndarray | None = None) -> Any:  # fmt: skip
-    """Run a clip in ``world`` (a :class:`~quasisim.targets.base.Target`) as a robust replay does: the hands
-    start at ``q_targets[0]`` with the targets' initial velocity (or ``qd0``); open loop (no ``policy``) frame
-    ``t + 1``'s targets are ``q_targets[t + 1]``, closed loop ``policy.act(t, observation at t)``; ``push``
-    (frame, dv) adds ``dv`` to the object's velocity after that frame. Returns the :class:`TargetRollout`."""
-    q = np.asarray(q_targets, np.float64)
-    if policy is None and push is None and qd0 is None:
-        return world.rollout(q)
-    T, fps = len(q), world.scene.fps
-    world.reset(q[0], qd0 if qd0 is not None else (q[1] - q[0]) * fps if T > 1 else None)
-    t0, frames, prev = time.perf_counter(), [], q[0]
-    obs = world.observe()
-    if policy is not None:
-        policy.start(obs)
-    for t in range(T):
-        frames.append(obs)
-        if t == T - 1:
-            break
-        nxt = q[t + 1] if policy is None else np.asarray(policy.act(t, obs), np.float64)
-        world.advance(prev, nxt)
-        prev = nxt
-        obs = world.observe()
-        if push is not None and t + 1 == push[0]:
-            world.sync({**obs, "obj_vel": obs["obj_vel"] + push[1]})
-            obs = world.observe()
-    return world.recorded(frames, time.perf_counter() - t0)
 
 
 def robust_success(
@@ -105,7 +73,8 @@ def robust_success(
         t0 = time.perf_counter()
         try:
             with make_target(target, perturbed_scene(scene, cfg, i)) as world:
-                rollout = replay(world, q_targets, ctl, push_of(cfg, i, len(q_targets)))
+                sensor = Sensor(cfg, i, finger_columns(scene)) if ctl is not None and cfg.senses else None
+                rollout = replay(world, q_targets, ctl, push_of(cfg, i, len(q_targets)), sensor=sensor)
         finally:
             if ctl is not None:
                 costs.append(ctl.cost())

@@ -21,8 +21,10 @@ from quasisim.method.options import (
     FitOptions,
     HandoffOptions,
     MPCOptions,
+    RobustSelectOptions,
     SamplingOptions,
     Stage1Options,
+    tracker_file,
 )
 from quasisim.optim.adam import StepBudget
 from quasisim.optim.objective import Weights
@@ -70,6 +72,7 @@ class TransferConfig:
     soften_samples: int
     sampling: SamplingOptions
     stage3: FitOptions
+    robust_select: RobustSelectOptions = dataclasses.field(default_factory=RobustSelectOptions)
     path: str = ""
 
     @classmethod
@@ -157,3 +160,16 @@ def _check_ranges(cfg: TransferConfig, path: Path) -> None:
     walk(cfg, "")
     if not 0.0 < cfg.stage3.held_out < 1.0:
         raise InputError(path, "stage3.held_out", "a fraction in (0, 1)", repr(cfg.stage3.held_out))
+    ro = cfg.robust_select
+    if not isinstance(ro.worlds, int) or not 0 <= ro.worlds <= 64:
+        raise InputError(path, "robust_select.worlds", "a count of training worlds in [0, 64]", repr(ro.worlds))
+    if not isinstance(ro.seed, int) or ro.seed < 1:
+        raise InputError(
+            path, "robust_select.seed", "an integer >= 1 (0 seeds the worlds of robust success)", repr(ro.seed)
+        )
+    if not 0 <= ro.gate <= 1:
+        raise InputError(path, "robust_select.gate", "a fraction in [0, 1]", repr(ro.gate))
+    try:
+        tracker_file(ro.tracker)  # the tracker's settings exist
+    except InputError as e:
+        raise InputError(path, "robust_select.tracker", e.expected, e.got) from None

@@ -1,5 +1,5 @@
 """The settings of each stage of the method: the sections of ``configs/transfer.yaml`` that belong to one stage
-(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``), fields of
+(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``, ``robust_select``), fields of
 :class:`~quasisim.method.config.TransferConfig` (light: no JAX or MuJoCo; the stage modules, the config and
 the closed-loop tracker read them from here)."""
 
@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -221,3 +222,38 @@ class FitOptions:
     residual_lr: float
     rounds: int
     seed: int
+
+
+@dataclass(frozen=True)
+class RobustSelectOptions:
+    """Choosing plans for the worlds they will meet (``configs/transfer.yaml``, ``robust_select``): the cascade's
+    gate (stage ``quick``) and the selection (stage ``select``) replay the plans that pass strict success in the
+    nominal target **closed loop** (the tracker of ``tracker``) in ``worlds`` perturbed copies of it (the ranges
+    of ``configs/robust.yaml``, drawn with ``seed``, never the seed robust success is judged with). The quick
+    result ends the run only where at least ``gate`` of them pass strict success; the selection keeps, among the
+    candidates that pass strict nominally, the one passing strict in most worlds (then the objective). ``worlds`` 0: both judge in the nominal target alone, as before.
+
+    Attributes:
+        worlds: training worlds per plan (0: off).  seed: their seed (>= 1; robust success uses 0).
+        gate: the fraction of worlds the quick result must pass strict in, in [0, 1].
+        tracker: the tracker's settings: a file of ``configs/`` (``track_realtime.yaml``) or a path.
+    """
+
+    worlds: int = 0
+    seed: int = 1
+    gate: float = 0.75
+    tracker: str = "track_realtime.yaml"
+
+
+def tracker_file(name: str) -> Path:
+    """The tracker settings ``name``: a file of ``configs/`` (``track.yaml``, ``track_realtime.yaml``) or a path;
+    an error lists the shipped ones."""
+    from quasisim.errors import InputError
+
+    configs = Path(__file__).resolve().parent.parent / "configs"
+    shipped = configs / name
+    path = shipped if "/" not in name and shipped.is_file() else Path(name)
+    if not path.is_file():
+        presets = sorted(p.name for p in configs.glob("track*.yaml") if p.name != "track_env.yaml")
+        raise InputError(None, "tracker", f"one of {', '.join(presets)} or a YAML file", repr(name))
+    return path

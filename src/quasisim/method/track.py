@@ -19,6 +19,10 @@ and acts on it with PD targets, frame by frame:
    the demo, so in the nominal world the tracker reproduces the plan; ``strict_weight`` > 0 adds the hinge on
    the demo's strict limits (2 cm, 30 deg) from ``strict_margin`` of them.
 
+An observation that carries a time stamp ``frame`` older than ``t`` (a late sensor,
+:class:`~quasisim.targets.perturb.Sensor`) is brought up to date in the model first: synced there, then advanced
+through the targets the tracker applied since (a Smith predictor); the re-plan starts from that prediction.
+
 Settings: ``configs/track.yaml`` (:class:`TrackOptions`). Cost per replay: about ``T / every`` re-plans of
 ``samples`` x ``horizon`` frames in the model. Time-varying linear feedback around the plan (finite-difference
 Jacobians, a Riccati pass) was measured by a prototype (``docs/transfer.md``: 0 % robust strict, contact makes
@@ -27,6 +31,7 @@ the Jacobians useless) and is not built.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,6 +64,8 @@ class TrackOptions:
             one is kept, the rest of the plan moves with it.
         strict_weight, strict_margin: the hinge on the demo's strict limits in the cost (0: none).
         seed: noise seed.  threads: the model's rollout threads.
+        model_dt: the model's physics step (s; 0: the scene's own): a coarser step re-plans faster and predicts
+            less exactly.
     """
 
     every: int = 1
@@ -75,6 +82,7 @@ class TrackOptions:
     strict_margin: float = 0.75
     seed: int = 0
     threads: int = 1
+    model_dt: float = 0.0
     path: str = ""
 
     def __post_init__(self) -> None:
@@ -83,7 +91,7 @@ class TrackOptions:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise InputError(where, name, f"an integer >= {lo}", repr(v))
-        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin"):
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "model_dt"):
             v = getattr(self, name)
             if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < float("inf"):
                 raise InputError(where, name, "a finite number >= 0", repr(v))
@@ -106,6 +114,13 @@ class TrackOptions:
                 data[key] = tuple(data[key])
         return build(cls, {**data, "path": str(path)}, path)
 
+    @classmethod
+    def preset(cls, name: str, overrides: dict[str, Any] | None = None) -> TrackOptions:
+        """The settings of a file of ``configs/`` (``track.yaml``, ``track_realtime.yaml``) or of a path."""
+        from quasisim.method.options import tracker_file
+
+        return cls.from_yaml(tracker_file(name), overrides)
+
     def sampling(self) -> Any:
         """The :class:`~quasisim.method.options.SamplingOptions` whose noise this tracker draws."""
         from quasisim.method.options import SamplingOptions
@@ -124,6 +139,13 @@ def shift_bases(scene: Scene, q: np.ndarray, d: np.ndarray) -> np.ndarray:
     for sl in scene.dof_slices:
         q[..., sl.start : sl.start + 3] += d
     return q
+
+
+def model_scene(scene: Scene, dt: float) -> Scene:
+    """``scene`` with the physics step ``dt`` (s) in either simulator (``scene`` itself for 0)."""
+    if dt == 0:
+        return scene
+    return dataclasses.replace(scene, physics=dataclasses.replace(scene.physics, mujoco_dt=dt, pybullet_dt=dt))
 
 
 class Tracker:
@@ -146,12 +168,13 @@ class Tracker:
 
         self.demo, self.scene, self.opts, self.weights = demo, scene, opts, weights
         self.plan = np.asarray(plan, np.float64)
-        self.model: Target = make_target(target, scene, threads=opts.threads)
+        self.model: Target = make_target(target, model_scene(scene, opts.model_dt), threads=opts.threads)
         self.nominal = nominal if nominal is not None else self.model.rollout(self.plan)
         self._sample = scene_sampler(opts.sampling(), scene)
         base = np.concatenate([np.arange(s.start, s.start + 6) for s in scene.dof_slices])
         self._base_cols = base if len(scene.hands) > 1 else None  # window_costs' smoothness split (one hand: None)
         self.replans, self.physics_steps, self.seconds = 0, 0, 0.0
+        self.step_seconds: list[float] = []  # wall time of every act() (s)
         self.offset = np.zeros(3)  # the start shift of step 1 (m), set by start()
         self._work: np.ndarray | None = None
 
@@ -169,19 +192,33 @@ class Tracker:
         self._demo_ref = [padded(self.demo.object_pos, H), padded(self.demo.object_quat, H)]
         self._rng = np.random.default_rng(self.opts.seed)
         self._applied = self.plan[0].copy()
+        self._history = [self._applied]  # the targets at the end of frames 0, 1, ... (as applied)
         self.model.reset(self.plan[0])
 
     def act(self, t: int, obs: Observation) -> np.ndarray:
         """The PD targets (D,) for the end of frame ``t + 1``, from the world's observation ``obs`` at frame ``t``."""
         if self._work is None:
             raise RuntimeError("tracker: call start(obs) with the world's first observation before act")
-        every = self.opts.every
+        every, t0 = self.opts.every, time.perf_counter()
         if every and t % every == 0:
-            t0 = time.perf_counter()
-            self._replan(t, obs)
+            self._replan(t, self._now(t, obs))
             self.seconds += time.perf_counter() - t0
         self._applied = self._work[t + 1].copy()
+        self._history.append(self._applied)
+        self.step_seconds.append(time.perf_counter() - t0)
         return self._applied
+
+    def _now(self, t: int, obs: Observation) -> Observation:
+        """The state at frame ``t``: ``obs`` itself, or, where it was taken at an earlier ``obs["frame"]``, its
+        prediction in the model through the targets applied since."""
+        taken = int(obs.get("frame", t))
+        if taken >= t:
+            return obs
+        self.model.sync(obs)
+        for k in range(max(taken, 0), t):
+            self.model.advance(self._history[k], self._history[k + 1])
+        self.physics_steps += (t - taken) * self.model.substeps
+        return self.model.observe()
 
     def _replan(self, t: int, obs: Observation) -> None:
         """Step 3: windows from the observed state rolled out in the model, the cheapest kept as the plan."""
@@ -222,10 +259,13 @@ class Tracker:
 
     def cost(self) -> dict[str, float]:
         """What tracking cost so far: seconds re-planning, re-plans, the share of the clip's steps that
-        re-planned, physics steps in the model."""
+        re-planned, physics steps in the model, and the median and 95th percentile of the time per control
+        step (ms, :meth:`act`'s wall time)."""
+        ms = 1e3 * np.asarray(self.step_seconds or [0.0])
         return {
             "replan_seconds": self.seconds, "replans": float(self.replans),
             "replan_share": self.replans / max(len(self.plan) - 1, 1), "physics_steps": float(self.physics_steps),
+            "step_ms_p50": float(np.median(ms)), "step_ms_p95": float(np.percentile(ms, 95)),
         }  # fmt: skip
 
     def close(self) -> None:

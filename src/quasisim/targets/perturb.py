@@ -4,15 +4,20 @@ stage's robust scoring (:mod:`quasisim.method.stages.sampling`, step 7).
 :class:`RobustConfig` holds the ranges (``configs/robust.yaml``, or the wider ``configs/robust_wide.yaml``
 with a push mid-clip); :func:`perturbed_scene` draws replay ``i``'s copy of a scene (object mass and
 inertia, friction, PD gains, the object's initial position) and :func:`push_of` its push, each from a
-generator seeded with ``(seed, i)``, the same on every machine and in every run.
+generator seeded with ``(seed, i)``, the same on every machine and in every run. :class:`Sensor` is what a
+closed-loop controller sees of replay ``i``'s world: its observations late by ``latency`` frames and noisy
+(``obs_pos``, ``obs_rot``, ``obs_joints``), drawn from a generator of their own; the world itself is never touched.
+:func:`replay` runs a clip in one such world, open loop or with a closed-loop :class:`Policy` (robust success,
+:mod:`quasisim.eval.robust`; the cascade's gate, :mod:`quasisim.method.stages.selection`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -31,6 +36,9 @@ class RobustConfig:
     """Perturbed replays (``configs/robust.yaml``): ``n`` replays seeded with ``(seed, i)``; relative ranges
     ``mass`` (mass and inertia), ``friction``, ``pd_gains`` (kp and kv); ``object_pos`` (m, along x and y);
     ``push`` (m/s) added to the object's velocity, horizontally, at frame ``round(push_at (T - 1))`` (0: none).
+    Sensing (closed loop only, :class:`Sensor`): Gaussian noise of std ``obs_pos`` (m) on the object's observed
+    position, ``obs_rot`` (rad, about each axis) on its observed orientation, ``obs_joints`` (rad, or m for slide
+    joints) on the hands' observed finger joints; observations ``latency`` frames old.
     ``name``: the metrics key of the open-loop results (``name + "_closed_loop"`` closed loop)."""
 
     n: int = 0
@@ -41,6 +49,10 @@ class RobustConfig:
     pd_gains: float = 0.10
     push: float = 0.0
     push_at: float = 0.5
+    obs_pos: float = 0.0
+    obs_rot: float = 0.0
+    obs_joints: float = 0.0
+    latency: int = 0
     name: str = ROBUST_KEY
     path: str = ""
 
@@ -58,6 +70,12 @@ class RobustConfig:
             raise InputError(where, "push", "a speed in [0, 2] m/s", repr(self.push))
         if not 0 <= self.push_at <= 1:
             raise InputError(where, "push_at", "a fraction of the clip in [0, 1]", repr(self.push_at))
+        for name, hi in (("obs_pos", 0.05), ("obs_rot", 0.5), ("obs_joints", 0.5)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= hi:
+                raise InputError(where, name, f"a noise std in [0, {hi}]", repr(v))
+        if isinstance(self.latency, bool) or not isinstance(self.latency, int) or not 0 <= self.latency <= 20:
+            raise InputError(where, "latency", "a whole number of frames in [0, 20]", repr(self.latency))
         if not self.name.isidentifier():
             raise InputError(where, "name", "a metrics key (letters, digits, _)", repr(self.name))
 
@@ -68,6 +86,11 @@ class RobustConfig:
     @property
     def closed_loop_key(self) -> str:
         return self.name + CLOSED_LOOP_SUFFIX
+
+    @property
+    def senses(self) -> bool:
+        """Whether a controller sees the worlds through noise or latency (:class:`Sensor`)."""
+        return bool(self.obs_pos or self.obs_rot or self.obs_joints or self.latency)
 
 
 def _draws(cfg: RobustConfig, i: int) -> np.ndarray:
@@ -99,3 +122,102 @@ def push_of(cfg: RobustConfig, i: int, n_frames: int) -> tuple[int, np.ndarray] 
         return None
     a = np.pi * _draws(cfg, i)[5]
     return max(1, round(cfg.push_at * (n_frames - 1))), cfg.push * np.array([np.cos(a), np.sin(a), 0.0])
+
+
+class Sensor:
+    """What a closed-loop controller observes of replay ``i``'s world (``cfg``'s sensing settings): at frame
+    ``t`` the world's observation of frame ``max(0, t - latency)``, with Gaussian noise on the object's position
+    (std ``obs_pos`` m), on its orientation (a rotation by a vector of std ``obs_rot`` rad per axis, applied on
+    the world side) and on every hand's finger joints (std ``obs_joints``; the hands' bases, read from the arm,
+    are exact). Velocities are passed as observed (late, without noise). Each observation carries ``frame``, the
+    frame it was taken at (a sensor's time stamp), so a controller can tell how old it is. The noise is drawn from a generator
+    seeded with ``(seed, i, 1)``, apart from the world's draws, so a set with and without sensing meets the same
+    worlds. Call :meth:`see` once per frame, in order, with the world's observation.
+
+    Args:
+        cfg: the perturbation set.  i: the replay.  finger_cols: (D,) bool, the hands' joint columns (not base).
+    """
+
+    def __init__(self, cfg: RobustConfig, i: int, finger_cols: np.ndarray) -> None:
+        self.cfg, self.fingers = cfg, np.asarray(finger_cols, bool)
+        self._rng = np.random.default_rng([cfg.seed, i, 1])
+        self._past: list[dict[str, np.ndarray]] = []
+        self._frames = 0  # observations seen so far
+
+    def see(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The controller's view of this frame's observation ``obs`` (the world's; not modified)."""
+        c = self.cfg
+        self._past.append(obs)
+        seen = dict(self._past[max(0, len(self._past) - 1 - c.latency)])
+        del self._past[: max(0, len(self._past) - 1 - c.latency)]
+        self._frames += 1
+        seen["frame"] = np.array(max(0, self._frames - 1 - c.latency))
+        e_pos, e_rot = self._rng.standard_normal((2, 3))  # drawn every frame, whichever std is 0
+        e_q = self._rng.standard_normal(len(seen["qpos"]))
+        if c.obs_pos:
+            seen["obj_pos"] = np.asarray(seen["obj_pos"]) + c.obs_pos * e_pos
+        if c.obs_rot:
+            seen["obj_quat"] = rotated(seen["obj_quat"], c.obs_rot * e_rot)
+        if c.obs_joints:
+            seen["qpos"] = np.asarray(seen["qpos"]) + np.where(self.fingers, c.obs_joints * e_q, 0.0)
+        return seen
+
+
+def rotated(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """The orientation ``quat`` (w x y z) turned by the rotation vector ``rotvec`` (3,) rad on the world side."""
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_rotvec(rotvec) * Rotation.from_quat(np.roll(np.asarray(quat, np.float64), -1))
+    return np.roll(r.as_quat(), 1)
+
+
+class Policy(Protocol):
+    """A closed-loop controller (:class:`quasisim.method.track.Tracker`): ``start`` on the world's first
+    observation, ``act(t, obs)`` -> the PD targets (D,) for frame ``t + 1``; ``cost()`` what it spent
+    (numbers, averaged over replays); ``close()``."""
+
+    def start(self, obs: dict[str, np.ndarray]) -> None: ...
+    def act(self, t: int, obs: dict[str, np.ndarray]) -> np.ndarray: ...
+    def cost(self) -> dict[str, float]: ...
+    def close(self) -> None: ...
+
+
+def replay(world: Any, q_targets: np.ndarray, policy: Policy | None = None,
+           push: tuple[int, np.ndarray] | None = None, qd0: np.ndarray | None = None,
+           sensor: Sensor | None = None) -> Any:  # fmt: skip
+    """Run a clip in ``world`` (a :class:`~quasisim.targets.base.Target`) as a robust replay does: the hands
+    start at ``q_targets[0]`` with the targets' initial velocity (or ``qd0``); open loop (no ``policy``) frame
+    ``t + 1``'s targets are ``q_targets[t + 1]``, closed loop ``policy.act(t, observation at t)`` (as ``sensor``
+    shows it, where given; the rollout records the world's own states); ``push`` (frame, dv) adds ``dv`` to the
+    object's velocity after that frame. Returns the :class:`TargetRollout`."""
+    q = np.asarray(q_targets, np.float64)
+    if policy is None and push is None and qd0 is None:
+        return world.rollout(q)
+    T, fps = len(q), world.scene.fps
+    world.reset(q[0], qd0 if qd0 is not None else (q[1] - q[0]) * fps if T > 1 else None)
+    t0, frames, prev = time.perf_counter(), [], q[0]
+    obs = world.observe()
+    seen = obs if sensor is None else sensor.see(obs)
+    if policy is not None:
+        policy.start(seen)
+    for t in range(T):
+        frames.append(obs)
+        if t == T - 1:
+            break
+        nxt = q[t + 1] if policy is None else np.asarray(policy.act(t, seen), np.float64)
+        world.advance(prev, nxt)
+        prev = nxt
+        obs = world.observe()
+        if push is not None and t + 1 == push[0]:
+            world.sync({**obs, "obj_vel": obs["obj_vel"] + push[1]})
+            obs = world.observe()
+        seen = obs if sensor is None else sensor.see(obs)
+    return world.recorded(frames, time.perf_counter() - t0)
+
+
+def finger_columns(scene: Scene) -> np.ndarray:
+    """(D,) bool: the columns of the hands' finger joints (every hand's columns after its 6 base coordinates)."""
+    cols = np.zeros(sum(sl.stop - sl.start for sl in scene.dof_slices), bool)
+    for sl in scene.dof_slices:
+        cols[sl.start + 6 : sl.stop] = True
+    return cols

@@ -9,8 +9,13 @@ first frame and scored by the tracking objective the stages optimise, over the w
 
 (the object's translation in m and rotation, the robot's metric keypoints against the human's), with the
 stages' weights (:func:`quasisim.optim.objective.clip_cost`, through the target's
-:meth:`~quasisim.targets.base.Target.judge`); an unstable rollout scores infinity. The lowest J wins. The success thresholds are not
-used: the choice sees only the objective, as the optimisation does.
+:meth:`~quasisim.targets.base.Target.judge`); an unstable rollout scores infinity. The lowest J wins.
+
+With ``robust_select.worlds`` > 0 (:class:`~quasisim.method.options.RobustSelectOptions`) the choice asks
+what the result is for: the candidates that pass strict success replayed in the nominal target are tracked
+closed loop (:mod:`quasisim.method.track`) in that many perturbed training worlds (:func:`closed_loop_success`;
+seeds never those robust success is judged with), and the one passing strict in the most worlds wins (ties:
+the lower J). Where no candidate passes strict nominally, J decides.
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ from typing import Any
 import numpy as np
 
 from quasisim.data.demo import Demo
+from quasisim.limits import strict_success
+from quasisim.method.options import RobustSelectOptions
+from quasisim.method.problem import Problem
 from quasisim.method.stage import Context, Outcome, Stage
 from quasisim.optim.objective import Weights
 from quasisim.targets import make_target
@@ -37,6 +45,60 @@ def best_in_target(
     return min(costs, key=costs.__getitem__), costs
 
 
+def passes_strict(prob: Problem, target: str, q: np.ndarray) -> bool:
+    """Whether PD targets ``q`` (T, D), replayed open loop in ``target``, pass strict success against the demo
+    (every frame within the strict limits, the object moved as in the demo, a stable rollout)."""
+    with make_target(target, prob.scene) as tgt:
+        roll = tgt.rollout(q)
+    demo = prob.demo
+    return not roll.instability and strict_success(demo.object_pos, demo.object_quat, roll.object_pos, roll.object_quat)
+
+
+def closed_loop_success(
+    prob: Problem, target: str, q: np.ndarray, opts: RobustSelectOptions, weights: Weights
+) -> float | None:
+    """The fraction of ``opts.worlds`` training worlds (the ranges of ``configs/robust.yaml`` drawn with
+    ``opts.seed``; :func:`~quasisim.targets.perturb.perturbed_scene`) in which PD targets ``q`` (T, D), tracked
+    closed loop by the tracker of ``opts.tracker`` (built from the nominal scene only), pass strict success; None
+    without worlds. The same replay as closed-loop robust success, in other worlds."""
+    from quasisim.method.track import TrackOptions, closed_loop
+    from quasisim.targets.perturb import RobustConfig, perturbed_scene, push_of, replay
+
+    if opts.worlds == 0:
+        return None
+    demo, scene = prob.demo, prob.scene
+    cfg = RobustConfig.from_yaml(None, {"n": opts.worlds, "seed": opts.seed})
+    tracker = closed_loop(TrackOptions.preset(opts.tracker), weights)(demo, scene, q, target)
+    passed = 0
+    for i in range(cfg.n):
+        with make_target(target, perturbed_scene(scene, cfg, i)) as world, tracker() as ctl:
+            roll = replay(world, q, ctl, push_of(cfg, i, len(q)))
+        passed += not roll.instability and strict_success(
+            demo.object_pos, demo.object_quat, roll.object_pos, roll.object_quat
+        )
+    return passed / cfg.n
+
+
+def robust_choice(
+    prob: Problem, target: str, candidates: dict[str, np.ndarray], costs: dict[str, float],
+    opts: RobustSelectOptions, weights: Weights,
+) -> tuple[str | None, dict[str, float]]:  # fmt: skip
+    """Among ``candidates`` that pass strict success nominally, the one passing strict closed loop in the most
+    training worlds (ties: the lower objective ``costs``), and each one's fraction of worlds
+    (:func:`closed_loop_success`); (None, {}) where none passes nominally. Equal trajectories are judged once."""
+    scores: dict[str, float] = {}
+    by_bytes: dict[bytes, float] = {}
+    for name, q in candidates.items():
+        key = np.ascontiguousarray(q).tobytes()
+        if key not in by_bytes and passes_strict(prob, target, q):
+            by_bytes[key] = closed_loop_success(prob, target, q, opts, weights) or 0.0
+        if key in by_bytes:
+            scores[name] = by_bytes[key]
+    if not scores:
+        return None, {}
+    return max(scores, key=lambda n: (scores[n], -costs[n])), scores
+
+
 def run(ctx: Context, out: Outcome) -> Outcome:
     """Replay every trajectory the run produced in the target and keep the one with the lowest objective:
     the last stage's, those the later stages started from (``Outcome.seen``: the sampling's nominal, the
@@ -46,12 +108,23 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     held = [("last stage", out.q), *reversed(out.seen.items()), ("curriculum", out.plan.traj.q_targets)]
     candidates = {k: np.asarray(q, np.float64) for k, q in [*held, ("kinematic", ctx.kinematic_q)]}
     best, costs = best_in_target(ctx.prob.demo, ctx.prob.scene, ctx.spec.target, candidates, ctx.cfg.weights)
+    objective = ", ".join(f"{k} {v:.4f}" for k, v in costs.items())
+    note = f"kept '{best}' (objective in {ctx.spec.target}: {objective})"
+    ro = ctx.cfg.robust_select
+    if ro.worlds:
+        chosen, scores = robust_choice(ctx.prob, ctx.spec.target, candidates, costs, ro, ctx.cfg.weights)
+        if chosen is None:
+            note += "; no candidate passes strict nominally, so none was judged closed loop"
+        else:
+            best = chosen
+            strict = ", ".join(f"{k} {100 * v:.0f} %" for k, v in scores.items())
+            note = (
+                f"kept '{best}' (strict closed loop in {ro.worlds} training worlds: {strict}; objective: {objective})"
+            )
     ctx.record.seconds["select"] = time.perf_counter() - t0
-    ctx.record.notes.append(
-        f"kept '{best}' (objective in {ctx.spec.target}: " + ", ".join(f"{k} {v:.4f}" for k, v in costs.items()) + ")"
-    )
+    ctx.record.notes.append(note)
     ctx.progress.write(ctx.record.notes[-1])
     return out.replace(q=candidates[best], selected=best, selection_costs=costs)
 
 
-STAGE = Stage(name="select", word="select", config=(), s_per_frame=0.1, run=run, uses_target=True)
+STAGE = Stage(name="select", word="select", config=("robust_select",), s_per_frame=0.1, run=run, uses_target=True)
