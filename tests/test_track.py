@@ -340,3 +340,23 @@ def test_a_late_observation_is_brought_up_to_date_through_the_targets_applied_si
     assert np.linalg.norm(now["obj_pos"] - obs["obj_pos"]) < 2e-4
     assert np.abs(now["qpos"] - obs["qpos"]).max() < 2e-3
     assert tr._now(12, obs) is obs  # a current observation is taken as it is
+
+
+@pytest.mark.parametrize("gains", [1.0, 0.9])
+def test_the_tracker_learns_the_gains_of_the_world_from_observed_transitions(clip, sampled, gains) -> None:
+    """adapt: in a world whose PD gains are 0.9x the nominal, the observed transitions pick the model with 0.9x
+    gains; in the nominal world the nominal model stays. The world is only observed (the same hidden-parameter
+    rule as above: the models are built from the nominal scene and the training ranges)."""
+    from quasisim.targets.perturb import scaled_scene
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    opts = dataclasses.replace(FAST, adapt=True)
+    with make_target("mujoco", scaled_scene(scene, gains=gains)) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        replay(world, q, tr)
+        chosen = tr.models.index(tr.model)
+        gain_of = [m.scene.physics.gain_scale / scene.physics.gain_scale for m in tr.models]
+    assert len(tr.models) == 7 and chosen == int(np.argmin(tr.scores))
+    assert gain_of[chosen] == pytest.approx(gains)
+    if gains == 1.0:
+        assert chosen == 0

@@ -23,6 +23,14 @@ An observation that carries a time stamp ``frame`` older than ``t`` (a late sens
 :class:`~quasisim.targets.perturb.Sensor`) is brought up to date in the model first: synced there, then advanced
 through the targets the tracker applied since (a Smith predictor); the re-plan starts from that prediction.
 
+**Learning the world** (``adapt``): the paper's stage 3, fitting the model to the target, done inside the loop.
+Beside the nominal model the tracker holds six more, each with one hidden parameter at an end of the training
+ranges (``configs/robust.yaml``: object mass, friction, PD gains, each times ``1 -+ range``). After every frame
+each model is synced to the previous observation and advanced through the targets applied since; its error
+against the new observation (object position in mm plus the hands' joints in 0.01 rad, mean) is added to an
+exponentially decaying score (``adapt_decay``), and every re-plan runs in the model with the lowest score. The
+world's parameters are never read: only observed transitions choose the model.
+
 Settings: ``configs/track.yaml`` (:class:`TrackOptions`). Cost per replay: about ``T / every`` re-plans of
 ``samples`` x ``horizon`` frames in the model. Time-varying linear feedback around the plan (finite-difference
 Jacobians, a Riccati pass) was measured by a prototype (``docs/transfer.md``: 0 % robust strict, contact makes
@@ -66,6 +74,8 @@ class TrackOptions:
         seed: noise seed.  threads: the model's rollout threads.
         model_dt: the model's physics step (s; 0: the scene's own): a coarser step re-plans faster and predicts
             less exactly.
+        adapt: choose the model among 7 by how well each predicted the observed transitions.  adapt_decay: the
+            weight of the older errors in that score, in [0, 1).
     """
 
     every: int = 1
@@ -83,6 +93,8 @@ class TrackOptions:
     seed: int = 0
     threads: int = 1
     model_dt: float = 0.0
+    adapt: bool = False
+    adapt_decay: float = 0.8
     path: str = ""
 
     def __post_init__(self) -> None:
@@ -101,8 +113,11 @@ class TrackOptions:
             raise InputError(where, "follow", "a list of fractions in [-2, 2]", repr(self.follow))
         if self.samples < 2 + len(self.follow):
             raise InputError(where, "samples", f"at least 2 + len(follow) = {2 + len(self.follow)}", repr(self.samples))
-        if not isinstance(self.shift, bool):
-            raise InputError(where, "shift", "true or false", repr(self.shift))
+        for name in ("shift", "adapt"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(where, name, "true or false", repr(getattr(self, name)))
+        if not 0 <= self.adapt_decay < 1:
+            raise InputError(where, "adapt_decay", "a weight in [0, 1)", repr(self.adapt_decay))
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> TrackOptions:
@@ -141,6 +156,18 @@ def shift_bases(scene: Scene, q: np.ndarray, d: np.ndarray) -> np.ndarray:
     return q
 
 
+def candidate_scenes(scene: Scene) -> list[Scene]:
+    """The models of ``adapt``: ``scene`` first, then one hidden parameter at a time at either end of the training
+    ranges (``configs/robust.yaml``): object mass, friction, PD gains times ``1 -+ range``."""
+    from quasisim.targets.perturb import RobustConfig, scaled_scene
+
+    r = RobustConfig.from_yaml()
+    out = [scene]
+    for name, rng in (("mass", r.mass), ("friction", r.friction), ("gains", r.pd_gains)):
+        out += [scaled_scene(scene, **{name: 1 + sign * rng}) for sign in (-1.0, 1.0)]
+    return out
+
+
 def model_scene(scene: Scene, dt: float) -> Scene:
     """``scene`` with the physics step ``dt`` (s) in either simulator (``scene`` itself for 0)."""
     if dt == 0:
@@ -168,7 +195,12 @@ class Tracker:
 
         self.demo, self.scene, self.opts, self.weights = demo, scene, opts, weights
         self.plan = np.asarray(plan, np.float64)
-        self.model: Target = make_target(target, model_scene(scene, opts.model_dt), threads=opts.threads)
+        self.models: list[Target] = [
+            make_target(target, model_scene(sc, opts.model_dt), threads=opts.threads)
+            for sc in (candidate_scenes(scene) if opts.adapt else [scene])
+        ]
+        self.model = self.models[0]  # the nominal scene's; with adapt, the one that predicts the world best
+        self.scores = np.zeros(len(self.models))
         self.nominal = nominal if nominal is not None else self.model.rollout(self.plan)
         self._sample = scene_sampler(opts.sampling(), scene)
         base = np.concatenate([np.arange(s.start, s.start + 6) for s in scene.dof_slices])
@@ -193,13 +225,17 @@ class Tracker:
         self._rng = np.random.default_rng(self.opts.seed)
         self._applied = self.plan[0].copy()
         self._history = [self._applied]  # the targets at the end of frames 0, 1, ... (as applied)
-        self.model.reset(self.plan[0])
+        self._last = obs  # the observation the models' next prediction starts from (adapt)
+        for m in self.models:
+            m.reset(self.plan[0])
 
     def act(self, t: int, obs: Observation) -> np.ndarray:
         """The PD targets (D,) for the end of frame ``t + 1``, from the world's observation ``obs`` at frame ``t``."""
         if self._work is None:
             raise RuntimeError("tracker: call start(obs) with the world's first observation before act")
         every, t0 = self.opts.every, time.perf_counter()
+        if self.opts.adapt and t > 0:
+            self._learn(t, obs)
         if every and t % every == 0:
             self._replan(t, self._now(t, obs))
             self.seconds += time.perf_counter() - t0
@@ -207,6 +243,26 @@ class Tracker:
         self._history.append(self._applied)
         self.step_seconds.append(time.perf_counter() - t0)
         return self._applied
+
+    def _learn(self, t: int, obs: Observation) -> None:
+        """``adapt``: score every model by its prediction of the last observed transition, from the previous
+        observation through the targets applied since, and re-plan in the best."""
+        prev, self._last = self._last, obs
+        a, b = int(prev.get("frame", t - 1)), int(obs.get("frame", t))
+        if b <= a:
+            return
+        err = np.empty(len(self.models))
+        for k, m in enumerate(self.models):
+            m.sync(prev)
+            for j in range(a, b):
+                m.advance(self._history[j], self._history[j + 1])
+            got = m.observe()
+            err[k] = (
+                np.linalg.norm(got["obj_pos"] - obs["obj_pos"]) / 1e-3 + np.abs(got["qpos"] - obs["qpos"]).mean() / 1e-2
+            )
+        self.physics_steps += len(self.models) * (b - a) * self.model.substeps
+        self.scores = self.opts.adapt_decay * self.scores + err
+        self.model = self.models[int(np.argmin(self.scores))]
 
     def _now(self, t: int, obs: Observation) -> Observation:
         """The state at frame ``t``: ``obs`` itself, or, where it was taken at an earlier ``obs["frame"]``, its
@@ -269,7 +325,8 @@ class Tracker:
         }  # fmt: skip
 
     def close(self) -> None:
-        self.model.close()
+        for m in self.models:
+            m.close()
 
     def __enter__(self) -> Tracker:
         return self

@@ -103,16 +103,19 @@ def perturbed_scene(scene: Scene, cfg: RobustConfig, i: int) -> Scene:
     """Replay ``i``'s copy of ``scene``: every factor drawn uniformly within its range from a generator
     seeded with ``(cfg.seed, i)`` (the same copy on every machine and in every run)."""
     u = _draws(cfg, i)
-    obj = dataclasses.replace(scene.obj, mass=scene.obj.mass * (1 + cfg.mass * u[0]),
-                              inertia=scene.obj.inertia * (1 + cfg.mass * u[0]))  # fmt: skip
+    scaled = scaled_scene(scene, 1 + cfg.mass * u[0], 1 + cfg.friction * u[1], 1 + cfg.pd_gains * u[2])
+    return dataclasses.replace(scaled, object_pos0=scene.object_pos0 + cfg.object_pos * np.array([u[3], u[4], 0.0]))
+
+
+def scaled_scene(scene: Scene, mass: float = 1.0, friction: float = 1.0, gains: float = 1.0) -> Scene:
+    """``scene`` with the object's mass and inertia times ``mass``, every contact's sliding friction times
+    ``friction`` and every PD gain (kp, kv) times ``gains``."""
+    obj = dataclasses.replace(scene.obj, mass=scene.obj.mass * mass, inertia=scene.obj.inertia * mass)
     object.__setattr__(obj, "_memo", scene.obj._memo)  # the mesh, its SDF and convex parts are unchanged
     physics = dataclasses.replace(
-        scene.physics,
-        friction=scene.physics.friction * (1 + cfg.friction * u[1]),
-        gain_scale=scene.physics.gain_scale * (1 + cfg.pd_gains * u[2]),
+        scene.physics, friction=scene.physics.friction * friction, gain_scale=scene.physics.gain_scale * gains
     )
-    pos0 = scene.object_pos0 + cfg.object_pos * np.array([u[3], u[4], 0.0])
-    return dataclasses.replace(scene, obj=obj, physics=physics, object_pos0=pos0)
+    return dataclasses.replace(scene, obj=obj, physics=physics)
 
 
 def push_of(cfg: RobustConfig, i: int, n_frames: int) -> tuple[int, np.ndarray] | None:
