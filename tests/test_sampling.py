@@ -248,6 +248,22 @@ def test_robust_scores_average_the_copies() -> None:
     np.testing.assert_array_equal(robust_scores(costs, [], top)[top], costs[top])
 
 
+def test_robust_scores_with_a_risk_measure() -> None:
+    """worst: the largest of a candidate's costs over the target and the copies; cvar 0.5: the mean of its
+    largest half (ceil); a candidate robust in every copy beats one cheaper on average with a bad copy."""
+    costs = np.array([0.1, 0.3])
+    top = np.array([0, 1])
+    copies = [np.array([0.05, 0.3]), np.array([0.9, 0.3]), np.array([0.0, 0.3])]  # candidate 0: one bad copy
+    mean, worst = robust_scores(costs, copies, top), robust_scores(costs, copies, top, "worst")
+    cvar = robust_scores(costs, copies, top, "cvar", 0.5)
+    np.testing.assert_allclose(mean, [0.2625, 0.3])
+    np.testing.assert_allclose(worst, [0.9, 0.3])
+    np.testing.assert_allclose(cvar, [(0.9 + 0.1) / 2, 0.3])
+    assert np.argmin(mean) == 0 and np.argmin(worst) == 1 and np.argmin(cvar) == 1
+    with pytest.raises(QuasisimError, match="robust_risk"):
+        dataclasses.replace(OPTS, robust_risk="max")
+
+
 def test_copies_are_perturbed_away_from_the_judged_replays(real) -> None:
     """The copies are drawn as the robust replays are (the shipped ranges), but from robust_seed, so the
     planner never sees the scenes its robust success is judged in (configs/robust.yaml seed 0)."""

@@ -64,6 +64,7 @@ class MPCOptions:
     seed: int
 
 
+RISK_MEASURES = ("mean", "worst", "cvar")  # step 7's aggregation over the target and its perturbed copies
 SAMPLING_MODES = ("predictive", "mppi")
 
 
@@ -90,6 +91,8 @@ class SamplingOptions:
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
+        robust_risk: how step 7 aggregates a candidate's costs over the target and the copies: ``mean``,
+            ``worst`` (the largest), ``cvar`` (the mean of the worst ``robust_cvar`` fraction, at least one).
         screen: draw ``screen`` x the windows and roll out only the kinematic pre-screen's cheapest (step 2;
             1: no pre-screen).
         replan: frames of the chosen window applied before planning again (step 5; at most ``horizon``;
@@ -141,6 +144,8 @@ class SamplingOptions:
     grip_gap: float = 0.02
     backtrack_limit: float = 1.0
     stop_when_lost: bool = False
+    robust_risk: str = "mean"
+    robust_cvar: float = 0.5
 
     def __post_init__(self) -> None:
         self.validate()
@@ -186,6 +191,10 @@ class SamplingOptions:
             raise QuasisimError(f"sampling option 'prune_keep' must be a number in (0, 1], got {self.prune_keep!r}")
         if self.mode not in SAMPLING_MODES:
             raise choice_error("sampling mode", self.mode, SAMPLING_MODES)
+        if self.robust_risk not in RISK_MEASURES:
+            raise choice_error("sampling option 'robust_risk'", self.robust_risk, RISK_MEASURES)
+        if not (_is_number(self.robust_cvar) and 0 < self.robust_cvar <= 1):
+            raise QuasisimError(f"sampling option 'robust_cvar' must be a number in (0, 1], got {self.robust_cvar!r}")
         if not (_is_number(self.temperature) and self.temperature > 0):
             raise QuasisimError(f"sampling option 'temperature' must be a finite number > 0, got {self.temperature!r}")
 

@@ -76,7 +76,8 @@ At every control frame ``t`` of a clip with ``T`` frames:
    cheapest candidates in the target are also rolled out from its own state in every copy whose object is
    still within the strict limits (a copy that has lost it no longer tells candidates apart), and the window
    is chosen by its cost averaged over the target and those copies (a copy's unstable rollout costs
-   :data:`UNSTABLE_COST`). Back-ups put the copies back with the target; with ``backtrack_copies`` the loop
+   :data:`UNSTABLE_COST`), or by another risk measure (``robust_risk``: ``worst``, the largest of those costs;
+   ``cvar``, the mean of the largest ``robust_cvar`` fraction). Back-ups put the copies back with the target; with ``backtrack_copies`` the loop
    also backs up (step 6) when a copy that was within the strict limits before the frame just applied is not
    after it.
 
@@ -486,13 +487,20 @@ def copy_scenes(scene: Scene, opts: SamplingOptions) -> list[Scene]:
     return [perturbed_scene(scene, cfg, i) for i in range(opts.robust_copies)]
 
 
-def robust_scores(costs: np.ndarray, copy_costs: Sequence[np.ndarray], top: np.ndarray) -> np.ndarray:
-    """(N,) the score step 7 chooses by: for the candidates ``top``, their cost in the target ``costs`` (N,)
-    averaged with their costs in the copies (each (len(top),); non-finite: :data:`UNSTABLE_COST`); every
+def robust_scores(
+    costs: np.ndarray, copy_costs: Sequence[np.ndarray], top: np.ndarray, risk: str = "mean", cvar: float = 0.5
+) -> np.ndarray:
+    """(N,) the score step 7 chooses by: for the candidates ``top``, their cost in the target ``costs`` (N,) and
+    in the copies (each (len(top),); non-finite: :data:`UNSTABLE_COST`) aggregated by the risk measure ``risk``:
+    ``mean``; ``worst``, the largest; ``cvar``, the mean of the largest ``ceil(cvar M)`` of the M costs; every
     other candidate infinity (never chosen, MPPI weight 0)."""
     scores = np.full(len(costs), np.inf)
-    rows = [costs[top], *(np.where(np.isfinite(c), c, UNSTABLE_COST) for c in copy_costs)]
-    scores[top] = np.mean(rows, axis=0)
+    rows = np.array([costs[top], *(np.where(np.isfinite(c), c, UNSTABLE_COST) for c in copy_costs)])
+    if risk == "mean":
+        scores[top] = np.mean(rows, axis=0)
+    else:
+        k = 1 if risk == "worst" else math.ceil(cvar * len(rows))
+        scores[top] = np.mean(np.sort(rows, axis=0)[len(rows) - k :], axis=0)
     return scores
 
 
@@ -559,7 +567,7 @@ def _control_loop(
         if prune is not None:  # the candidates that stopped early are never chosen
             costs = np.where(np.isnan(pred.obj_pos[:, -1, 0]), np.inf, costs)
         live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
-        score, n_copy_steps = _score_in_copies(live, run_wins, qd0, costs, cost, opts.robust_top)
+        score, n_copy_steps = _score_in_copies(live, run_wins, qd0, costs, cost, opts)
         steps += n_copy_steps
         win, best = next_plan_window(wins, score, opts)
         if transitions is not None:
@@ -660,16 +668,17 @@ def _draw(
 
 def _score_in_copies(
     live: Sequence[Target], wins: np.ndarray, qd0: np.ndarray | None, costs: np.ndarray,
-    cost: Callable[[np.ndarray, Prediction], np.ndarray], top_n: int,
+    cost: Callable[[np.ndarray, Prediction], np.ndarray], opts: SamplingOptions,
 ) -> tuple[np.ndarray, int]:  # fmt: skip
-    """Step 7: the ``top_n`` cheapest candidates (``costs`` in the target) rolled out in the ``live`` copies
-    too and scored by :func:`robust_scores` (``costs`` itself without live copies); and the physics steps
-    the copies took."""
+    """Step 7: the ``opts.robust_top`` cheapest candidates (``costs`` in the target) rolled out in the ``live``
+    copies too and scored by :func:`robust_scores` with ``opts.robust_risk`` (``costs`` itself without live
+    copies); and the physics steps the copies took."""
     if not live:
         return costs, 0
-    top = np.argsort(costs, kind="stable")[:top_n]
+    top = np.argsort(costs, kind="stable")[: opts.robust_top]
     preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in live]
-    return robust_scores(costs, [cost(wins[top], p) for p in preds], top), sum(p.n_steps for p in preds)
+    scores = robust_scores(costs, [cost(wins[top], p) for p in preds], top, opts.robust_risk, opts.robust_cvar)
+    return scores, sum(p.n_steps for p in preds)
 
 
 def _kept_states(frames: list[int], t: int, back: int | None, keep: int) -> tuple[int | None, list[int]]:
