@@ -159,3 +159,17 @@ def test_the_cascade_gate_asks_for_closed_loop_success_in_training_worlds(tmp_pa
     # the quick result stays a candidate of the selection, which judged the nominal passers closed loop
     costs = json.loads(str(np.load(tmp_path / "gated" / "controls.npz")["extra_selection_costs"]))
     assert "sample-target" in costs
+
+
+def test_robust_select_at_its_defaults_leaves_a_runs_identity_as_it_was() -> None:
+    """Runs made before robust_select existed stay finished runs (resume, report-only passes); turning it on
+    changes the identity of the stages that read it."""
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.registry import CASCADE
+    from quasisim.method.stage import declared_stages
+
+    stages = declared_stages(CASCADE)
+    off = TransferConfig.from_yaml().identity("fast", stages)
+    on = TransferConfig.from_yaml(overrides={"robust_select.worlds": 8}).identity("fast", stages)
+    assert "robust_select" not in off and on["robust_select"] == {"worlds": 8}
+    assert {k: v for k, v in on.items() if k != "robust_select"} == off

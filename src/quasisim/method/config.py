@@ -120,7 +120,9 @@ class TransferConfig:
         for st in stages:
             for key in st.config:
                 if hasattr(self, key):
-                    out[key] = _settings(getattr(self, key))
+                    settings = _settings(getattr(self, key))
+                    if settings:  # a section added later, at its defaults, leaves the identity as it was
+                        out[key] = settings
                 elif spec is not None:
                     out[key] = list(getattr(spec, key))
         return out
