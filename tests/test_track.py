@@ -364,3 +364,32 @@ def test_the_tracker_learns_the_gains_of_the_world_from_observed_transitions(cli
     assert gain_of[chosen] == pytest.approx(gains)
     if gains == 1.0:
         assert chosen == 0
+
+
+def test_a_low_observation_gain_filters_the_sensors_noise(clip, sampled) -> None:
+    """obs_gain 0.3: the state the tracker re-plans from (its estimate: the model's prediction moved 30 % toward
+    each observation) is closer to the world's state than the noisy observations it was given."""
+    from quasisim.eval.robust import finger_columns
+    from quasisim.targets.perturb import Sensor
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    cfg = RobustConfig(n=1, obs_pos=0.004)
+    opts = dataclasses.replace(FAST, every=1, obs_gain=0.3)
+    seen, est, true = [], [], []
+    with make_target("mujoco", scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        sensor = Sensor(cfg, 0, finger_columns(scene))
+        world.reset(q[0], (q[1] - q[0]) * scene.fps)
+        obs, prev = world.observe(), q[0]
+        shown = sensor.see(obs)
+        tr.start(shown)
+        for t in range(len(q) - 1):
+            nxt = tr.act(t, shown)
+            if t > 0:
+                seen.append(shown["obj_pos"]), est.append(tr._est["obj_pos"]), true.append(obs["obj_pos"])
+            world.advance(prev, nxt)
+            prev, obs = nxt, world.observe()
+            shown = sensor.see(obs)
+    err_obs = np.linalg.norm(np.array(seen) - np.array(true), axis=1).mean()
+    err_est = np.linalg.norm(np.array(est) - np.array(true), axis=1).mean()
+    assert err_est < 0.6 * err_obs, (err_est, err_obs)

@@ -23,6 +23,11 @@ An observation that carries a time stamp ``frame`` older than ``t`` (a late sens
 :class:`~quasisim.targets.perturb.Sensor`) is brought up to date in the model first: synced there, then advanced
 through the targets the tracker applied since (a Smith predictor); the re-plan starts from that prediction.
 
+**Filtering noisy observations** (``obs_gain`` < 1): the state the tracker re-plans from is its own estimate: the
+previous estimate advanced in the model through the target applied since, moved toward the (latency-corrected)
+observation by ``obs_gain`` (positions and velocities linearly, the object's orientation by spherical
+interpolation): a fixed-gain observer. 1 (default) takes every observation as it is.
+
 **Learning the world** (``adapt``): the paper's stage 3, fitting the model to the target, done inside the loop.
 Beside the nominal model the tracker holds six more, each with one hidden parameter at an end of the training
 ranges (``configs/robust.yaml``: object mass, friction, PD gains, each times ``1 -+ range``). After every frame
@@ -76,6 +81,8 @@ class TrackOptions:
             less exactly.
         adapt: choose the model among 7 by how well each predicted the observed transitions.  adapt_decay: the
             weight of the older errors in that score, in [0, 1).
+        obs_gain: how far each observation moves the tracker's state estimate from its model's prediction, in
+            (0, 1] (1: the observation as it is).
     """
 
     every: int = 1
@@ -95,6 +102,7 @@ class TrackOptions:
     model_dt: float = 0.0
     adapt: bool = False
     adapt_decay: float = 0.8
+    obs_gain: float = 1.0
     path: str = ""
 
     def __post_init__(self) -> None:
@@ -116,6 +124,8 @@ class TrackOptions:
         for name in ("shift", "adapt"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(where, name, "true or false", repr(getattr(self, name)))
+        if isinstance(self.obs_gain, bool) or not isinstance(self.obs_gain, int | float) or not 0 < self.obs_gain <= 1:
+            raise InputError(where, "obs_gain", "a gain in (0, 1]", repr(self.obs_gain))
         if not 0 <= self.adapt_decay < 1:
             raise InputError(where, "adapt_decay", "a weight in [0, 1)", repr(self.adapt_decay))
 
@@ -226,6 +236,7 @@ class Tracker:
         self._applied = self.plan[0].copy()
         self._history = [self._applied]  # the targets at the end of frames 0, 1, ... (as applied)
         self._last = obs  # the observation the models' next prediction starts from (adapt)
+        self._est = obs  # the state estimate (obs_gain < 1)
         for m in self.models:
             m.reset(self.plan[0])
 
@@ -236,8 +247,10 @@ class Tracker:
         every, t0 = self.opts.every, time.perf_counter()
         if self.opts.adapt and t > 0:
             self._learn(t, obs)
+        if self.opts.obs_gain < 1:
+            self._est = self._filtered(t, self._now(t, obs))
         if every and t % every == 0:
-            self._replan(t, self._now(t, obs))
+            self._replan(t, self._est if self.opts.obs_gain < 1 else self._now(t, obs))
             self.seconds += time.perf_counter() - t0
         self._applied = self._work[t + 1].copy()
         self._history.append(self._applied)
@@ -263,6 +276,25 @@ class Tracker:
         self.physics_steps += len(self.models) * (b - a) * self.model.substeps
         self.scores = self.opts.adapt_decay * self.scores + err
         self.model = self.models[int(np.argmin(self.scores))]
+
+    def _filtered(self, t: int, now: Observation) -> Observation:
+        """``obs_gain`` < 1: the estimate at frame ``t``: the last one advanced in the model through the target
+        applied since, moved toward the (latency-corrected) observation ``now`` by ``obs_gain``."""
+        if t == 0:
+            return now
+        from scipy.spatial.transform import Rotation, Slerp
+
+        self.model.sync(self._est)
+        self.model.advance(self._history[t - 1], self._history[t])
+        self.physics_steps += self.model.substeps
+        pred, k = self.model.observe(), self.opts.obs_gain
+        est = {
+            key: pred[key] + k * (np.asarray(now[key]) - pred[key])
+            for key in ("qpos", "qvel", "obj_pos", "obj_vel", "obj_angvel")
+        }
+        xyzw = Rotation.from_quat([np.roll(pred["obj_quat"], -1), np.roll(np.asarray(now["obj_quat"]), -1)])
+        est["obj_quat"] = np.roll(Slerp([0.0, 1.0], xyzw)(k).as_quat(), 1)
+        return {**pred, **est}
 
     def _now(self, t: int, obs: Observation) -> Observation:
         """The state at frame ``t``: ``obs`` itself, or, where it was taken at an earlier ``obs["frame"]``, its
