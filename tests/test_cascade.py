@@ -134,7 +134,7 @@ def test_closed_loop_success_tracks_in_training_worlds_never_the_evaluations(tmp
     prob = type("P", (), {"demo": demo, "scene": scene})()
     weights = TransferConfig.from_yaml().weights
     assert closed_loop_success(prob, "mujoco", controls.q_targets, RobustSelectOptions(worlds=0), weights) is None
-    ro = RobustSelectOptions(worlds=2, seed=3, tracker="track_realtime.yaml")
+    ro = RobustSelectOptions(worlds=2, seed=3, tracker="track_fast.yaml")
     frac = closed_loop_success(prob, "mujoco", controls.q_targets, ro, weights)
     assert worlds == [(3, 0), (3, 1)] and replays(8).seed not in {s for s, _ in worlds}
     assert frac == 0.0  # the kinematic retarget does not lift the cube, closed loop or not

@@ -122,8 +122,8 @@ _TRACK_SET = click.option(
 )  # fmt: skip
 _TRACKER = click.option(
     "--tracker", default="track.yaml", show_default=True,
-    help="With --closed-loop: the tracker's settings, a file of configs/ (track.yaml; track_realtime.yaml: a "
-    "control step within 50 ms on one core) or a YAML path; --track-set overrides single settings.",
+    help="With --closed-loop: the tracker's settings, a file of configs/ (track.yaml; track_fast.yaml: a third "
+    "of the time per control step) or a YAML path; --track-set overrides single settings.",
 )  # fmt: skip
 
 

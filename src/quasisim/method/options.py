@@ -245,17 +245,17 @@ class RobustSelectOptions:
     Attributes:
         worlds: training worlds per plan (0: off).  seed: their seed (>= 1; robust success uses 0).
         gate: the fraction of worlds the quick result must pass strict in, in [0, 1].
-        tracker: the tracker's settings: a file of ``configs/`` (``track_realtime.yaml``) or a path.
+        tracker: the tracker's settings: a file of ``configs/`` (``track_fast.yaml``) or a path.
     """
 
     worlds: int = 0
     seed: int = 1
     gate: float = 0.75
-    tracker: str = "track_realtime.yaml"
+    tracker: str = "track_fast.yaml"
 
 
 def tracker_file(name: str) -> Path:
-    """The tracker settings ``name``: a file of ``configs/`` (``track.yaml``, ``track_realtime.yaml``) or a path;
+    """The tracker settings ``name``: a file of ``configs/`` (``track.yaml``, ``track_fast.yaml``) or a path;
     an error lists the shipped ones."""
     from quasisim.errors import InputError
 

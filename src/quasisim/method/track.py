@@ -141,7 +141,7 @@ class TrackOptions:
 
     @classmethod
     def preset(cls, name: str, overrides: dict[str, Any] | None = None) -> TrackOptions:
-        """The settings of a file of ``configs/`` (``track.yaml``, ``track_realtime.yaml``) or of a path."""
+        """The settings of a file of ``configs/`` (``track.yaml``, ``track_fast.yaml``) or of a path."""
         from quasisim.method.options import tracker_file
 
         return cls.from_yaml(tracker_file(name), overrides)
