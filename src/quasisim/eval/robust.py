@@ -16,7 +16,6 @@ closed-loop gate); they are imported here under the same names.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -24,10 +23,13 @@ import numpy as np
 
 from quasisim.data.demo import Demo
 from quasisim.targets.perturb import CLOSED_LOOP_SUFFIX as CLOSED_LOOP_SUFFIX
-from quasisim.targets.perturb import CONFIGS, ROBUST_PATH, RobustConfig, Sensor, perturbed_scene, push_of
+from quasisim.targets.perturb import CONFIGS, ROBUST_PATH, RobustConfig, world_replays
 from quasisim.targets.perturb import ROBUST_KEY as ROBUST_KEY
 from quasisim.targets.perturb import Policy as Policy
+from quasisim.targets.perturb import Sensor as Sensor
 from quasisim.targets.perturb import finger_columns as finger_columns
+from quasisim.targets.perturb import perturbed_scene as perturbed_scene
+from quasisim.targets.perturb import push_of as push_of
 from quasisim.targets.perturb import replay as replay
 from quasisim.targets.scene import Scene
 
@@ -63,23 +65,14 @@ def robust_success(
     handed to it) the replays are closed loop, and the result also holds ``seconds_per_replay`` and the
     policy's mean ``cost()`` per replay (``tracker``)."""
     from quasisim.eval.metrics import SUCCESS_KEYS, evaluate_rollout
-    from quasisim.targets import make_target
 
     if cfg.n == 0:
         return {}
     passed, unstable, costs, wall = dict.fromkeys(SUCCESS_KEYS, 0), 0, [], 0.0
-    for i in range(cfg.n):
-        ctl = policy() if policy is not None else None
-        t0 = time.perf_counter()
-        try:
-            with make_target(target, perturbed_scene(scene, cfg, i)) as world:
-                sensor = Sensor(cfg, i, finger_columns(scene)) if ctl is not None and cfg.senses else None
-                rollout = replay(world, q_targets, ctl, push_of(cfg, i, len(q_targets)), sensor=sensor)
-        finally:
-            if ctl is not None:
-                costs.append(ctl.cost())
-                ctl.close()
-        wall += time.perf_counter() - t0
+    for rollout, cost, seconds in world_replays(scene, q_targets, target, cfg, policy):
+        wall += seconds
+        if cost is not None:
+            costs.append(cost)
         if rollout.instability:
             unstable += 1
             continue

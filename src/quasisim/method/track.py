@@ -266,14 +266,10 @@ class Tracker:
             return
         err = np.empty(len(self.models))
         for k, m in enumerate(self.models):
-            m.sync(prev)
-            for j in range(a, b):
-                m.advance(self._history[j], self._history[j + 1])
-            got = m.observe()
+            got = self._predicted(m, prev, a, b)
             err[k] = (
                 np.linalg.norm(got["obj_pos"] - obs["obj_pos"]) / 1e-3 + np.abs(got["qpos"] - obs["qpos"]).mean() / 1e-2
             )
-        self.physics_steps += len(self.models) * (b - a) * self.model.substeps
         self.scores = self.opts.adapt_decay * self.scores + err
         self.model = self.models[int(np.argmin(self.scores))]
 
@@ -284,10 +280,7 @@ class Tracker:
             return now
         from scipy.spatial.transform import Rotation, Slerp
 
-        self.model.sync(self._est)
-        self.model.advance(self._history[t - 1], self._history[t])
-        self.physics_steps += self.model.substeps
-        pred, k = self.model.observe(), self.opts.obs_gain
+        pred, k = self._predicted(self.model, self._est, t - 1, t), self.opts.obs_gain
         est = {
             key: pred[key] + k * (np.asarray(now[key]) - pred[key])
             for key in ("qpos", "qvel", "obj_pos", "obj_vel", "obj_angvel")
@@ -302,11 +295,16 @@ class Tracker:
         taken = int(obs.get("frame", t))
         if taken >= t:
             return obs
-        self.model.sync(obs)
-        for k in range(max(taken, 0), t):
-            self.model.advance(self._history[k], self._history[k + 1])
-        self.physics_steps += (t - taken) * self.model.substeps
-        return self.model.observe()
+        return self._predicted(self.model, obs, max(taken, 0), t)
+
+    def _predicted(self, model: Target, obs: Observation, a: int, b: int) -> Observation:
+        """``obs``, the state at frame ``a``, synced into ``model`` and advanced there through the targets
+        applied since: the model's state at frame ``b``."""
+        model.sync(obs)
+        for j in range(a, b):
+            model.advance(self._history[j], self._history[j + 1])
+        self.physics_steps += (b - a) * model.substeps
+        return model.observe()
 
     def _replan(self, t: int, obs: Observation) -> None:
         """Step 3: windows from the observed state rolled out in the model, the cheapest kept as the plan."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -224,3 +225,26 @@ def finger_columns(scene: Scene) -> np.ndarray:
     for sl in scene.dof_slices:
         cols[sl.start + 6 : sl.stop] = True
     return cols
+
+
+def world_replays(
+    scene: Scene, q_targets: np.ndarray, target: str, cfg: RobustConfig, policy: Callable[[], Policy] | None = None
+) -> Iterator[tuple[Any, dict[str, float] | None, float]]:
+    """Replay ``i`` of ``cfg`` for ``i`` in ``range(cfg.n)``: ``q_targets`` (T, D) run in ``target`` in the
+    perturbed copy of ``scene`` (:func:`perturbed_scene`, :func:`push_of`), open loop or with a fresh
+    :class:`Policy` from ``policy`` (built from the nominal ``scene`` only; it sees the world through a
+    :class:`Sensor` where ``cfg`` senses). Yields ``(rollout, the policy's cost() or None, seconds)``."""
+    from quasisim.targets import make_target
+
+    for i in range(cfg.n):
+        ctl = policy() if policy is not None else None
+        t0, cost = time.perf_counter(), None
+        try:
+            with make_target(target, perturbed_scene(scene, cfg, i)) as world:
+                sensor = Sensor(cfg, i, finger_columns(scene)) if ctl is not None and cfg.senses else None
+                rollout = replay(world, q_targets, ctl, push_of(cfg, i, len(q_targets)), sensor=sensor)
+        finally:
+            if ctl is not None:
+                cost = ctl.cost()
+                ctl.close()
+        yield rollout, cost, time.perf_counter() - t0

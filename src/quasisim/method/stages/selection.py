@@ -49,8 +49,12 @@ def passes_strict(prob: Problem, target: str, q: np.ndarray) -> bool:
     """Whether PD targets ``q`` (T, D), replayed open loop in ``target``, pass strict success against the demo
     (every frame within the strict limits, the object moved as in the demo, a stable rollout)."""
     with make_target(target, prob.scene) as tgt:
-        roll = tgt.rollout(q)
-    demo = prob.demo
+        return passes(prob.demo, tgt.rollout(q))
+
+
+def passes(demo: Demo, roll: Any) -> bool:
+    """Whether a target's rollout passes strict success against ``demo`` (stable, and the rule of
+    :func:`quasisim.limits.strict_success`)."""
     return not roll.instability and strict_success(demo.object_pos, demo.object_quat, roll.object_pos, roll.object_quat)
 
 
@@ -62,21 +66,14 @@ def closed_loop_success(
     closed loop by the tracker of ``opts.tracker`` (built from the nominal scene only), pass strict success; None
     without worlds. The same replay as closed-loop robust success, in other worlds."""
     from quasisim.method.track import TrackOptions, closed_loop
-    from quasisim.targets.perturb import RobustConfig, perturbed_scene, push_of, replay
+    from quasisim.targets.perturb import RobustConfig, world_replays
 
     if opts.worlds == 0:
         return None
     demo, scene = prob.demo, prob.scene
     cfg = RobustConfig.from_yaml(None, {"n": opts.worlds, "seed": opts.seed})
     tracker = closed_loop(TrackOptions.preset(opts.tracker), weights)(demo, scene, q, target)
-    passed = 0
-    for i in range(cfg.n):
-        with make_target(target, perturbed_scene(scene, cfg, i)) as world, tracker() as ctl:
-            roll = replay(world, q, ctl, push_of(cfg, i, len(q)))
-        passed += not roll.instability and strict_success(
-            demo.object_pos, demo.object_quat, roll.object_pos, roll.object_quat
-        )
-    return passed / cfg.n
+    return sum(passes(demo, roll) for roll, _, _ in world_replays(scene, q, target, cfg, tracker)) / cfg.n
 
 
 def robust_choice(
