@@ -84,14 +84,97 @@ def test_replays_in_unperturbed_copies_agree_with_the_nominal_judgement(clip) ->
     assert robust_success(demo, scene, controls.q_targets, "mujoco", dataclasses.replace(none, n=0)) == {}
 
 
-def test_evaluate_writes_robust_success_with_the_number_of_replays_asked(clip, tmp_path) -> None:
-    path, _, _, _ = clip
+def test_evaluate_writes_robust_success_in_the_worlds_asked(clip, tmp_path) -> None:
+    """``--robust 2 --robust-set seed=7`` and a ranges file of the user's own: metrics.json holds, per set,
+    what replaying those worlds in-process gives (the seed and ranges reach the replays)."""
+    from quasisim.eval.robust import replays
+
+    path, demo, controls, scene = clip
+    mine = tmp_path / "my ranges.yaml"
+    mine.write_text("mass: 0.5\nfriction: 0.5\nobject_pos: 0.02\npd_gains: 0.5\n")
     out = tmp_path / "ev"
     cmd = [sys.executable, "-m", "quasisim.cli", "evaluate", str(path), str(path.parent / "kinematic.npz"),
-           "--out", str(out), "--no-render", "--robust", "2"]  # fmt: skip
+           "--out", str(out), "--no-render", "--robust", "2", "--robust-set", "seed=7",
+           "--ranges", f"default,{mine}"]  # fmt: skip
     res = subprocess.run(cmd, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
-    r = json.loads((out / "metrics.json").read_text())["robust"]
-    assert r["n"] == 2 and set(r) >= {"strict", "20deg_20cm", "unstable"}
-    assert all(0.0 <= r[k] <= 1.0 for k in ("strict", "20deg_20cm"))
+    m = json.loads((out / "metrics.json").read_text())
+    assert (m["robust"]["n"], m["robust"]["seed"]) == (2, 7) and (m["robust_my_ranges"]["seed"]) == 7
+    for key, ranges in (("robust", "default"), ("robust_my_ranges", str(mine))):
+        want = robust_success(demo, scene, controls.q_targets, "mujoco", replays(2, ranges, {"seed": 7}))
+        assert m[key] == pytest.approx(want), key
     assert "robust success" in res.stdout and "robust success strict" in (out / "report.html").read_text()
+
+
+def test_robust_settings_and_ranges_files_are_checked(tmp_path) -> None:
+    from quasisim.errors import QuasisimError
+    from quasisim.eval.robust import replays
+
+    cfg = replays(None, "wide", {"seed": 7, "mass": 0.3})
+    assert (cfg.seed, cfg.mass, cfg.name, cfg.push) == (7, 0.3, "robust_wide", RobustConfig.from_yaml(
+        ROBUST_PATH.parent / "robust_wide.yaml").push)  # fmt: skip
+    named = tmp_path / "r.yaml"
+    named.write_text("name: robust_lab\nseed: 3\n")
+    assert (replays(4, str(named)).name, replays(4, str(named)).seed, replays(4, str(named)).n) == ("robust_lab", 3, 4)
+    with pytest.raises(QuasisimError, match=r"--robust-set n: not settable.*--robust N"):
+        replays(None, "default", {"n": 3})
+    with pytest.raises(InputError, match=r"bogus.*one of the keys"):
+        replays(None, "default", {"bogus": 1})
+    with pytest.raises(InputError, match=r"mass.*\[0, 1\)"):
+        replays(None, "default", {"mass": 2.0})
+    with pytest.raises(
+        QuasisimError, match=r"unknown perturbation ranges .nosuch\.yaml.; valid options: default, wide"
+    ):
+        replays(None, "nosuch.yaml")
+
+
+@pytest.mark.parametrize("command", ["transfer", "batch", "bench transfer"])
+def test_every_command_carries_the_robust_settings_to_its_judging(command, tmp_path, monkeypatch) -> None:
+    """``--robust``, ``--ranges`` (a file of the user's own) and ``--robust-set`` of transfer, batch and bench
+    transfer reach what judges the runs (the command's worker function is replaced by a recorder)."""
+    from click.testing import CliRunner
+
+    import quasisim.batch
+    import quasisim.bench.transfer
+    import quasisim.pipeline
+    from quasisim.cli import main
+
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("mass: 0.4\n")
+    seen: dict = {}
+    (tmp_path / "clips").mkdir()
+    demo = tmp_path / "clips" / "a.npz"
+    demo.write_bytes(b"")
+    opts = ["--robust", "3", "--ranges", f"wide,{mine}", "--robust-set", "seed=9", "--robust-set", "friction=0.3"]
+
+    class Recorded(Exception):
+        pass
+
+    def recorder(spec_at: int):
+        def record(*a, **k):
+            seen["spec"] = a[spec_at]
+            raise Recorded
+
+        return record
+
+    if command == "transfer":
+        monkeypatch.setattr(quasisim.pipeline, "run_transfer", recorder(2))
+        args = ["transfer", str(demo), "--out", str(tmp_path / "o"), *opts]
+    elif command == "batch":
+        monkeypatch.setattr(quasisim.batch, "run_batch_command", recorder(3))
+        args = ["batch", str(tmp_path / "clips"), "--out", str(tmp_path / "o"), *opts]
+    else:
+
+        def record(*a, **k):
+            seen["spec"] = quasisim.method.spec.TransferSpec(robust=a[12], robust_set=tuple(k["robust_set"].items()))
+            seen["ranges"] = k["closed_loop"][0]
+
+        monkeypatch.setattr(quasisim.bench.transfer, "run_transfer_bench", record)
+        args = ["bench", "transfer", str(tmp_path / "clips"), "--out", str(tmp_path / "o"), "--closed-loop", *opts]
+    res = CliRunner().invoke(main, args, catch_exceptions=True)
+    assert "spec" in seen, res.output
+    spec = seen["spec"]
+    ranges = seen.get("ranges", spec.ranges)
+    cfgs = dataclasses.replace(spec, ranges=ranges).robust_configs()
+    assert [(c.name, c.n, c.seed, c.friction) for c in cfgs] == [("robust_wide", 3, 9, 0.3), ("robust_mine", 3, 9, 0.3)]
+    assert cfgs[1].mass == 0.4 and ranges == ("wide", str(mine.resolve()))

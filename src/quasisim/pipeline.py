@@ -29,7 +29,6 @@ from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
 from quasisim.errors import InputError, QuasisimError
 from quasisim.eval.evaluate import judging_cost
-from quasisim.eval.robust import replays
 from quasisim.eval.transfer_outputs import OUTPUTS, TransferResult, write_outputs
 from quasisim.files import MANIFEST, check_out_dir, existing_outputs, remove_orphans, run_lock
 from quasisim.method import registry
@@ -172,7 +171,7 @@ def cost_per_frame(
     def scale(st: Stage) -> float:
         return sub * steps(budget, st.budget_parts) / max(1, steps(f, st.budget_parts)) if st.budget_parts else 1.0
 
-    robust = [replays(spec.robust, r) for r in spec.ranges]
+    robust = spec.robust_configs()
     judge_s, judge_mb = judging_cost(spec.render, robust, spec.closed_loop)
     s = RETARGET_S_PER_FRAME + sum(st.s_per_frame * scale(st) for st in stages) + judge_s
     return s, max(MB_PER_FRAME * sub, judge_mb)

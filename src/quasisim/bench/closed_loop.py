@@ -26,11 +26,14 @@ from quasisim.files import save_json_atomic
 CACHE = "robust_closed_loop-{}.json"
 
 
-def settings(n: int, ranges: tuple[str, ...], track: dict[str, Any], target: str) -> dict[str, Any]:
-    """What a cached result must match: the replays, the sets (their files' contents), the tracker, the target."""
+def settings(
+    n: int, ranges: tuple[str, ...], track: dict[str, Any], target: str, robust_set: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """What a cached result must match: the replays, the sets (their files' contents with the ``--robust-set``
+    overrides), the tracker, the target."""
     from quasisim.eval.robust import replays
 
-    sets = {r: {k: v for k, v in dataclasses.asdict(replays(n, r)).items() if k != "path"} for r in ranges}
+    sets = {r: {k: v for k, v in dataclasses.asdict(replays(n, r, robust_set)).items() if k != "path"} for r in ranges}
     return json.loads(json.dumps({"sets": sets, "track": track, "target": target}))
 
 
@@ -40,8 +43,9 @@ def cache_name(want: dict[str, Any]) -> str:
 
 
 def judge_run(
-    demo_path: str, run_dir: str, n: int, ranges: tuple[str, ...], target: str, track: dict[str, Any]
-) -> dict[str, Any]:
+    demo_path: str, run_dir: str, n: int, ranges: tuple[str, ...], target: str, track: dict[str, Any],
+    robust_set: dict[str, Any] | None = None,
+) -> dict[str, Any]:  # fmt: skip
     """One run's robust success in every set, open and closed loop (written to its cache); in a worker."""
     from quasisim.data.controls import load_controls
     from quasisim.data.demo import load_demo
@@ -54,9 +58,9 @@ def judge_run(
     demo, c = load_demo(demo_path), load_controls(Path(run_dir) / "controls.npz")
     scene = scene_for(demo, place_hands(hands_of(c, run_dir), c.base_rots))
     opts = TrackOptions.from_yaml(None, track)
-    cfgs = [replays(n, r) for r in ranges]
+    cfgs = [replays(n, r, robust_set) for r in ranges]
     metrics = robust_metrics(demo, scene, c.q_targets, target, cfgs, closed_loop(opts))
-    want = settings(n, ranges, _track_dict(opts), target)
+    want = settings(n, ranges, _track_dict(opts), target, robust_set)
     out = {"settings": want, "metrics": metrics}
     save_json_atomic(Path(run_dir) / cache_name(want), out)
     return out
@@ -68,15 +72,15 @@ def _track_dict(track: Any) -> dict[str, Any]:
 
 def add_closed_loop(
     rows: list[dict[str, Any]], out: Path, demo_paths: dict[str, Path], n: int, ranges: tuple[str, ...],
-    target: str, workers: int, track: dict[str, Any] | None = None,
+    target: str, workers: int, track: dict[str, Any] | None = None, robust_set: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """``rows`` (a batch's run rows, ``method`` = run name; the kinematic rows pass through) with every
     perturbation set's open- and closed-loop robust success merged in, computed where no cache matches;
-    ``track``: overrides of ``configs/track.yaml``."""
+    ``track``: overrides of ``configs/track.yaml``; ``robust_set``: of every perturbation set."""
     from quasisim.method.track import TrackOptions
 
     track = track or {}
-    want = settings(n, ranges, _track_dict(TrackOptions.from_yaml(None, track)), target)
+    want = settings(n, ranges, _track_dict(TrackOptions.from_yaml(None, track)), target, robust_set)
     todo, done = [], {}
     for r in rows:
         if r["method"] == "kinematic":
@@ -92,7 +96,7 @@ def add_closed_loop(
     if todo:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max(1, workers), mp_context=ctx) as pool:
-            futs = {pool.submit(judge_run, d, rd, n, ranges, target, track): (c, m) for c, m, d, rd in todo}
+            futs = {pool.submit(judge_run, d, rd, n, ranges, target, track, robust_set): (c, m) for c, m, d, rd in todo}
             for f in tqdm(as_completed(futs), total=len(futs), desc="closed loop", unit="run"):
                 done[futs[f]] = f.result()["metrics"]
     return [r | done.get((r["clip"], r["method"]), {}) for r in rows]

@@ -91,7 +91,7 @@ def run_transfer_bench(
     data_dir: Path, clip_names: tuple[str, ...], pattern: str, runs: tuple[str, ...], stages: tuple[str, ...],
     budget: str, target: str, hand_name: str, out: Path, report_only: bool = False, judge: str | None = None,
     settings: Settings | None = None, robust: int | None = None,
-    closed_loop: tuple[tuple[str, ...], dict[str, Any]] | None = None,
+    closed_loop: tuple[tuple[str, ...], dict[str, Any]] | None = None, robust_set: dict[str, Any] | None = None,
 ) -> str:  # fmt: skip
     """Each run of ``runs`` on each clip into ``out/<clip>/<run>`` with :func:`quasisim.batch.run_batch`
     (resumable; ``report_only``: nothing is run, the finished runs are tabulated), beside the kinematic
@@ -100,9 +100,13 @@ def run_transfer_bench(
     ``robust``: perturbed replays per run for robust success (None: ``configs/robust.yaml``'s ``n``).
     ``closed_loop``: perturbation sets (:data:`quasisim.eval.robust.RANGES`) whose ``robust`` worlds every
     finished run is then replayed in, open and closed loop (:mod:`quasisim.bench.closed_loop`), and overrides
-    of the tracker's settings (``configs/track.yaml``).
+    of the tracker's settings (``configs/track.yaml``). ``robust_set``: overrides of every perturbation set
+    (``--robust-set seed=7``), open and closed loop.
     Prints and writes the markdown tables."""
-    base = TransferSpec(hand=hand_name, target=target, budget=budget, render=False, progress=False, robust=robust)
+    over = tuple(sorted((robust_set or {}).items()))
+    base = TransferSpec(
+        hand=hand_name, target=target, budget=budget, render=False, progress=False, robust=robust, robust_set=over
+    )
     paths = clips(data_dir, pattern, clip_names)
     js = jobs(paths, {r: run_spec(r, stages, base) for r in runs})
     s = (settings or Settings(keep_scratch=True)).resolved()
@@ -127,7 +131,9 @@ def run_transfer_bench(
         from quasisim.bench import closed_loop as cl
 
         sets, track = closed_loop
-        rows = cl.add_closed_loop(rows, out, by_clip, robust or 0, sets, judge or target, s.workers or 2, track)
+        rows = cl.add_closed_loop(
+            rows, out, by_clip, robust or 0, sets, judge or target, s.workers or 2, track, robust_set
+        )
         lines = ["", *cl.markdown(rows, runs, sets, track)]
     return publish(
         out,

@@ -148,27 +148,39 @@ _RANGES = click.option(
     "--ranges", default="default", show_default=True,
     help="Perturbation sets of robust success, comma-separated: default (configs/robust.yaml), wide "
     "(configs/robust_wide.yaml: about 2x the ranges and a push on the object mid-clip), sensing "
-    "(configs/robust_sensing.yaml: the default worlds, seen closed loop through pose noise and one frame of latency).",
+    "(configs/robust_sensing.yaml: the default worlds, seen closed loop through pose noise and one frame of latency), "
+    "or the path of a YAML file of your own with the keys of configs/robust.yaml.",
+)  # fmt: skip
+_ROBUST_SET = click.option(
+    "--robust-set", "robust_sets", multiple=True,
+    help="Override a setting of every perturbation set of --ranges (the keys of configs/robust.yaml), e.g. "
+    "--robust-set seed=7 (other worlds) or --robust-set mass=0.3; --robust N sets the number of replays.",
 )  # fmt: skip
 
 
 def _ranges(text: str) -> tuple[str, ...]:
-    """``--ranges`` as a tuple of set names, each one of :data:`quasisim.eval.robust.RANGES`."""
-    from quasisim.errors import choice_error
-    from quasisim.eval.robust import RANGES
+    """``--ranges`` as a tuple of sets, each one of :data:`quasisim.eval.robust.RANGES` or the absolute path of
+    a YAML file (:func:`quasisim.eval.robust.resolve_ranges`)."""
+    from quasisim.eval.robust import resolve_ranges
 
     names = tuple(dict.fromkeys(x.strip() for x in text.split(",") if x.strip()))
-    for n in names or ("",):
-        if n not in RANGES:
-            raise choice_error("--ranges", n, tuple(RANGES))
-    return names
+    if not names:
+        resolve_ranges("")  # the error listing the options
+    return tuple(resolve_ranges(n) for n in names)
 
 
-def _robust_sets(robust: int | None, ranges: str, closed_loop: bool) -> list[Any]:
-    """The perturbation sets of ``--ranges`` with ``--robust`` replays each; ``--closed-loop`` needs replays."""
+def _robust_over(robust_sets: tuple[str, ...]) -> dict[str, Any]:
+    """``--robust-set KEY=VALUE`` options as overrides of every perturbation set."""
+    return _parse_sets(robust_sets, "--robust-set")
+
+
+def _robust_sets(robust: int | None, ranges: str, closed_loop: bool, robust_sets: tuple[str, ...] = ()) -> list[Any]:
+    """The perturbation sets of ``--ranges`` with ``--robust`` replays each and the ``--robust-set`` overrides
+    (validated); ``--closed-loop`` needs replays."""
     from quasisim.eval.robust import replays
 
-    sets = [replays(robust, r) for r in _ranges(ranges)]
+    over = _robust_over(robust_sets)
+    sets = [replays(robust, r, over) for r in _ranges(ranges)]
     if closed_loop and not any(c.n for c in sets):
         raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
     return sets
@@ -206,23 +218,25 @@ def main() -> None:
     """quasisim: turn human hand-object demonstrations into robot-hand controls that work in MuJoCo/PyBullet."""
 
 
-def _parse_sets(sets: tuple[str, ...]) -> dict[str, Any]:
-    """``--set a.b=1.5`` options -> {"a.b": 1.5} (values parsed as YAML scalars)."""
+def _parse_sets(sets: tuple[str, ...], option: str = "--set") -> dict[str, Any]:
+    """``--set a.b=1.5`` options (or another ``option`` of the same form) -> {"a.b": 1.5} (values parsed as
+    YAML scalars)."""
     import yaml
 
     out: dict[str, Any] = {}
+    ex = "budgets.fast.sim.control_steps=20" if option == "--set" else "seed=7"
     for s in sets:
         if "=" not in s:
-            raise QuasisimError(f"--set expects KEY=VALUE (e.g. budgets.fast.sim.control_steps=20), got {s!r}")
+            raise QuasisimError(f"{option} expects KEY=VALUE (e.g. {ex}), got {s!r}")
         k, v = s.split("=", 1)
         if not k.strip():
-            raise QuasisimError(f"--set expects KEY=VALUE with a key (e.g. weights.hand=2.0), got {s!r}")
+            raise QuasisimError(f"{option} expects KEY=VALUE with a key (e.g. {ex}), got {s!r}")
         try:
             out[k.strip()] = yaml.safe_load(v)
         except yaml.YAMLError as e:
             problem = " ".join(str(getattr(e, "problem", "") or e).split())
             raise QuasisimError(
-                f"--set {k.strip()}: expected a YAML value (e.g. 2.0, true, [1, 2]), got {v!r} ({problem})"
+                f"{option} {k.strip()}: expected a YAML value (e.g. 2.0, true, [1, 2]), got {v!r} ({problem})"
             ) from None
     return out
 

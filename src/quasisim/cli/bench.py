@@ -12,6 +12,7 @@ from quasisim.cli._common import (
     _LEAD_CLIP,
     _RANGES,
     _ROBUST,
+    _ROBUST_SET,
     _SPEC,
     _TRACK_SET,
     _TRACKER,
@@ -22,6 +23,7 @@ from quasisim.cli._common import (
     _parse_sets,
     _positive_ints,
     _ranges,
+    _robust_over,
     _robust_sets,
     _setup_runtime,
     _stages,
@@ -174,6 +176,7 @@ def bench_sim(
 @_TRACKER
 @_TRACK_SET
 @_RANGES
+@_ROBUST_SET
 @_LEAD_CLIP
 @_interruptible
 @_friendly
@@ -181,7 +184,7 @@ def bench_transfer(
     data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
     out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
     record: bool, robust: int | None, closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str,
-    lead_clip: bool,
+    robust_sets: tuple[str, ...], lead_clip: bool,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -201,13 +204,12 @@ def bench_transfer(
     s = Settings(
         ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record, lead_clip=lead_clip
     )
-    loop = None
-    if closed_loop:
-        _robust_sets(robust, ranges, closed_loop)
-        loop = (_ranges(ranges), _track_overrides(tracker, track_sets))
+    _robust_sets(robust, ranges, closed_loop, robust_sets)  # bad sets or overrides fail here
+    loop = (_ranges(ranges), _track_overrides(tracker, track_sets)) if closed_loop else None
     run_transfer_bench(
-        data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust, closed_loop=loop
-    )
+        data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust,
+        closed_loop=loop, robust_set=_robust_over(robust_sets),
+    )  # fmt: skip
 
 
 @bench.command("compare")

@@ -13,6 +13,7 @@ from quasisim.cli._common import (
     _OVERWRITE,
     _RANGES,
     _ROBUST,
+    _ROBUST_SET,
     _SPEC,
     _TRACK_SET,
     _TRACKER,
@@ -23,6 +24,7 @@ from quasisim.cli._common import (
     _outputs_free,
     _parse_sets,
     _ranges,
+    _robust_over,
     _robust_sets,
     _setup_runtime,
     _stages,
@@ -110,11 +112,13 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
 @_TRACKER
 @_TRACK_SET
 @_RANGES
+@_ROBUST_SET
 @_OVERWRITE
 @_friendly
 def evaluate(
     demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, robust: int | None,
-    closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str, overwrite: bool,
+    closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str, robust_sets: tuple[str, ...],
+    overwrite: bool,
 ) -> None:  # fmt: skip
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
@@ -134,7 +138,7 @@ def evaluate(
         _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
         if note:
             click.echo(f"warning: {note}", err=True)
-        robust_cfg = _robust_sets(robust, ranges, closed_loop)
+        robust_cfg = _robust_sets(robust, ranges, closed_loop, robust_sets)
         cost = judging_cost(render, robust_cfg, closed_loop)
         warn_long_clip(d, *cost, "evaluation" + (" with rendering" if render else ""))
         maker = None
@@ -202,13 +206,14 @@ def evaluate(
 @_ROBUST
 @_CLOSED_LOOP
 @_RANGES
+@_ROBUST_SET
 @_ablation_flags
 @_friendly
 def transfer(
     demo: Path, hand: str, target: str, curriculum: str, stages: str | None, method: str | None, budget: str, out: Path,
     resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, record: Path | None,
-    robust: int | None, closed_loop: bool, ranges: str, no_residual: bool, no_local_residual: bool,
-    no_control_transform: bool,
+    robust: int | None, closed_loop: bool, ranges: str, robust_sets: tuple[str, ...], no_residual: bool,
+    no_local_residual: bool, no_control_transform: bool,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -217,10 +222,10 @@ def transfer(
     from quasisim.pipeline import run_transfer
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
-    _robust_sets(robust, ranges, closed_loop)
+    _robust_sets(robust, ranges, closed_loop, robust_sets)
     spec = TransferSpec(
         hand, target, curriculum, _stages(stages), budget, method, render, True, nets, robust,
-        closed_loop=closed_loop, ranges=_ranges(ranges),
+        closed_loop=closed_loop, ranges=_ranges(ranges), robust_set=tuple(sorted(_robust_over(robust_sets).items())),
     ).checked()  # fmt: skip
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
     cfg.budget(budget)
@@ -280,14 +285,16 @@ def transfer(
 )  # fmt: skip
 @_LEAD_CLIP
 @_ROBUST
+@_RANGES
+@_ROBUST_SET
 @_ablation_flags
 @_interruptible
 @_friendly
 def batch(
     data_dir: Path, out: Path, method: str | None, stages: str | None, curriculum: str, hand: str, target: str, budget: str,
     pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
-    sets: tuple[str, ...], render: bool, record: bool, robust: int | None, no_residual: bool, no_local_residual: bool,
-    no_control_transform: bool, lead_clip: bool,
+    sets: tuple[str, ...], render: bool, record: bool, robust: int | None, ranges: str, robust_sets: tuple[str, ...],
+    no_residual: bool, no_local_residual: bool, no_control_transform: bool, lead_clip: bool,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
     reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
@@ -296,9 +303,11 @@ def batch(
     from quasisim.batch import run_batch_command
 
     nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
+    _robust_sets(robust, ranges, False, robust_sets)
     spec = TransferSpec(
-        hand, target, curriculum, _stages(stages), budget, method, render, False, nets, robust
-    ).checked()
+        hand, target, curriculum, _stages(stages), budget, method, render, False, nets, robust,
+        ranges=_ranges(ranges), robust_set=tuple(sorted(_robust_over(robust_sets).items())),
+    ).checked()  # fmt: skip
     names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
     run_batch_command(
         data_dir,

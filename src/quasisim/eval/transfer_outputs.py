@@ -15,7 +15,6 @@ from quasisim.data.controls import Controls
 from quasisim.eval import evaluate
 from quasisim.eval.evaluate import evaluate_controls
 from quasisim.eval.report import loss_plot
-from quasisim.eval.robust import replays
 from quasisim.files import output_set, save_json_atomic
 from quasisim.method.stage import Context, RunRecord
 from quasisim.optim.sysid import SysID
@@ -44,7 +43,7 @@ def write_outputs(ctx: Context, controls: Controls, sysid: SysID, out: Path) -> 
     km = evaluate_controls(demo, kin, target, None, render=False, scene=scene).metrics
     s_desc = sysid.describe(prob.obj.mass)
     images = {"optimisation loss per simulator of the curriculum": loss_plot(record.curves)} if record.curves else {}
-    robust = [replays(spec.robust, r) for r in spec.ranges]
+    robust = spec.robust_configs()
     tracker = None
     if spec.closed_loop:
         from quasisim.method.track import closed_loop

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 from quasisim.errors import QuasisimError, choice_error
 from quasisim.method import registry
@@ -21,7 +22,13 @@ NETWORKS = (
 FULL_STAGES = ("1", "2", "sample", "select")  # method ours with no stages given: the full method (BENCHMARKS.md)
 DEFAULT_METHOD = "cascade"  # the sampling in the target first, the curriculum where that fails strict success
 
-JUDGING_ONLY = ("progress", "robust", "closed_loop", "ranges")  # TransferSpec fields outside a run's identity
+JUDGING_ONLY = (
+    "progress",
+    "robust",
+    "closed_loop",
+    "ranges",
+    "robust_set",
+)  # TransferSpec fields outside a run's identity
 
 
 @dataclass(frozen=True)
@@ -44,7 +51,9 @@ class TransferSpec:
         robust: perturbed replays of the result for robust success (None: ``n`` of ``configs/robust.yaml``;
             0: none). Judging only: not part of the run's identity.
         closed_loop: also replay the perturbed worlds closed loop (:mod:`quasisim.method.track`).
-        ranges: the perturbation sets of robust success (:data:`quasisim.eval.robust.RANGES`). Judging only.
+        ranges: the perturbation sets of robust success (:data:`quasisim.eval.robust.RANGES`, or paths of YAML
+            files of the user's own). Judging only.
+        robust_set: (key, value) overrides of every set of ``ranges`` (``--robust-set seed=7``). Judging only.
     """
 
     hand: str = "shadow"
@@ -60,6 +69,14 @@ class TransferSpec:
     robust: int | None = None
     closed_loop: bool = False
     ranges: tuple[str, ...] = ("default",)
+    robust_set: tuple[tuple[str, Any], ...] = ()
+
+    def robust_configs(self) -> list[Any]:
+        """The :class:`~quasisim.targets.perturb.RobustConfig` of each set of ``ranges``, with ``robust``
+        replays and the ``robust_set`` overrides."""
+        from quasisim.eval.robust import replays
+
+        return [replays(self.robust, r, dict(self.robust_set)) for r in self.ranges]
 
     def checked(self) -> TransferSpec:
         """Validated, with the method (None: ``cascade``, or ``ours`` where stages are given) and the stages it
