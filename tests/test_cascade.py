@@ -71,10 +71,18 @@ def _run(demo: Path, out: Path, overrides: dict, curriculum: str = "short") -> t
 
 @pytest.mark.slow
 def test_the_cascade_ends_after_sampling_where_it_passes_strict_success_in_mujoco(tmp_path: Path) -> None:
-    path, *_ = cube_example(tmp_path)
-    metrics, summary, ck = _run(path, tmp_path / "run", {})
-    assert metrics["success"]["strict"]  # judged by the evaluation in MuJoCo, not by the stage
+    from quasisim.method.stages.selection import passes
+    from quasisim.targets import make_target
+
+    path, demo, kinematic, scene = cube_example(tmp_path)
+    _, summary, ck = _run(path, tmp_path / "run", {})
     assert ck == ["kinematic", "quick"]  # no curriculum
+    quick = np.load(tmp_path / "run" / "checkpoints" / "quick.npz")
+    assert bool(quick["passed"]) and int(quick["stopped_at"]) == -1
+    q = np.load(tmp_path / "run" / "controls.npz")["q_targets"]
+    np.testing.assert_array_equal(q, quick["q_targets"])  # the run ended with the quick result
+    with make_target("mujoco", scene) as tg:  # the gate's judge tells a passing plan from the retarget, which fails
+        assert passes(demo, tg.rollout(q)) and not passes(demo, tg.rollout(kinematic.q_targets))
     assert "extra_sim_qpos" not in np.load(tmp_path / "run" / "controls.npz")  # no quasi-physical plan
     assert set(summary["seconds"]) >= {"retarget", "quick"} and "stage1" not in summary["seconds"]
 
