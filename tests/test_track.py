@@ -107,6 +107,7 @@ def test_the_tracker_never_reads_the_worlds_hidden_parameters(clip, sampled, ada
             acted.append(a.act(t, obs))
             world.advance(prev, acted[-1])
             prev, obs = acted[-1], world.observe()
+
         def friction(m) -> float:  # of the geoms that collide
             return float(m.geom_friction[(m.geom_contype | m.geom_conaffinity) > 0, 0].max())
 
