@@ -434,6 +434,19 @@ class Transitions:
         row |= {k: np.asarray(getattr(pred, k)) for k in (*STATE_KEYS, "keypoints")}
         self.steps.append(row)
 
+    def record_step(
+        self, frame: int, start: Observation, wins: np.ndarray, qd0: np.ndarray | None, pred: Prediction,
+        costs: np.ndarray, best: int | None, blocks: tuple[int, int, int],
+    ) -> None:  # fmt: skip
+        """One step of the control loop (:meth:`add`) with the same count of windows every step: ``blocks`` =
+        (windows drawn per block this step, windows kept per block, blocks), the applied window ``best`` kept
+        (:func:`_recorded`)."""
+        keep = _recorded(*blocks, best)
+        chosen = None if best is None else int(np.flatnonzero(keep == best)[0])
+        kept = {k: getattr(pred, k) for k in (*STATE_KEYS, "keypoints")}
+        sub = dataclasses.replace(pred, **{k: v[keep] for k, v in kept.items() if v is not None})
+        self.add(frame, start, wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
+
     def finish(self, applied: np.ndarray, frames: list[Observation]) -> None:
         """The applied PD targets (T, D) and the applied run's state at every frame (T observations)."""
         self.run = {"applied": np.asarray(applied, np.float64)}
@@ -508,132 +521,201 @@ def _control_loop(
     demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, target: Target, progress: bool,
     alts: tuple[np.ndarray, ...], transitions: Transitions | None = None, copies: Sequence[Target] = (),
 ) -> SampleResult:  # fmt: skip
-    T, H, fps = len(plan), opts.horizon, float(demo.fps)
-    every = [target, *copies]  # the target first; the copies follow the applied frames open loop
-    ref_pos, ref_quat, ref_kp = window_references(demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H)
-    sample = scene_sampler(opts, scene)
-    kp = kinematic_keypoints(scene) if opts.screen > 1 else None  # step 2's pre-screen
-    wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
-    base = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
-    base_cols = base if len(scene.hands) > 1 else None  # one hand: the first 6 columns
-    fingers = np.ones(plan.shape[1], bool)  # the hands' joints: every column but the base dofs
-    fingers[base] = False
-    work = padded(plan, H)  # the plan, shifted as we go (without the grip bias)
-    applied = plan.copy()
-    rng = np.random.default_rng(opts.seed)
-    losses, pred_err, steps = np.zeros(T - 1), np.full(T - 1, np.nan), 0
-    for tg in every:
-        tg.reset(plan[0], None)
-    frames: list[Observation] = []
-    saved: dict[int, list[object]] = {}  # frame -> the target's and the copies' states after it (for backing up)
-    widened = np.zeros(T, bool)  # frames planned again with more samples after a back-up
-    backed_from: dict[int, int] = {}  # frame -> back-ups from it
-    events: list[tuple[int, int]] = []  # (frame that left the limits, frame gone back to), per back-up
-    lost = False  # a frame stayed outside the strict limits: the clip cannot pass strict any more
-    behind = opts.backtrack * (2 + opts.backtrack_retries)  # frames of saved states kept behind the current one
-    rehinge = (
-        opts.strict_weight if opts.backtrack_strict_weight is None else opts.backtrack_strict_weight,
-        opts.strict_margin,
-    )
-    t0 = time.perf_counter()
-    bar = tqdm(total=T - 1, desc="sampling", unit="frame", disable=not progress, leave=False)
-    t = 0
-    while t < T - 1:
+    """Steps 1-7 from frame 0 to the clip's end: plan a window, apply its frames one by one (each checked
+    against the strict limits), re-plan; back up where a frame left the limits (:class:`_Loop`)."""
+    loop = _Loop(demo, scene, plan, opts, weights, target, alts, copies, transitions)
+    bar = tqdm(total=len(plan) - 1, desc="sampling", unit="frame", disable=not progress, leave=False)
+    while loop.t < len(plan) - 1 and not loop.stopped:
+        step = loop.plan()
+        for j in range(1, 1 + step.frames):
+            if j > 1 and not loop.calm(step, j):
+                break  # the frame's predicted object error is not well inside the limits: plan it afresh
+            back = loop.apply(step, j)
+            if loop.stopped:
+                break
+            bar.update(1)
+            if back is not None:
+                bar.update(back - loop.t)
+                loop.back_up(back)
+                break
+    bar.close()
+    return loop.result()
+
+
+@dataclass(frozen=True, eq=False)
+class _Step:
+    """One plan of the control loop, made at frame ``t``: the chosen window ``win`` (H + 1, D) (without the grip
+    bias ``bias``), the candidate ``best`` that predicted it (None in ``mppi`` mode), every candidate's
+    prediction ``pred`` and score ``score`` (N,), the copies ``live`` on track at ``t``, and how many of its
+    ``frames`` may be applied before planning again."""
+
+    t: int
+    win: np.ndarray
+    best: int | None
+    bias: np.ndarray | None
+    pred: Prediction
+    score: np.ndarray
+    live: list[Target]
+    frames: int
+
+
+class _Loop:
+    """The control loop's state over one clip: the plan shifted as it goes (``work``), the applied targets,
+    the observed frames, the states saved for backing up; :meth:`plan` (steps 1-5), :meth:`apply` (a frame,
+    then the strict-limits check of step 6) and :meth:`back_up`. ``observer`` (:class:`Transitions`) is told
+    every step's windows and the applied run."""
+
+    def __init__(
+        self, demo: Demo, scene: Scene, plan: np.ndarray, opts: SamplingOptions, weights: Weights, target: Target,
+        alts: tuple[np.ndarray, ...], copies: Sequence[Target], observer: Transitions | None,
+    ) -> None:  # fmt: skip
+        H = opts.horizon
+        self.opts, self.weights, self.target, self.alts, self.copies = opts, weights, target, alts, list(copies)
+        self.observer, self.T, self.fps = observer, len(plan), float(demo.fps)
+        self.every = [target, *copies]  # the target first; the copies follow the applied frames open loop
+        self.ref_pos, self.ref_quat, self.ref_kp = window_references(
+            demo, scene.kp_human, np.flatnonzero(scene.kp_metric), H
+        )
+        self.sample = scene_sampler(opts, scene)
+        self.kp = kinematic_keypoints(scene) if opts.screen > 1 else None  # step 2's pre-screen
+        self.wide = dataclasses.replace(opts, samples=opts.samples * opts.backtrack_samples)
+        base = np.concatenate([np.arange(sl.start, sl.start + 6) for sl in scene.dof_slices])
+        self.base_cols = base if len(scene.hands) > 1 else None  # one hand: the first 6 columns
+        self.fingers = np.ones(plan.shape[1], bool)  # the hands' joints: every column but the base dofs
+        self.fingers[base] = False
+        self.work = padded(plan, H)  # the plan, shifted as we go (without the grip bias)
+        self.applied = plan.copy()
+        self.rng = np.random.default_rng(opts.seed)
+        self.losses, self.pred_err, self.steps = np.zeros(self.T - 1), np.full(self.T - 1, np.nan), 0
+        self.frames: list[Observation] = []
+        self.saved: dict[int, list[object]] = {}  # frame -> the target's and the copies' states after it
+        self.widened = np.zeros(self.T, bool)  # frames planned again with more samples after a back-up
+        self.backed_from: dict[int, int] = {}  # frame -> back-ups from it
+        self.events: list[tuple[int, int]] = []  # (frame that left the limits, frame gone back to), per back-up
+        self.lost = False  # a frame stayed outside the strict limits: the clip cannot pass strict any more
+        self.behind = opts.backtrack * (2 + opts.backtrack_retries)  # frames of saved states kept behind t
+        self.rehinge = (
+            opts.strict_weight if opts.backtrack_strict_weight is None else opts.backtrack_strict_weight,
+            opts.strict_margin,
+        )
+        self.t = 0
+        for tg in self.every:
+            tg.reset(plan[0], None)
+        self.t0 = time.perf_counter()
+
+    @property
+    def stopped(self) -> bool:
+        """Whether the run ended early (``stop_when_lost`` and a frame stayed outside the strict limits)."""
+        return self.lost and self.opts.stop_when_lost
+
+    def plan(self) -> _Step:
+        """Steps 1-5 at frame ``t``: draw the windows, roll them out in the target (and the copies on track),
+        score them, keep the chosen one in the plan."""
+        opts, t, H, fps = self.opts, self.t, self.opts.horizon, self.fps
+        ref_pos, ref_quat, ref_kp, frames = self.ref_pos, self.ref_quat, self.ref_kp, self.frames
         strays = bool(frames) and _limit_fraction(frames[-1], ref_pos[t], ref_quat[t]) > (opts.widen_margin or math.inf)
-        step_opts = wide if widened[t] or strays else opts
+        step_opts = self.wide if self.widened[t] or strays else opts
         w = slice(t + 1, t + H + 1)
-        frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
+        frame_w = (np.arange(t + 1, t + H + 1) < self.T).astype(np.float64)
         cost = functools.partial(
             window_costs, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], frame_w=frame_w,
-            weights=weights, base_cols=base_cols,
-            strict=rehinge if widened[t] else (opts.strict_weight, opts.strict_margin),
+            weights=self.weights, base_cols=self.base_cols,
+            strict=self.rehinge if self.widened[t] else (opts.strict_weight, opts.strict_margin),
         )  # fmt: skip
         pre = None  # step 2's pre-screen: the cost of windows with the hands at their targets
-        if kp is not None:
-            pre = functools.partial(kinematic_costs, kp=kp, ref_pos=ref_pos[w], ref_quat=ref_quat[w], cost=cost)
-        wins = _draw(sample, rng, work[t : t + H + 1], step_opts, opts.screen, pre)
-        for alt in alts:  # windows around another plan, from the targets this step starts from
-            nominal = np.concatenate([work[t : t + 1], alt[t + 1 : t + H + 1]])
-            wins = np.concatenate([wins, _draw(sample, rng, nominal, step_opts, opts.screen, pre)])
+        if self.kp is not None:
+            pre = functools.partial(kinematic_costs, kp=self.kp, ref_pos=ref_pos[w], ref_quat=ref_quat[w], cost=cost)
+        wins = _draw(self.sample, self.rng, self.work[t : t + H + 1], step_opts, opts.screen, pre)
+        for alt in self.alts:  # windows around another plan, from the targets this step starts from
+            nominal = np.concatenate([self.work[t : t + 1], alt[t + 1 : t + H + 1]])
+            wins = np.concatenate([wins, _draw(self.sample, self.rng, nominal, step_opts, opts.screen, pre)])
         qd0 = (wins[:, 1] - wins[:, 0]) * fps if t == 0 else None
         # the state the windows start from: the frame just observed (before the first step, the reset state)
-        start = frames[-1] if frames else target.observe()
-        bias = grip_bias(work[t], start["qpos"], fingers, opts.grip, opts.grip_gap)
-        run_wins = wins if bias is None else biased(wins, bias, applied[t])  # what the target is driven with
+        start = frames[-1] if frames else self.target.observe()
+        bias = grip_bias(self.work[t], start["qpos"], self.fingers, opts.grip, opts.grip_gap)
+        run_wins = wins if bias is None else biased(wins, bias, self.applied[t])  # what the target is driven with
         bound = functools.partial(cost_bounds, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], cost=cost)
-        prune = pruner(opts, wins, bound) if transitions is None else None  # a recording keeps every frame
-        pred = target.rollout_windows(run_wins, qd0, prune)
+        prune = pruner(opts, wins, bound) if self.observer is None else None  # a recording keeps every frame
+        pred = self.target.rollout_windows(run_wins, qd0, prune)
         costs = cost(wins, pred)
         if prune is not None:  # the candidates that stopped early are never chosen
             costs = np.where(np.isnan(pred.obj_pos[:, -1, 0]), np.inf, costs)
-        live = [c for c in copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
+        live = [c for c in self.copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
         score, n_copy_steps = _score_in_copies(live, run_wins, qd0, costs, cost, opts)
-        steps += n_copy_steps
+        self.steps += n_copy_steps
         win, best = next_plan_window(wins, score, opts)
-        if transitions is not None:
-            keep = _recorded(step_opts.samples, opts.samples, 1 + len(alts), best)
-            chosen = None if best is None else int(np.flatnonzero(keep == best)[0])
-            kept = {k: getattr(pred, k) for k in (*STATE_KEYS, "keypoints")}
-            sub = dataclasses.replace(pred, **{k: v[keep] for k, v in kept.items() if v is not None})
-            transitions.add(t, start, run_wins[keep], None if qd0 is None else qd0[keep], sub, costs[keep], chosen)
-        work[t : t + H + 1] = win
-        steps += pred.n_steps
-        # apply the window's first `replan` frames (one where frames are re-planned after a back-up)
-        for j in range(1, 1 + (1 if widened[t] else min(opts.replan, H, T - 1 - t))):
-            if j > 1 and not _calm(pred, best, j, ref_pos[t + 1], ref_quat[t + 1], opts.replan_margin):
-                break  # the frame's predicted object error is not well inside the limits: plan it afresh
-            applied[t + 1] = win[j] if bias is None else win[j] + bias
-            if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
-                for tg in every:
-                    tg.reset(applied[0], (applied[1] - applied[0]) * fps)
-                frames.append(target.observe())
+        if self.observer is not None:
+            blocks = (step_opts.samples, opts.samples, 1 + len(self.alts))
+            self.observer.record_step(t, start, run_wins, qd0, pred, costs, best, blocks)
+        self.work[t : t + H + 1] = win
+        self.steps += pred.n_steps
+        n = 1 if self.widened[t] else min(opts.replan, H, self.T - 1 - t)  # one where re-planned after a back-up
+        return _Step(t, win, best, bias, pred, score, live, n)
+
+    def calm(self, step: _Step, j: int) -> bool:
+        """Whether frame ``j`` (>= 2) of ``step``'s window may be applied without planning again (step 5)."""
+        t = self.t
+        return _calm(step.pred, step.best, j, self.ref_pos[t + 1], self.ref_quat[t + 1], self.opts.replan_margin)
+
+    def apply(self, step: _Step, j: int) -> int | None:
+        """Apply frame ``j`` of ``step``'s window (``t -> t + 1``) in the target and the copies, then check the
+        new frame against the strict limits (step 6): the frame to back up to, or None."""
+        opts, t, every, ref_pos, ref_quat = self.opts, self.t, self.every, self.ref_pos, self.ref_quat
+        self.applied[t + 1] = step.win[j] if step.bias is None else step.win[j] + step.bias
+        if t == 0:  # the run starts with the hand velocity of the applied targets, as a replay of them
             for tg in every:
-                tg.advance(applied[t], applied[t + 1])
-            frames.append(target.observe())
-            losses[t] = score.min()
-            steps += len(every) * target.substeps
-            if best is not None:  # what the chosen candidate predicted against what the target did
-                q_now, p_now = frames[-1]["qpos"], frames[-1]["obj_pos"]
-                pred_err[t] = max(
-                    np.abs(pred.qpos[best, j - 1] - q_now).max(), np.abs(pred.obj_pos[best, j - 1] - p_now).max()
-                )
-            t += 1
-            over = _limit_fraction(frames[-1], ref_pos[t], ref_quat[t])
-            off = not over <= 1.0  # outside the strict limits (or not finite)
-            if opts.backtrack_copies and live:  # a copy on track before this frame and off it after
-                off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in live)
-            near = off or over > opts.backtrack_limit  # outside, or inside by less than the margin asked
-            back = None if lost and not opts.backtrack_after_lost else _back_up_to(t, near, opts, backed_from)
-            lost = lost or (off and back is None)
-            if lost and opts.stop_when_lost:
-                break
-            if opts.backtrack > 0:  # the states a back-up may return to
-                saved[t] = [tg.save_state() for tg in every]
-                back, drop = _kept_states(sorted(saved), t, back, behind)
-                for k in drop:
-                    _release(every, saved.pop(k))
-            bar.update(1)
-            if back is not None:
-                backed_from[t] = backed_from.get(t, 0) + 1
-                events.append((t, back))
-                for tg, state in zip(every, saved[back], strict=True):
-                    tg.restore_state(state)
-                del frames[back + 1 :]
-                widened[back:t] = True
-                bar.update(back - t)
-                t = back
-                break
-        if lost and opts.stop_when_lost:
-            break
-    bar.close()
-    for states in saved.values():
-        _release(every, states)
-    wall = time.perf_counter() - t0
-    if transitions is not None:
-        transitions.finish(applied, frames)
-    backups = np.array(events, np.int64).reshape(-1, 2)
-    stopped = t if lost and opts.stop_when_lost else None
-    return SampleResult(applied, target.recorded(frames, wall), losses, wall, steps, pred_err, backups, stopped)
+                tg.reset(self.applied[0], (self.applied[1] - self.applied[0]) * self.fps)
+            self.frames.append(self.target.observe())
+        for tg in every:
+            tg.advance(self.applied[t], self.applied[t + 1])
+        self.frames.append(self.target.observe())
+        self.losses[t] = step.score.min()
+        self.steps += len(every) * self.target.substeps
+        if step.best is not None:  # what the chosen candidate predicted against what the target did
+            q_now, p_now, pred = self.frames[-1]["qpos"], self.frames[-1]["obj_pos"], step.pred
+            self.pred_err[t] = max(
+                np.abs(pred.qpos[step.best, j - 1] - q_now).max(), np.abs(pred.obj_pos[step.best, j - 1] - p_now).max()
+            )
+        self.t = t = t + 1
+        over = _limit_fraction(self.frames[-1], ref_pos[t], ref_quat[t])
+        off = not over <= 1.0  # outside the strict limits (or not finite)
+        if opts.backtrack_copies and step.live:  # a copy on track before this frame and off it after
+            off = off or not all(_within_limits(c.observe(), ref_pos[t], ref_quat[t]) for c in step.live)
+        near = off or over > opts.backtrack_limit  # outside, or inside by less than the margin asked
+        back = None if self.lost and not opts.backtrack_after_lost else _back_up_to(t, near, opts, self.backed_from)
+        self.lost = self.lost or (off and back is None)
+        if self.stopped:
+            return None
+        if opts.backtrack > 0:  # the states a back-up may return to
+            self.saved[t] = [tg.save_state() for tg in every]
+            back, drop = _kept_states(sorted(self.saved), t, back, self.behind)
+            for k in drop:
+                _release(every, self.saved.pop(k))
+        return back
+
+    def back_up(self, back: int) -> None:
+        """Put the target and the copies back to their states after frame ``back``, to plan the frames since
+        again with more samples (step 6)."""
+        t = self.t
+        self.backed_from[t] = self.backed_from.get(t, 0) + 1
+        self.events.append((t, back))
+        for tg, state in zip(self.every, self.saved[back], strict=True):
+            tg.restore_state(state)
+        del self.frames[back + 1 :]
+        self.widened[back:t] = True
+        self.t = back
+
+    def result(self) -> SampleResult:
+        """The run so far (the saved states released; the observer told the applied run)."""
+        for states in self.saved.values():
+            _release(self.every, states)
+        wall = time.perf_counter() - self.t0
+        if self.observer is not None:
+            self.observer.finish(self.applied, self.frames)
+        backups = np.array(self.events, np.int64).reshape(-1, 2)
+        rollout = self.target.recorded(self.frames, wall)
+        stopped = self.t if self.stopped else None
+        return SampleResult(self.applied, rollout, self.losses, wall, self.steps, self.pred_err, backups, stopped)
 
 
 def grip_bias(q: np.ndarray, qpos: np.ndarray, fingers: np.ndarray, grip: float, gap: float) -> np.ndarray | None:
