@@ -3,6 +3,7 @@ handling of every command, the options several commands take and their parsing."
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import sys
 import threading
@@ -94,6 +95,9 @@ def _outputs_free(out: Path, names: tuple[str, ...] = (), overwrite: bool = True
 
 
 _OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run in OUT.")
+_CONFIG = click.option(
+    "--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML."
+)
 
 
 def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
@@ -258,3 +262,183 @@ def _ablation_flags(f: Any) -> Any:
 def _stages(text: str | None) -> tuple[str, ...] | None:
     """``--stages``: None where not given (the method's own stages)."""
     return None if text is None else parse_stages(text)
+
+
+# ---- option stacks shared by transfer, batch, bench transfer and evaluate -----------------------------------
+
+
+def _bundle(name: str, build: Callable[..., Any], *options: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """A decorator adding ``options`` (click options, shown in this order) to a command, whose function then
+    gets one argument ``name`` = ``build(**the options' values)`` instead of one per option."""
+
+    def decorate(f: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(f)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            mine = {k: kwargs.pop(k) for k in keys}
+            return _friendly(lambda: f(*args, **kwargs, **{name: build(**mine)}))()  # build's errors: one line
+
+        before = len(getattr(wrapper, "__click_params__", []))
+        for option in reversed(options):
+            wrapper = option(wrapper)
+        keys = [p.name for p in wrapper.__click_params__[before:]]  # type: ignore[attr-defined]
+        return wrapper
+
+    return decorate
+
+
+@dataclasses.dataclass(frozen=True)
+class Judging:
+    """How a command judges its results beyond the nominal replay: ``robust`` replays per perturbation set of
+    ``ranges`` (names or YAML paths) with the ``robust_set`` overrides, also ``closed_loop`` with the tracker
+    settings ``track`` (overrides of configs/track.yaml)."""
+
+    robust: int | None = None
+    closed_loop: bool = False
+    ranges: tuple[str, ...] = ("default",)
+    robust_set: tuple[tuple[str, Any], ...] = ()
+    track: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def configs(self) -> list[Any]:
+        """The :class:`~quasisim.targets.perturb.RobustConfig` of each set."""
+        return self.on(TransferSpec()).robust_configs()
+
+    def on(self, spec: TransferSpec) -> TransferSpec:
+        """``spec`` judged this way."""
+        return dataclasses.replace(
+            spec, robust=self.robust, closed_loop=self.closed_loop, ranges=self.ranges, robust_set=self.robust_set
+        )
+
+
+def _judging(
+    robust: Callable[[Any], Any] = _ROBUST,
+    closed_loop: Callable[[Any], Any] | None = _CLOSED_LOOP,
+    tracker: bool = False,
+) -> Callable[[Any], Any]:
+    """``--robust``, ``--closed-loop`` (unless None), ``--tracker`` and ``--track-set`` (with ``tracker``),
+    ``--ranges`` and ``--robust-set`` as one argument ``judging`` (:class:`Judging`, validated)."""
+
+    def build(
+        robust: int | None, ranges: str, robust_sets: tuple[str, ...], closed_loop: bool = False,
+        tracker: str = "track.yaml", track_sets: tuple[str, ...] = (),
+    ) -> Judging:  # fmt: skip
+        _robust_sets(robust, ranges, closed_loop, robust_sets)  # bad sets or overrides fail here
+        over = tuple(sorted(_robust_over(robust_sets).items()))
+        track = _track_overrides(tracker, track_sets) if closed_loop else {}
+        return Judging(robust, closed_loop, _ranges(ranges), over, track)
+
+    loop = (closed_loop, *((_TRACKER, _TRACK_SET) if tracker else ())) if closed_loop else ()
+    return _bundle("judging", build, robust, *loop, _RANGES, _ROBUST_SET)
+
+
+_HAND_HELP = "Built-in hand (shadow, shadow-left, shadow-short-thumb, allegro) or a hand YAML (docs/hands.md)."
+_HAND = click.option("--hand", default=_SPEC.hand, show_default=True, help=_HAND_HELP)
+_TARGET = click.option(
+    "--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True, help="Simulator that judges the result."
+)
+_BUDGET = click.option(
+    "--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper."
+)
+
+
+def _spec_options(render: bool, render_help: str) -> Callable[[Any], Any]:
+    """What to run, as one argument ``spec`` (:class:`TransferSpec`, not yet checked): ``--hand``,
+    ``--target``, ``--curriculum``, ``--stages``, ``--method``, ``--budget``, ``--render`` (default ``render``)
+    and stage 3's ablation flags."""
+    from quasisim.method.registry import METHODS as REGISTERED
+    from quasisim.method.spec import DEFAULT_METHOD, FULL_STAGES, METHODS, networks_from_flags
+
+    def build(
+        hand: str, target: str, curriculum: str, stages: str | None, method: str | None, budget: str, render: bool,
+        no_residual: bool, no_local_residual: bool, no_control_transform: bool,
+    ) -> TransferSpec:  # fmt: skip
+        nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
+        return TransferSpec(hand, target, curriculum, _stages(stages), budget, method, render, networks=nets)
+
+    return _bundle(
+        "spec",
+        build,
+        _HAND,
+        _TARGET,
+        click.option(
+            "--curriculum",
+            default=_SPEC.curriculum,
+            show_default=True,
+            help="short (4 analytical simulators), default (the paper's 8), curriculum2, none or a YAML path.",
+        ),
+        click.option(
+            "--stages",
+            default=None,
+            help="Stages of method ours (given alone, they imply --method ours; default "
+            f"{','.join(FULL_STAGES)}): quick: sampling in the target that ends the run where it passes strict "
+            "success, 1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo with the "
+            "quasi-physical model, sample: sampling MPC in the target, select: keep the best trajectory seen, "
+            "judged in the target.",
+        ),
+        click.option(
+            "--method",
+            type=click.Choice(METHODS),
+            default=None,
+            help=f"Default {DEFAULT_METHOD} (ours where --stages is given). "
+            + "; ".join(f"{name}: {m.summary}" for name, m in REGISTERED.items())
+            + ".",
+        ),
+        _BUDGET,
+        click.option("--render/--no-render", default=render, show_default=True, help=render_help),
+        _ablation_flags,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Clips:
+    """The clips of a batch (``--clips``, ``--pattern``) and how it runs (``--ray``, ``--workers``, ``--set``,
+    ``--record-transitions``, ``--lead-clip``)."""
+
+    names: tuple[str, ...]
+    pattern: str
+    ray_address: str | None
+    workers: int
+    overrides: dict[str, Any]
+    record: bool
+    lead_clip: bool
+
+
+def _clips_options(ray_help: str, set_help: str) -> Callable[[Any], Any]:
+    """A batch's clips and how it runs, as one argument ``clips`` (:class:`Clips`)."""
+
+    def build(
+        clip_names: str, pattern: str, ray_address: str | None, workers: int, sets: tuple[str, ...], record: bool,
+        lead_clip: bool,
+    ) -> Clips:  # fmt: skip
+        names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+        return Clips(names, pattern, ray_address, workers, _parse_sets(sets), record, lead_clip)
+
+    return _bundle(
+        "clips",
+        build,
+        click.option(
+            "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
+        ),
+        click.option(
+            "--pattern",
+            default="*.npz",
+            show_default=True,
+            help="Clips of DATA_DIR (glob); *_long.npz skipped unless named.",
+        ),
+        click.option("--ray", "ray_address", default=None, help=ray_help),
+        click.option(
+            "--workers",
+            default=0,
+            show_default=True,
+            type=click.IntRange(0, None),
+            help="Clips at once (0: one per core).",
+        ),
+        click.option("--set", "sets", multiple=True, help=set_help),
+        click.option(
+            "--record-transitions",
+            "record",
+            is_flag=True,
+            help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
+            "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
+        ),
+        _LEAD_CLIP,
+    )

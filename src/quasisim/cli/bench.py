@@ -9,25 +9,23 @@ from typing import TYPE_CHECKING
 import click
 
 from quasisim.cli._common import (
-    _LEAD_CLIP,
-    _RANGES,
+    _BUDGET,
+    _HAND,
     _ROBUST,
-    _ROBUST_SET,
     _SPEC,
-    _TRACK_SET,
-    _TRACKER,
+    _TARGET,
     TARGET_CHOICE,
+    Clips,
+    Judging,
+    _clips_options,
     _friendly,
     _interruptible,
+    _judging,
     _outputs_free,
     _parse_sets,
     _positive_ints,
-    _ranges,
-    _robust_over,
-    _robust_sets,
     _setup_runtime,
     _stages,
-    _track_overrides,
     main,
 )
 from quasisim.errors import QuasisimError
@@ -121,12 +119,6 @@ def bench_sim(
 @bench.command("transfer")
 @click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option(
-    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
-)
-@click.option(
-    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz skipped unless named."
-)
-@click.option(
     "--runs",
     "--curricula",
     "runs",
@@ -137,9 +129,9 @@ def bench_sim(
     "sample-target.",
 )
 @click.option("--stages", default="1,2", show_default=True)
-@click.option("--budget", default="fast", show_default=True)
-@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
-@click.option("--hand", default="shadow", show_default=True)
+@_BUDGET
+@_TARGET
+@_HAND
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/transfer"), show_default=True)
 @click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
 @click.option(
@@ -148,43 +140,28 @@ def bench_sim(
     default=None,
     help="Judge the runs' controls (and the kinematic replay) open loop in this simulator instead of --target.",
 )
-@click.option(
-    "--ray", "ray_address", default=None,
-    help="Run on an existing Ray cluster: auto (the one `ray start` made here) or HOST:PORT (default: local Ray).",
-)  # fmt: skip
-@click.option(
-    "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
+@_clips_options(
+    ray_help="Run on an existing Ray cluster: auto (the one `ray start` made here) or HOST:PORT (default: local Ray).",
+    set_help="Override a config key (as in transfer), e.g. --set stage2.mode=none.",
 )
-@click.option(
-    "--set", "sets", multiple=True, help="Override a config key (as in transfer), e.g. --set stage2.mode=none."
-)
-@click.option(
-    "--record-transitions", "record", is_flag=True,
-    help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
-    "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
+@_judging(
+    robust=click.option(
+        "--robust", type=click.IntRange(0, 1000), default=None,
+        help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
+        "finished before keep their judging: use a new OUT.",
+    ),
+    closed_loop=click.option(
+        "--closed-loop", is_flag=True,
+        help="After the batch, replay every finished run in the perturbed worlds of --ranges open and closed loop "
+        "(--robust N replays each; cached per run, resumable) and add the closed-loop tables.",
+    ),
+    tracker=True,
 )  # fmt: skip
-@click.option(
-    "--robust", type=click.IntRange(0, 1000), default=None,
-    help="Perturbed replays per run for robust success (default: n of configs/robust.yaml; 0: none). Clips "
-    "finished before keep their judging: use a new OUT.",
-)  # fmt: skip
-@click.option(
-    "--closed-loop", is_flag=True,
-    help="After the batch, replay every finished run in the perturbed worlds of --ranges open and closed loop "
-    "(--robust N replays each; cached per run, resumable) and add the closed-loop tables.",
-)  # fmt: skip
-@_TRACKER
-@_TRACK_SET
-@_RANGES
-@_ROBUST_SET
-@_LEAD_CLIP
 @_interruptible
 @_friendly
 def bench_transfer(
-    data_dir: Path, clip_names: str, pattern: str, runs: str, stages: str, budget: str, target: str, hand: str,
-    out: Path, report_only: bool, judge: str | None, ray_address: str | None, workers: int, sets: tuple[str, ...],
-    record: bool, robust: int | None, closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str,
-    robust_sets: tuple[str, ...], lead_clip: bool,
+    data_dir: Path, runs: str, stages: str, budget: str, target: str, hand: str, out: Path, report_only: bool,
+    judge: str | None, clips: Clips, judging: Judging,
 ) -> None:  # fmt: skip
     """Transfer runs (curricula, +mpc, MPC baselines) on clips of DATA_DIR beside the kinematic replay, as one
     Ray batch (resumable)."""
@@ -198,17 +175,16 @@ def bench_transfer(
     rs = tuple(c.strip() for c in runs.split(",") if c.strip())
     for r in rs:
         run_spec(r, st, TransferSpec())
-    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
-    overrides = _parse_sets(sets)
-    TransferConfig.from_yaml(overrides=overrides)  # a bad key fails here, before any clip runs
+    c = clips
+    TransferConfig.from_yaml(overrides=c.overrides)  # a bad key fails here, before any clip runs
     s = Settings(
-        ray_address, workers, overrides=overrides, keep_scratch=True, record_transitions=record, lead_clip=lead_clip
-    )
-    _robust_sets(robust, ranges, closed_loop, robust_sets)  # bad sets or overrides fail here
-    loop = (_ranges(ranges), _track_overrides(tracker, track_sets)) if closed_loop else None
+        c.ray_address, c.workers, overrides=c.overrides, keep_scratch=True, record_transitions=c.record,
+        lead_clip=c.lead_clip,
+    )  # fmt: skip
+    loop = (judging.ranges, judging.track) if judging.closed_loop else None
     run_transfer_bench(
-        data_dir, names, pattern, rs, st, budget, target, hand, out, report_only, judge, s, robust,
-        closed_loop=loop, robust_set=_robust_over(robust_sets),
+        data_dir, c.names, c.pattern, rs, st, budget, target, hand, out, report_only, judge, s, judging.robust,
+        closed_loop=loop, robust_set=dict(judging.robust_set),
     )  # fmt: skip
 
 

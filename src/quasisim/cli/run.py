@@ -2,39 +2,31 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
 import click
 
 from quasisim.cli._common import (
-    _CLOSED_LOOP,
-    _LEAD_CLIP,
+    _CONFIG,
     _OVERWRITE,
-    _RANGES,
-    _ROBUST,
-    _ROBUST_SET,
-    _SPEC,
-    _TRACK_SET,
-    _TRACKER,
     TARGET_CHOICE,
-    _ablation_flags,
+    Clips,
+    Judging,
+    _clips_options,
     _friendly,
     _interruptible,
+    _judging,
     _outputs_free,
     _parse_sets,
-    _ranges,
-    _robust_over,
-    _robust_sets,
     _setup_runtime,
-    _stages,
+    _spec_options,
     _summary,
-    _track_overrides,
     main,
 )
 from quasisim.errors import QuasisimError
-from quasisim.method.registry import METHODS as REGISTERED_METHODS
-from quasisim.method.spec import DEFAULT_METHOD, FULL_STAGES, METHODS, TransferSpec, networks_from_flags
+from quasisim.method.spec import TransferSpec
 
 
 @main.command()
@@ -107,19 +99,12 @@ def retarget(demo: Path, hand: str, out: Path, overwrite: bool) -> None:
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--render/--no-render", default=True, show_default=True, help="Render the video for the report.")
 @click.option("--force", is_flag=True, help="Replay controls made for another demo (a different content hash).")
-@_ROBUST
-@_CLOSED_LOOP
-@_TRACKER
-@_TRACK_SET
-@_RANGES
-@_ROBUST_SET
+@_judging(tracker=True)
 @_OVERWRITE
 @_friendly
 def evaluate(
-    demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, robust: int | None,
-    closed_loop: bool, tracker: str, track_sets: tuple[str, ...], ranges: str, robust_sets: tuple[str, ...],
-    overwrite: bool,
-) -> None:  # fmt: skip
+    demo: Path, controls: Path, target: str, out: Path, render: bool, force: bool, judging: Judging, overwrite: bool
+) -> None:
     """Replay CONTROLS for DEMO in a target simulator: writes metrics.json, rollout.npz, report.html."""
     _setup_runtime()
     from quasisim.data.controls import check_demo_hash, load_controls
@@ -138,15 +123,15 @@ def evaluate(
         _outputs_free(out, (*OUTPUTS, MANIFEST), overwrite)
         if note:
             click.echo(f"warning: {note}", err=True)
-        robust_cfg = _robust_sets(robust, ranges, closed_loop, robust_sets)
-        cost = judging_cost(render, robust_cfg, closed_loop)
+        robust_cfg = judging.configs()
+        cost = judging_cost(render, robust_cfg, judging.closed_loop)
         warn_long_clip(d, *cost, "evaluation" + (" with rendering" if render else ""))
         maker = None
-        if closed_loop:
+        if judging.closed_loop:
             from quasisim.method.track import TrackOptions
             from quasisim.method.track import closed_loop as make_tracker
 
-            maker = make_tracker(TrackOptions.from_yaml(None, _track_overrides(tracker, track_sets)))
+            maker = make_tracker(TrackOptions.from_yaml(None, judging.track))
         ev = evaluate_controls(d, c, target, out, render=render, progress=True, robust=robust_cfg, closed_loop=maker)
     click.echo(f"wrote {out / 'metrics.json'}, {out / 'rollout.npz'}")
     label = c.method.split("[")[0] or "controls"  # e.g. "sample-target[default;stages sample;fast]"
@@ -155,65 +140,26 @@ def evaluate(
 
 @main.command()
 @click.argument("demo", type=click.Path(path_type=Path))
-@click.option(
-    "--hand",
-    default=_SPEC.hand,
-    show_default=True,
-    help="Built-in hand (shadow, shadow-left, shadow-short-thumb, allegro) or a hand YAML (docs/hands.md).",
-)
-@click.option(
-    "--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True, help="Simulator that judges the result."
-)
-@click.option(
-    "--curriculum",
-    default=_SPEC.curriculum,
-    show_default=True,
-    help="short (4 analytical simulators), default (the paper's 8), curriculum2, none or a YAML path.",
-)
-@click.option(
-    "--stages",
-    default=None,
-    help="Stages of method ours (given alone, they imply --method ours; default "
-    f"{','.join(FULL_STAGES)}): quick: sampling in the target that ends the run where it passes strict success, "
-    "1: point dynamics, 2: contact curriculum, mpc: closed-loop MPC in MuJoCo with the "
-    "quasi-physical model, sample: sampling MPC in the target, select: keep the best trajectory seen, judged in "
-    "the target.",
-)
-@click.option(
-    "--method",
-    type=click.Choice(METHODS),
-    default=None,
-    help=f"Default {DEFAULT_METHOD} (ours where --stages is given). "
-    + "; ".join(f"{name}: {m.summary}" for name, m in REGISTERED_METHODS.items())
-    + ".",
-)
-@click.option("--budget", default=_SPEC.budget, show_default=True, help="Step budget from the config: fast or paper.")
+@_spec_options(render=True, render_help="Render the video for the report.")
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--resume", is_flag=True, help="Continue the run in OUT from its last checkpoint.")
 @click.option(
     "--overwrite", is_flag=True, help="Start afresh in OUT, replacing an earlier run's outputs and checkpoints."
 )
-@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
+@_CONFIG
 @click.option(
     "--set", "sets", multiple=True, help="Override a config key, e.g. --set budgets.fast.sim.control_steps=20."
 )
-@click.option("--render/--no-render", default=_SPEC.render, show_default=True, help="Render the video for the report.")
 @click.option(
     "--record-transitions", "record", type=click.Path(path_type=Path), default=None,
     help="Keep every window the sampling stage rolls out in the target, and the final run's states, in "
     "DIR/<demo>.<method>.npz (data for fitting a simulator to the target; docs/transfer.md).",
 )  # fmt: skip
-@_ROBUST
-@_CLOSED_LOOP
-@_RANGES
-@_ROBUST_SET
-@_ablation_flags
+@_judging()
 @_friendly
 def transfer(
-    demo: Path, hand: str, target: str, curriculum: str, stages: str | None, method: str | None, budget: str, out: Path,
-    resume: bool, overwrite: bool, config_path: Path | None, sets: tuple[str, ...], render: bool, record: Path | None,
-    robust: int | None, closed_loop: bool, ranges: str, robust_sets: tuple[str, ...], no_residual: bool,
-    no_local_residual: bool, no_control_transform: bool,
+    demo: Path, spec: TransferSpec, out: Path, resume: bool, overwrite: bool, config_path: Path | None,
+    sets: tuple[str, ...], record: Path | None, judging: Judging,
 ) -> None:  # fmt: skip
     """Transfer DEMO to a robot hand through the physics curriculum: writes OUT/controls.npz (PD targets),
     OUT/metrics.json (judged in the target), OUT/report.html (with per-simulator loss curves), OUT/summary.json."""
@@ -221,21 +167,16 @@ def transfer(
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.pipeline import run_transfer
 
-    nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
-    _robust_sets(robust, ranges, closed_loop, robust_sets)
-    spec = TransferSpec(
-        hand, target, curriculum, _stages(stages), budget, method, render, True, nets, robust,
-        closed_loop=closed_loop, ranges=_ranges(ranges), robust_set=tuple(sorted(_robust_over(robust_sets).items())),
-    ).checked()  # fmt: skip
+    spec = judging.on(spec).checked()
     cfg = TransferConfig.from_yaml(config_path or CONFIG_PATH, _parse_sets(sets))
-    cfg.budget(budget)
+    cfg.budget(spec.budget)
     if resume and overwrite:
         raise QuasisimError("options --resume (continue OUT) and --overwrite (replace it): expected one, got both")
     res = run_transfer(demo, out, spec, cfg, resume, overwrite, record_transitions=record)
     click.echo(f"wrote {out / 'controls.npz'}, {out / 'metrics.json'}, {out / 'summary.json'}")
     label = spec.method if spec.method != "ours" else f"ours (stages {','.join(spec.stages or ())})"
     runs = {label: res.metrics, "kinematic replay": res.kinematic_metrics}
-    _summary(f"{demo.stem}: {label} in {target}, beside the kinematic replay", runs, out / "report.html")
+    _summary(f"{demo.stem}: {label} in {spec.target}, beside the kinematic replay", runs, out / "report.html")
 
 
 @main.command()
@@ -243,27 +184,11 @@ def transfer(
 @click.option(
     "--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder (one folder per clip)."
 )
-@click.option("--method", type=click.Choice(METHODS), default=None, help=f"As in transfer (default {DEFAULT_METHOD}).")
-@click.option("--stages", default=None, help="As in transfer (method ours; given alone, they imply it).")
-@click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
-@click.option("--hand", default=_SPEC.hand, show_default=True)
-@click.option("--target", type=TARGET_CHOICE, default=_SPEC.target, show_default=True)
-@click.option("--budget", default=_SPEC.budget, show_default=True)
-@click.option(
-    "--pattern", default="*.npz", show_default=True, help="Clips of DATA_DIR (glob); *_long.npz skipped unless named."
-)
-@click.option(
-    "--clips", "clip_names", default="", help="Comma-separated clip names (default: every clip of --pattern)."
-)
-@click.option(
-    "--ray",
-    "ray_address",
-    default=None,
-    help="Run on an existing Ray cluster: auto (the one `ray start` made on this machine, or $RAY_ADDRESS) or "
+@_spec_options(render=False, render_help="Render each clip's video.")
+@_clips_options(
+    ray_help="Run on an existing Ray cluster: auto (the one `ray start` made on this machine, or $RAY_ADDRESS) or "
     "HOST:PORT (default: a Ray of the batch's own on this machine, whatever else runs here).",
-)
-@click.option(
-    "--workers", default=0, show_default=True, type=click.IntRange(0, None), help="Clips at once (0: one per core)."
+    set_help="Override a config key (as in transfer).",
 )
 @click.option(
     "--threads",
@@ -275,26 +200,13 @@ def transfer(
 @click.option(
     "--retries", default=2, show_default=True, type=click.IntRange(0, 10), help="Retries of a clip whose worker died."
 )
-@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None, help="Transfer config YAML.")
-@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
-@click.option("--render/--no-render", default=False, show_default=True, help="Render each clip's video.")
-@click.option(
-    "--record-transitions", "record", is_flag=True,
-    help="Each clip's folder keeps what its sampling stage rolled out in the target (transitions/; "
-    "docs/transfer.md). Clips finished before are not redone: use a new OUT.",
-)  # fmt: skip
-@_LEAD_CLIP
-@_ROBUST
-@_RANGES
-@_ROBUST_SET
-@_ablation_flags
+@_CONFIG
+@_judging(closed_loop=None)
 @_interruptible
 @_friendly
 def batch(
-    data_dir: Path, out: Path, method: str | None, stages: str | None, curriculum: str, hand: str, target: str, budget: str,
-    pattern: str, clip_names: str, ray_address: str | None, workers: int, threads: int, retries: int, config_path: Path | None,
-    sets: tuple[str, ...], render: bool, record: bool, robust: int | None, ranges: str, robust_sets: tuple[str, ...],
-    no_residual: bool, no_local_residual: bool, no_control_transform: bool, lead_clip: bool,
+    data_dir: Path, out: Path, spec: TransferSpec, clips: Clips, threads: int, retries: int, config_path: Path | None,
+    judging: Judging,
 ) -> None:  # fmt: skip
     """Transfer every clip of DATA_DIR on Ray (resumable: finished clips are never redone; a failed clip is
     reported and the batch goes on): writes OUT/<clip>/ (as transfer), OUT/batch.json and OUT/batch.md."""
@@ -302,25 +214,9 @@ def batch(
     _setup_runtime()
     from quasisim.batch import run_batch_command
 
-    nets = networks_from_flags(no_residual, no_local_residual, no_control_transform)
-    _robust_sets(robust, ranges, False, robust_sets)
-    spec = TransferSpec(
-        hand, target, curriculum, _stages(stages), budget, method, render, False, nets, robust,
-        ranges=_ranges(ranges), robust_set=tuple(sorted(_robust_over(robust_sets).items())),
-    ).checked()  # fmt: skip
-    names = tuple(c.strip() for c in clip_names.split(",") if c.strip())
+    spec = judging.on(dataclasses.replace(spec, progress=False)).checked()
+    c = clips
     run_batch_command(
-        data_dir,
-        names,
-        pattern,
-        spec,
-        out,
-        ray_address,
-        workers,
-        threads,
-        config_path,
-        _parse_sets(sets),
-        retries,
-        record,
-        lead_clip,
-    )
+        data_dir, c.names, c.pattern, spec, out, c.ray_address, c.workers, threads, config_path, c.overrides, retries,
+        c.record, c.lead_clip,
+    )  # fmt: skip
