@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from quasisim.batch import FAULT_ENV, Job, Run, Settings, run_batch, spread_objects
+from batch_hooks import DRIVER, ScriptedHooks, pythonpath
+from quasisim.batch import Job, Run, Settings, run_batch, spread_objects
 from quasisim.errors import QuasisimError
 from quasisim.method.spec import TransferSpec
 
@@ -40,10 +41,16 @@ def _jobs(d: Path) -> list[Job]:
 
 
 def _batch_cli(clips_dir: Path, out: Path, *extra: str, fault: str = "") -> subprocess.CompletedProcess:
-    """``quasisim batch`` in a subprocess (Ray's in-process core worker stays out of the test process)."""
-    env = {**os.environ, FAULT_ENV: fault}
+    """``quasisim batch`` in a subprocess (Ray's in-process core worker stays out of the test process);
+    ``fault``: the first attempt of that clip kills its worker (:class:`batch_hooks.ScriptedHooks`)."""
+    env = {**os.environ, "PYTHONPATH": pythonpath()}
     sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
-    cmd = [sys.executable, "-m", "quasisim.cli", "batch", str(clips_dir), "--out", str(out), "--method", "sample-target",
+    cli = (
+        [sys.executable, str(DRIVER), ScriptedHooks(fault=fault).to_json()]
+        if fault
+        else [sys.executable, "-m", "quasisim.cli"]
+    )
+    cmd = [*cli, "batch", str(clips_dir), "--out", str(out), "--method", "sample-target",
            "--workers", "2", "--threads", "1", *sets, *extra]  # fmt: skip
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
 

@@ -19,13 +19,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quasisim.batch import GATE_ENV, HOLD_ENV
+from batch_hooks import DRIVER, ScriptedHooks, pythonpath
 from quasisim.errors import QuasisimError
 from quasisim.raycluster import LocalCluster, processes_with, resolve, token_available
 
 pytest.importorskip("ray", reason="Ray is installed with the 'cluster' extra (make setup installs it)")
 
 N_CLIPS = 5
+MARK = "QUASISIM_TEST_BATCH"  # in the environment of a batch's driver, so of its local Ray's processes: finds them
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +61,15 @@ def token_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     mp.undo()
 
 
-def _batch(clips_dir: Path, out: Path, *extra: str, env: dict[str, str]) -> subprocess.Popen[str]:
-    """``quasisim batch`` (the cheapest method, the kinematic retarget judged in MuJoCo) in a subprocess."""
-    cmd = [sys.executable, "-m", "quasisim.cli", "batch", str(clips_dir), "--out", str(out), "--method", "kinematic",
+def _batch(
+    clips_dir: Path, out: Path, *extra: str, env: dict[str, str], hooks: ScriptedHooks | None = None
+) -> subprocess.Popen[str]:
+    """``quasisim batch`` (the cheapest method, the kinematic retarget judged in MuJoCo) in a subprocess, its
+    workers with ``hooks`` where given (:mod:`batch_hooks`)."""
+    cli = [sys.executable, str(DRIVER), hooks.to_json()] if hooks else [sys.executable, "-m", "quasisim.cli"]
+    cmd = [*cli, "batch", str(clips_dir), "--out", str(out), "--method", "kinematic",
            "--workers", "2", "--threads", "1", *extra]  # fmt: skip
-    env = {**os.environ, **env}
+    env = {**os.environ, "PYTHONPATH": pythonpath(), **env}
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -117,12 +122,13 @@ def local_run(clips_dir: Path, token_env: None, tmp_path_factory: pytest.TempPat
     cluster = LocalCluster.start((1,))
     try:
         env = {"RAY_TMPDIR": str(cluster.temp)}
-        p = _batch(clips_dir, out, env={**env, "RAY_ADDRESS": cluster.address, HOLD_ENV: str(hold)})
+        p = _batch(clips_dir, out, env={**env, "RAY_ADDRESS": cluster.address, MARK: str(hold)},
+                   hooks=ScriptedHooks(hold=str(hold)))  # fmt: skip
         _wait(lambda: any(out.glob("*/clip.json")), 240, "finished clip", p)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 60, "held clip", p)  # the others are running
         p.send_signal(signal.SIGINT)
         interrupted = _completed(p, 180)  # a hang guard: Ray's shutdown took over 60 s once on 2 loaded cores
-        left = _gone(f"{HOLD_ENV}={hold}")  # only the batch's own processes carry it
+        left = _gone(f"{MARK}={hold}")  # only the batch's own processes carry it
         first = next(out.glob("*/clip.json")).parent
         stamp = (first / "controls.npz").stat().st_mtime_ns
         assert not cluster.stop()  # SIGTERM ended every process of it
@@ -166,13 +172,14 @@ def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None
     end), and no process of the cluster left."""
     hold, out = tmp_path / "hold", tmp_path / "out"
     hold.mkdir()
-    # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips
-    cluster = LocalCluster.start((1, 1), node_env={0: {GATE_ENV: str(hold)}, 1: {HOLD_ENV: str(hold)}})
+    cluster = LocalCluster.start((1, 1), env={"PYTHONPATH": pythonpath()})  # its workers import batch_hooks
     try:
         assert b"Token authentication is enabled" in cluster.log(0).read_bytes()  # Ray's default, a token here
         raylet, node1 = cluster.raylet(1)
+        # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips
+        hooks = ScriptedHooks(hold=str(hold), hold_node=node1, gate=str(hold))
         # the explicit address: Ray sends no token unless told (RAY_AUTH_MODE), quasisim tells it
-        p = _batch(clips_dir, out, "--ray", cluster.address, env={})
+        p = _batch(clips_dir, out, "--ray", cluster.address, env={}, hooks=hooks)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 240, "held clip on the second node", p)
         first, held = (f.stem for f in sorted(hold.glob("*.started"), key=lambda f: f.stat().st_mtime_ns))
         os.kill(raylet, signal.SIGKILL)
