@@ -43,16 +43,26 @@ class ScriptedHooks(BatchHooks):
     - ``hold`` (a folder): every clip but the first one started writes ``<clip>.started`` there and waits
       (until its worker is killed, or ``limit_s``); only on the Ray node ``hold_node`` where one is named.
     - ``gate`` (a folder): on the nodes that do not hold, a clip waits until that folder shows a held clip
-      (two ``.started`` files), so that another node gets clips meanwhile."""
+      (two ``.started`` files), so that another node gets clips meanwhile.
+    - ``node_scratch``: each Ray node keeps its clips' scratch folders in a folder of its own,
+      ``OUT/.work@<node id>/<clip>`` (nodes on this one machine share its disk; on a cluster each has its own)."""
 
     fault: str = ""
     hold: str = ""
     hold_node: str = ""
     gate: str = ""
+    node_scratch: bool = False
     limit_s: float = 120.0
 
     def to_json(self) -> str:
         return json.dumps(asdict(self))
+
+    def scratch(self, scratch: Path) -> Path:
+        return (
+            scratch.parent.with_name(f"{scratch.parent.name}@{_node()}") / scratch.name
+            if self.node_scratch
+            else scratch
+        )
 
     def starting(self, clip: str) -> None:
         if self.hold and self.hold_node in ("", _node()):

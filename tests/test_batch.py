@@ -3,6 +3,7 @@ retried, results identical to a single transfer."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -107,9 +108,45 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
     assert r.returncode == 0 and list(dead["failures"]) == [good[0]] and not dead["rows"]
 
 
-def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip() -> None:
-    import dataclasses
+def test_a_worker_removes_its_clips_scratch_folder_once_done_or_failed(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's side of a clip (run_job, here in this process; the transfer a stand-in that writes a
+    checkpoint and an output, then returns or fails): its scratch folder (the demo, the checkpoints) is gone
+    when run_job returns the clip's outputs or raises its error, on the node that holds it (the two-node test
+    checks this on a cluster); kept with keep_scratch (bench transfer's later runs start from it)."""
+    from types import SimpleNamespace
 
+    import quasisim.pipeline
+    from quasisim.batch import pack_demo, run_job
+
+    def transfer(demo: Path, run_dir: Path, spec: TransferSpec, cfg: Any, **kw: Any) -> Any:
+        assert demo.is_file() and demo.parent == scratch / "input"
+        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        (run_dir / "checkpoints" / "kinematic.npz").write_bytes(b"piece")
+        (run_dir / "controls.npz").write_bytes(b"controls")
+        if fail:
+            raise RuntimeError("the transfer failed")
+        return SimpleNamespace(metrics={"ok": 1}, kinematic_metrics={}, record=SimpleNamespace(seconds={}))
+
+    monkeypatch.setattr(quasisim.pipeline, "run_transfer", transfer)
+    job = Job(clips_dir / "cube_lift.npz", (Run("", SPEC),))
+    files, s = pack_demo(job.demo_path), Settings(workers=1, threads=1, pin_cores=False)
+    scratch, fail = tmp_path / ".work" / job.clip, False
+    res = run_job(job, files, s, scratch)
+    assert res["files"] == {"controls.npz": b"controls"} and res["rows"][0]["metrics"] == {"ok": 1}
+    assert not scratch.exists()
+    fail = True
+    with pytest.raises(RuntimeError, match="the transfer failed"):  # an error is final (Ray retries dead workers)
+        run_job(job, files, s, scratch)
+    assert not scratch.exists()
+    fail = False
+    run_job(job, files, dataclasses.replace(s, keep_scratch=True), scratch)
+    assert (scratch / "runs" / "_" / "checkpoints" / "kinematic.npz").is_file()
+    assert (scratch / "input" / "cube_lift.npz").is_file()
+
+
+def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip() -> None:
     from quasisim.batch import leads
 
     s = Settings(workers=2, threads=1)

@@ -169,15 +169,16 @@ def test_local_batch_ignores_other_rays_stops_on_ctrl_c_and_resumes(local_run: L
 def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None, tmp_path: Path) -> None:
     """Clips run on both nodes; the second node's raylet is killed while it holds a clip, which Ray retries
     on the head: every clip done once, with the results of a local batch (run beside the live cluster, to its
-    end), and no process of the cluster left."""
+    end), no clip's scratch folder left on either node, and no process of the cluster left."""
     hold, out = tmp_path / "hold", tmp_path / "out"
     hold.mkdir()
     cluster = LocalCluster.start((1, 1), env={"PYTHONPATH": pythonpath()})  # its workers import batch_hooks
     try:
         assert b"Token authentication is enabled" in cluster.log(0).read_bytes()  # Ray's default, a token here
         raylet, node1 = cluster.raylet(1)
-        # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips
-        hooks = ScriptedHooks(hold=str(hold), hold_node=node1, gate=str(hold))
+        # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips;
+        # each node keeps its scratch folders apart (OUT/.work@NODE), as nodes of their own machines would
+        hooks = ScriptedHooks(hold=str(hold), hold_node=node1, gate=str(hold), node_scratch=True)
         # the explicit address: Ray sends no token unless told (RAY_AUTH_MODE), quasisim tells it
         p = _batch(clips_dir, out, "--ray", cluster.address, env={}, hooks=hooks)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 240, "held clip on the second node", p)
@@ -195,6 +196,10 @@ def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None
         )  # every clip once
         assert nodes[first] == node1 and nodes[held] != node1  # the held clip ran again on the head
         assert not list(out.glob(".*.incoming"))  # no clip folder half written
+        # each node's scratch folder is empty: its workers removed their clips' (the held clip waited before
+        # writing any); the driver cannot reach them
+        assert sorted(d.name for d in out.glob(".work*")) == sorted(f".work@{n}" for n in set(nodes.values()))
+        assert not [str(c) for c in out.glob(".work*/*")]
         assert cluster.procs[1].poll() is not None  # the second node's `ray start` ended with its raylet
         # a local batch beside the live cluster (its address file where Ray looks) runs to its end, on its own Ray
         local = _completed(_batch(clips_dir, tmp_path / "local", env={"RAY_TMPDIR": str(cluster.temp)}))

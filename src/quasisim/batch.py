@@ -8,7 +8,9 @@ aside and renamed) with ``clip.json`` (the clip's metrics and settings) in it, a
 ``OUT/batch.md`` (per-clip rows, failures and the summary table) are rewritten atomically after every clip.
 
 - Resumable: a clip whose folder exists is never redone; a clip that was running when the batch was killed
-  resumes from its checkpoints in the scratch folder (``OUT/.work`` by default).
+  resumes from its checkpoints in the scratch folder (``OUT/.work/<clip>`` by default, on the node that runs
+  it). The worker removes that folder once its results are in its reply, or when the clip fails with an
+  error (:func:`run_job`; ``keep_scratch`` keeps it).
 - A worker that dies (killed, out of memory) has its clip retried (``max_retries``); a clip that fails
   with an error is reported with it and the batch goes on.
 - Local by default: a Ray of the batch's own with this machine's cores, whatever other Ray runs here;
@@ -53,6 +55,10 @@ class BatchHooks:
     A batch takes its hooks from :func:`run_batch`'s ``hooks`` (default: :data:`HOOKS`, which a test's
     driver process may replace before the batch starts) and carries them to the workers with each task, so a
     subclass must pickle: a class of a module that the workers can import."""
+
+    def scratch(self, scratch: Path) -> Path:
+        """The clip's scratch folder on this worker's node, given the batch's (``OUT/.work/<clip>``)."""
+        return scratch
 
     def starting(self, clip: str) -> None:
         """Called as the clip starts on its worker, before anything of it is written."""
@@ -217,16 +223,42 @@ def run_job(
     job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: BatchHooks = NO_HOOKS
 ) -> dict[str, Any]:
     """Run ``job``'s transfers in ``scratch`` (resumed from the checkpoints there); returns their output
-    files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
-    from quasisim.method.config import CONFIG_PATH, TransferConfig
-    from quasisim.pipeline import run_transfer
+    files ({run/relative path: bytes}), a result row per run and the worker's peak memory.
+
+    The worker removes ``scratch`` itself (unless ``s.keep_scratch``), on the node that holds it: once the
+    outputs are read into its result, or when the clip fails with an error (for good: Ray retries a clip
+    only when its worker dies). A clip whose worker dies (killed, out of memory, its node lost, the batch
+    interrupted) keeps it, to resume from."""
     from quasisim.runtime import configure, free_compiled_programs, pin_to_free_cores
 
+    scratch = hooks.scratch(scratch)
     hooks.starting(job.clip)
     cores = pin_to_free_cores(s.threads) if s.pin_cores else None  # before JAX's CPU backend starts
     configure()
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
-    fault = hooks.piece_hook(job.clip, scratch)
+    try:
+        out_files, rows = _run_transfers(job, files, s, scratch, hooks.piece_hook(job.clip, scratch))
+    except Exception:  # not BaseException: a worker stopped by the batch's end keeps its checkpoints
+        _drop_scratch(scratch, s)
+        raise
+    _drop_scratch(scratch, s)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
+            "node": _node()}  # fmt: skip
+
+
+def _drop_scratch(scratch: Path, s: Settings) -> None:
+    if not s.keep_scratch:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _run_transfers(
+    job: Job, files: dict[str, bytes], s: Settings, scratch: Path, fault: PieceHook | None
+) -> tuple[dict[str, bytes], list[dict[str, Any]]]:
+    """:func:`run_job`'s transfers in ``scratch``: their output files and result rows."""
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.pipeline import run_transfer
+
     cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sampling.threads": s.threads, **s.overrides})
     _write_tree(scratch / "input", files)
     demo = scratch / "input" / job.demo_path.name
@@ -257,9 +289,7 @@ def run_job(
         })  # fmt: skip
         prefix = f"{r.name}/" if r.name else ""
         out_files |= {prefix + k: v for k, v in _read_tree(run_dir).items()}
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
-            "node": _node()}  # fmt: skip
+    return out_files, rows
 
 
 # ---- the driver's side -------------------------------------------------------------------------------
@@ -355,7 +385,7 @@ def run_batch(
     # closed at once when the loop ends early (Ctrl-C, an error): a local Ray goes down with it
     with contextlib.closing(_dispatch(spread_objects(todo), s, scratch, HOOKS if hooks is None else hooks)) as results:
         for job, result in results:
-            _take(job, result, out, s, scratch, (rows, failures, peak, cores, nodes))
+            _take(job, result, out, s, (rows, failures, peak, cores, nodes))
             if isinstance(result, dict) and result.get("lead"):
                 lead = {"clip": job.clip, "pid": result["pid"]}
             if on_clip is not None:
@@ -363,16 +393,14 @@ def run_batch(
     return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores, lead, nodes)
 
 
-def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, scratch: Path, acc: tuple[Any, ...]) -> None:
+def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, acc: tuple[Any, ...]) -> None:
     """One clip's result into the batch: its folder written (or its error kept) and its row, memory, cores
     and node added to ``acc`` (rows, failures, peak, cores, nodes)."""
     rows, failures, peak, cores, nodes = acc
     if isinstance(result, str):
         failures[job.clip] = result
         return
-    _persist(out, job, s, result)
-    if not s.keep_scratch:
-        shutil.rmtree(scratch / job.clip, ignore_errors=True)
+    _persist(out, job, s, result)  # its scratch folder is its worker's to remove, on its node (run_job)
     rows.extend(result["rows"])
     peak[str(result["pid"])] = result["peak_rss_mb"]
     cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
