@@ -239,6 +239,36 @@ def test_ray_auto_finds_the_cluster_of_ray_start(tmp_path: Path, monkeypatch: py
         resolve("nowhere")
 
 
+def test_an_older_ray_is_one_line_naming_the_version_needed(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With a Ray older than 2.59 (its version monkeypatched; no Ray starts here) `quasisim batch` and a
+    LocalCluster fail where they first use Ray, with one line naming the version needed, the version
+    pyproject.toml asks for; 2.59 passes."""
+    import re
+    import tomllib
+
+    import ray
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+    from quasisim.raycluster import _import_ray
+
+    need = "quasisim needs Ray 2.59 or later, this is Ray 2.58.1: pip install 'ray[default]>=2.59'"
+    monkeypatch.setattr(ray, "__version__", "2.58.1")
+    with pytest.raises(QuasisimError, match=re.escape(need)):
+        _import_ray()
+    with pytest.raises(QuasisimError, match=re.escape(need)):
+        LocalCluster.start((1,))  # before any `ray start`
+    r = CliRunner().invoke(main, ["batch", str(clips_dir), "--out", str(tmp_path / "o"), "--method", "kinematic"])
+    assert r.exit_code == 2 and r.output.strip().splitlines()[-1].startswith(f"error: {need}"), r.output
+    assert "Traceback" not in r.output
+    monkeypatch.setattr(ray, "__version__", "2.59.0")
+    assert _import_ray() is ray
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
+    assert project["optional-dependencies"]["cluster"] == ["ray[default]>=2.59"]
+
+
 def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
     """Ray turns a SystemExit raised by a signal handler while it waits into exit status 1: during a batch
     SIGTERM raises KeyboardInterrupt instead, and the command exits 143 (Ctrl-C: 130) with one line."""

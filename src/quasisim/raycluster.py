@@ -40,6 +40,11 @@ from typing import Any
 from quasisim.errors import QuasisimError
 
 ADDRESS_FILE = "ray_current_cluster"  # written by `ray start --head` into Ray's temp folder
+# The oldest Ray with what this module and quasisim.batch count on: ray.shutdown(wait_for_processes=) (since
+# 2.57), and token authentication turned on by `ray start --head` where a token exists and by a local
+# ray.init (since 2.59; LocalCluster tells its other nodes RAY_AUTH_MODE=token where a token exists, which
+# a head of an older Ray leaves without authentication). Read in the sources of Ray 2.55.0 to 2.60.0.
+RAY_MIN = "2.59"
 TOKEN_HELP = (
     "a cluster with token authentication needs its token here (~/.ray/auth_token, RAY_AUTH_TOKEN or "
     "RAY_AUTH_TOKEN_PATH; `ray get-auth-token` on its head node prints it)"
@@ -166,14 +171,30 @@ def _send_token() -> None:
 
 
 def _import_ray() -> Any:
-    """The ``ray`` module, or an error saying how to install it."""
+    """The ``ray`` module, or an error saying how to install it (Ray not installed, or older than
+    :data:`RAY_MIN`). Called where a batch or a cluster first uses Ray, not when quasisim is imported."""
     try:
         import ray
     except ImportError:
         raise QuasisimError(
             "batches run on Ray, which is not installed here: pip install 'quasisim[cluster]' (make setup installs it)"
         ) from None
+    if _older(ray.__version__, RAY_MIN):
+        raise QuasisimError(
+            f"quasisim needs Ray {RAY_MIN} or later, this is Ray {ray.__version__}: pip install 'ray[default]>={RAY_MIN}' "
+            "(on every node of a cluster)"
+        )
     return ray
+
+
+def _older(version: str, than: str) -> bool:
+    """Whether the Ray version ``version`` is older than ``than`` (a version that cannot be read is not)."""
+    from packaging.version import InvalidVersion, Version  # Ray's own dependency
+
+    try:
+        return Version(version) < Version(than)
+    except InvalidVersion:
+        return False
 
 
 def _one_line(e: BaseException) -> str:
@@ -253,11 +274,11 @@ def connect(address: str, env: dict[str, str], min_cpus: int) -> Any:
 def start_local(num_cpus: int, env: dict[str, str]) -> Any:
     """``ray`` started on this machine for this batch alone (never attached to another Ray; one line on
     stderr when one is found)."""
+    ray = _import_ray()
     other = other_ray()
     if other:
         print(f"note: {other}; this batch starts a Ray of its own (--ray auto runs it on the cluster of `ray start`)",
               file=sys.stderr)  # fmt: skip
-    ray = _import_ray()
 
     before = os.environ.pop("RAY_ADDRESS", None)
     try:
@@ -307,6 +328,7 @@ class LocalCluster:
     def start(cls, cpus: tuple[int, ...], env: dict[str, str] | None = None,
               node_env: dict[int, dict[str, str]] | None = None) -> LocalCluster:  # fmt: skip
         """A head of ``cpus[0]`` CPUs and a node per later entry; ``node_env[i]``: more environment of node i."""
+        _import_ray()  # the `ray start`s are this Ray's: an error now where it is missing or too old
         c = cls(Path(tempfile.mkdtemp(prefix="qsray", dir="/tmp")))  # short: Unix socket paths
         try:
             c._start_node(0, cpus[0], {**(env or {}), **(node_env or {}).get(0, {})})
