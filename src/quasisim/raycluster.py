@@ -14,14 +14,16 @@
 - Every failure to start or reach Ray is a :class:`~quasisim.errors.QuasisimError` (one line: the address
   and what to do).
 - :class:`LocalCluster`: ``ray start --block`` processes of our own (a head and more nodes, all on this
-  machine) for the two-node test and ``quasisim bench batch``'s cluster layouts; stopped by process id
-  (never ``ray stop``, which ends every Ray on the machine).
+  machine) for the two-node test and ``quasisim bench batch``'s cluster layouts; each started in a session
+  of its own and stopped through its process group (never ``ray stop``, which ends every Ray on the
+  machine, nor a search for processes that mention the cluster).
 
 Linux only where it reads ``/proc`` (finding running Ray processes), as Ray's own discovery does.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -356,8 +358,9 @@ class LocalCluster:
         else:
             args = _ray_cli("start", "--address", self.address, *common)
         log = self.log(i)
-        with open(log, "wb") as f:
-            self.procs.append(subprocess.Popen(args, env=self._env(extra, i == 0), stdout=f, stderr=subprocess.STDOUT))
+        with open(log, "wb") as f:  # a session of its own: the process group of its processes is ours alone
+            self.procs.append(subprocess.Popen(args, env=self._env(extra, i == 0), stdout=f, stderr=subprocess.STDOUT,
+                                               start_new_session=True))  # fmt: skip
         self._wait_started(i)
         if i == 0:
             self.address = (self.temp / "ray" / ADDRESS_FILE).read_text().strip()
@@ -383,24 +386,26 @@ class LocalCluster:
                 return pid, node
         raise QuasisimError(f"node {i} of the cluster at {self.address} has no raylet")
 
-    def stop(self, timeout: float = 30.0) -> list[int]:
-        """End the nodes (the last first; SIGTERM, then SIGKILL), then any process still using ``temp``
-        (workers that outlived their raylet); returns the ids of those that had to be killed."""
+    def stop(self, timeout: float = 30.0, grace: float = 10.0) -> list[int]:
+        """End the nodes, the last first: SIGTERM to each ``ray start`` (which ends the processes it started),
+        then SIGKILL to its process group where anything is left in it ``grace`` s after it exited; returns
+        the groups that had to be killed so. Only the nodes' own processes are signalled: each ``ray start``
+        leads a session of its own, and its process group holds it, its GCS, raylet and agents; Ray puts each
+        worker in a group of its own, which its raylet ends (a worker whose raylet died exits by itself)."""
+        killed = []
         for p in reversed(self.procs):
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
                 try:
                     p.wait(timeout)
                 except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-        left = processes_of(self.temp)
-        for pid in left:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        return left
+                    pass
+            if not _group_ends(p.pid, grace if p.poll() is not None else 0.0):
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                killed.append(p.pid)
+            p.wait()
+        return killed
 
     def remove(self) -> None:
         """Delete ``temp`` (sessions, logs, the address file) once the cluster is stopped."""
@@ -414,24 +419,14 @@ def _ppid(pid: int) -> str:
         return ""
 
 
-def processes_of(temp: Path) -> list[int]:
-    """Ids of the processes (this one aside) that use the Ray temp folder ``temp``: in their command line
-    (raylet, GCS, agents) or their environment (workers, whose command line Ray rewrites, inherit
-    ``RAY_TMPDIR``)."""
-    return processes_with(str(temp))
-
-
-def processes_with(text: str) -> list[int]:
-    """Ids of the processes (this one aside) with ``text`` in their command line or environment."""
-    me, key = os.getpid(), text.encode()
-    out = []
-    for pid, args in _processes():
-        if pid == me:
-            continue
+def _group_ends(pgid: int, timeout: float) -> bool:
+    """Whether the process group ``pgid`` is empty within ``timeout`` s."""
+    t0 = time.monotonic()
+    while True:
         try:
-            environ = Path(f"/proc/{pid}/environ").read_bytes()
-        except OSError:
-            environ = b""
-        if any(text in a for a in args) or key in environ:
-            out.append(pid)
-    return out
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        if time.monotonic() - t0 >= timeout:
+            return False
+        time.sleep(0.1)
