@@ -146,13 +146,70 @@ def test_a_worker_removes_its_clips_scratch_folder_once_done_or_failed(
     assert (scratch / "input" / "cube_lift.npz").is_file()
 
 
-def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip() -> None:
-    from quasisim.batch import leads
+class _Ref:
+    def __init__(self, result: dict[str, Any]) -> None:
+        self.result = result
 
-    s = Settings(workers=2, threads=1)
-    assert leads(s, 2) and not leads(s, 1)
-    for other in ({"ray_address": "auto"}, {"pin_cores": False}, {"workers": 1}, {"lead_clip": False}):
-        assert not leads(dataclasses.replace(s, **other), 25), other
+
+class _FakeRay:
+    """``ray`` for run_batch without Ray: records each task (its function, clip, Ray options and the threads
+    it is given) and answers it at once with a result as a worker's, its pid the task's number."""
+
+    def __init__(self) -> None:
+        self.tasks: list[tuple[str, str, dict[str, Any], int]] = []
+
+    def remote(self, **options: Any) -> Any:
+        def wrap(fn: Any) -> Any:
+            def submit(job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: Any) -> _Ref:
+                self.tasks.append((fn.__name__, job.clip, options, s.threads))
+                row = {"clip": job.clip, "run": "sample-target", "metrics": {}, "kinematic_metrics": {}, "seconds": {}}
+                return _Ref({"files": {}, "rows": [row], "peak_rss_mb": 1.0, "pid": len(self.tasks), "cores": None,
+                             "node": "n", **({"lead": True} if fn.__name__ == "run_lead_job" else {})})  # fmt: skip
+
+            return type("RemoteFunction", (), {"remote": staticmethod(submit)})
+
+        return wrap
+
+    def wait(self, refs: list[_Ref], num_returns: int = 1) -> tuple[list[_Ref], list[_Ref]]:
+        return refs[:1], refs[1:]
+
+    def get(self, ref: _Ref) -> dict[str, Any]:
+        return ref.result
+
+    def shutdown(self, **kwargs: Any) -> None:
+        pass
+
+
+def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What run_batch hands to Ray (a stand-in here, no Ray): a local batch of 2 pinned workers of 1 thread
+    runs its first readable clip (broken.npz, first in order, cannot be read) alone, as the lead task on both
+    cores with 2 threads, in a process that ends after it, then the other clip as an ordinary task; a batch on a
+    cluster, of unpinned workers, of one worker, with --no-lead-clip or of one clip has no lead."""
+    import quasisim.batch
+
+    def tasks(jobs: list[Job], **settings: Any) -> list[tuple[str, str, dict[str, Any], int]]:
+        fake = _FakeRay()
+        monkeypatch.setattr(quasisim.batch, "_ray_init", lambda s: fake)
+        s = Settings(**{"workers": 2, "threads": 1, "overrides": FAST, **settings})
+        res = run_batch(jobs, tmp_path / f"out{len(list(tmp_path.iterdir()))}", s)
+        assert list(res.failures) == (["broken"] if len(jobs) == 3 else []) and len(res.rows) == len(fake.tasks)
+        assert res.lead == ({"clip": fake.tasks[0][1], "pid": 1} if fake.tasks[0][0] == "run_lead_job" else None)
+        return fake.tasks
+
+    jobs = _jobs(clips_dir)
+    assert [j.clip for j in jobs] == ["broken", "cube_lift", "cylinder_lift_turn"]
+    assert tasks(jobs) == [
+        ("run_lead_job", "cube_lift", {"num_cpus": 2, "max_retries": 2, "max_calls": 1}, 2),
+        ("run_job", "cylinder_lift_turn", {"num_cpus": 1, "max_retries": 2}, 1),
+    ]
+    plain = [("run_job", c, {"num_cpus": 1, "max_retries": 2}, 1) for c in ("cube_lift", "cylinder_lift_turn")]
+    assert tasks(jobs, ray_address="127.0.0.1:6379") == plain
+    assert tasks(jobs, pin_cores=False) == plain
+    assert tasks(jobs, lead_clip=False) == plain
+    assert tasks(jobs, workers=1) == plain
+    assert tasks(jobs[1:2]) == plain[:1]
 
 
 def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path) -> None:
@@ -237,11 +294,12 @@ def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:
     assert [j.clip for j in spread_objects(jobs)] == ["a1", "b1", "c1", "zz", "a2", "b2", "a3"]
 
 
-def test_bench_batch_cluster_layouts_run_on_clusters_of_their_own(
+def test_bench_batch_cluster_layouts_start_run_on_and_stop_their_cluster_stand_in(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """cluster:NODESxCPUS starts that cluster (ray start processes of its own), runs the batch on it with
-    --ray's path and stops it, even when the batch fails; a local layout starts none. The table names both."""
+    """No Ray and no cluster here: LocalCluster and run_batch are stand-ins that record their calls.
+    cluster:NODESxCPUS asks for that cluster (LocalCluster.start), runs the batch on its address (--ray's path)
+    and stops and removes it, even when the batch fails; a local layout asks for none. The table names both."""
     import quasisim.bench.batch as bb
 
     calls: list[Any] = []

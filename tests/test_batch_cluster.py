@@ -368,19 +368,23 @@ def test_an_older_ray_is_one_line_naming_the_version_needed(
     assert project["optional-dependencies"]["cluster"] == ["ray[default]>=2.59"]
 
 
-def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
-    """Ray turns a SystemExit raised by a signal handler while it waits into exit status 1: during a batch
-    SIGTERM raises KeyboardInterrupt instead, and the command exits 143 (Ctrl-C: 130) with one line."""
+def test_sigterm_inside_sigterm_interrupts_is_an_interrupt_that_exits_143(capsys: pytest.CaptureFixture[str]) -> None:
+    """No Ray here: the part of a batch that waits on Ray (ray.wait, ray.get) runs inside sigterm_interrupts,
+    because Ray turns a SystemExit raised by a signal handler while it waits into exit status 1. Inside it,
+    SIGTERM raises KeyboardInterrupt (the handler from before is put back after it), and a resumable command
+    (_interruptible) then exits 143, Ctrl-C 130, with one line on stderr. The slow local-batch test stops a
+    real batch on Ray (with SIGINT)."""
     import quasisim.raycluster as rc
-    from quasisim.cli._common import INTERRUPTED, _interruptible
+    from quasisim.cli._common import _interruptible
 
     def interrupted() -> None:
         raise KeyboardInterrupt
 
+    line = "interrupted; rerun the same command to resume\n"
     try:
         with pytest.raises(SystemExit) as e:
             _interruptible(interrupted)()
-        assert e.value.code == 130
+        assert e.value.code == 130 and capsys.readouterr().err == line
         before = signal.getsignal(signal.SIGTERM)
         with pytest.raises(KeyboardInterrupt), rc.sigterm_interrupts():
             os.kill(os.getpid(), signal.SIGTERM)
@@ -388,7 +392,6 @@ def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
         assert rc.terminated() and signal.getsignal(signal.SIGTERM) == before
         with pytest.raises(SystemExit) as e:
             _interruptible(interrupted)()
-        assert e.value.code == 143
+        assert e.value.code == 143 and capsys.readouterr().err == line
     finally:
         rc._TERMINATED.clear()
-    assert INTERRUPTED == "interrupted; rerun the same command to resume"
