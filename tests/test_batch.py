@@ -3,6 +3,7 @@ retried, results identical to a single transfer."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -13,7 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from quasisim.batch import FAULT_ENV, Job, Run, Settings, run_batch, spread_objects
+from batch_hooks import DRIVER, ScriptedHooks, pythonpath
+from quasisim.batch import Job, Run, Settings, run_batch, spread_objects
 from quasisim.errors import QuasisimError
 from quasisim.method.spec import TransferSpec
 
@@ -40,10 +42,16 @@ def _jobs(d: Path) -> list[Job]:
 
 
 def _batch_cli(clips_dir: Path, out: Path, *extra: str, fault: str = "") -> subprocess.CompletedProcess:
-    """``quasisim batch`` in a subprocess (Ray's in-process core worker stays out of the test process)."""
-    env = {**os.environ, FAULT_ENV: fault}
+    """``quasisim batch`` in a subprocess (Ray's in-process core worker stays out of the test process);
+    ``fault``: the first attempt of that clip kills its worker (:class:`batch_hooks.ScriptedHooks`)."""
+    env = {**os.environ, "PYTHONPATH": pythonpath()}
     sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
-    cmd = [sys.executable, "-m", "quasisim.cli", "batch", str(clips_dir), "--out", str(out), "--method", "sample-target",
+    cli = (
+        [sys.executable, str(DRIVER), ScriptedHooks(fault=fault).to_json()]
+        if fault
+        else [sys.executable, "-m", "quasisim.cli"]
+    )
+    cmd = [*cli, "batch", str(clips_dir), "--out", str(out), "--method", "sample-target",
            "--workers", "2", "--threads", "1", *sets, *extra]  # fmt: skip
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
 
@@ -100,15 +108,108 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
     assert r.returncode == 0 and list(dead["failures"]) == [good[0]] and not dead["rows"]
 
 
-def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip() -> None:
-    import dataclasses
+def test_a_worker_removes_its_clips_scratch_folder_once_done_or_failed(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's side of a clip (run_job, here in this process; the transfer a stand-in that writes a
+    checkpoint and an output, then returns or fails): its scratch folder (the demo, the checkpoints) is gone
+    when run_job returns the clip's outputs or raises its error, on the node that holds it (the two-node test
+    checks this on a cluster); kept with keep_scratch (bench transfer's later runs start from it)."""
+    from types import SimpleNamespace
 
-    from quasisim.batch import leads
+    import quasisim.pipeline
+    from quasisim.batch import pack_demo, run_job
 
-    s = Settings(workers=2, threads=1)
-    assert leads(s, 2) and not leads(s, 1)
-    for other in ({"ray_address": "auto"}, {"pin_cores": False}, {"workers": 1}, {"lead_clip": False}):
-        assert not leads(dataclasses.replace(s, **other), 25), other
+    def transfer(demo: Path, run_dir: Path, spec: TransferSpec, cfg: Any, **kw: Any) -> Any:
+        assert demo.is_file() and demo.parent == scratch / "input"
+        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        (run_dir / "checkpoints" / "kinematic.npz").write_bytes(b"piece")
+        (run_dir / "controls.npz").write_bytes(b"controls")
+        if fail:
+            raise RuntimeError("the transfer failed")
+        return SimpleNamespace(metrics={"ok": 1}, kinematic_metrics={}, record=SimpleNamespace(seconds={}))
+
+    monkeypatch.setattr(quasisim.pipeline, "run_transfer", transfer)
+    job = Job(clips_dir / "cube_lift.npz", (Run("", SPEC),))
+    files, s = pack_demo(job.demo_path), Settings(workers=1, threads=1, pin_cores=False)
+    scratch, fail = tmp_path / ".work" / job.clip, False
+    res = run_job(job, files, s, scratch)
+    assert res["files"] == {"controls.npz": b"controls"} and res["rows"][0]["metrics"] == {"ok": 1}
+    assert not scratch.exists()
+    fail = True
+    with pytest.raises(RuntimeError, match="the transfer failed"):  # an error is final (Ray retries dead workers)
+        run_job(job, files, s, scratch)
+    assert not scratch.exists()
+    fail = False
+    run_job(job, files, dataclasses.replace(s, keep_scratch=True), scratch)
+    assert (scratch / "runs" / "_" / "checkpoints" / "kinematic.npz").is_file()
+    assert (scratch / "input" / "cube_lift.npz").is_file()
+
+
+class _Ref:
+    def __init__(self, result: dict[str, Any]) -> None:
+        self.result = result
+
+
+class _FakeRay:
+    """``ray`` for run_batch without Ray: records each task (its function, clip, Ray options and the threads
+    it is given) and answers it at once with a result as a worker's, its pid the task's number."""
+
+    def __init__(self) -> None:
+        self.tasks: list[tuple[str, str, dict[str, Any], int]] = []
+
+    def remote(self, **options: Any) -> Any:
+        def wrap(fn: Any) -> Any:
+            def submit(job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: Any) -> _Ref:
+                self.tasks.append((fn.__name__, job.clip, options, s.threads))
+                row = {"clip": job.clip, "run": "sample-target", "metrics": {}, "kinematic_metrics": {}, "seconds": {}}
+                return _Ref({"files": {}, "rows": [row], "peak_rss_mb": 1.0, "pid": len(self.tasks), "cores": None,
+                             "node": "n", **({"lead": True} if fn.__name__ == "run_lead_job" else {})})  # fmt: skip
+
+            return type("RemoteFunction", (), {"remote": staticmethod(submit)})
+
+        return wrap
+
+    def wait(self, refs: list[_Ref], num_returns: int = 1) -> tuple[list[_Ref], list[_Ref]]:
+        return refs[:1], refs[1:]
+
+    def get(self, ref: _Ref) -> dict[str, Any]:
+        return ref.result
+
+    def shutdown(self, **kwargs: Any) -> None:
+        pass
+
+
+def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What run_batch hands to Ray (a stand-in here, no Ray): a local batch of 2 pinned workers of 1 thread
+    runs its first readable clip (broken.npz, first in order, cannot be read) alone, as the lead task on both
+    cores with 2 threads, in a process that ends after it, then the other clip as an ordinary task; a batch on a
+    cluster, of unpinned workers, of one worker, with --no-lead-clip or of one clip has no lead."""
+    import quasisim.batch
+
+    def tasks(jobs: list[Job], **settings: Any) -> list[tuple[str, str, dict[str, Any], int]]:
+        fake = _FakeRay()
+        monkeypatch.setattr(quasisim.batch, "_ray_init", lambda s: fake)
+        s = Settings(**{"workers": 2, "threads": 1, "overrides": FAST, **settings})
+        res = run_batch(jobs, tmp_path / f"out{len(list(tmp_path.iterdir()))}", s)
+        assert list(res.failures) == (["broken"] if len(jobs) == 3 else []) and len(res.rows) == len(fake.tasks)
+        assert res.lead == ({"clip": fake.tasks[0][1], "pid": 1} if fake.tasks[0][0] == "run_lead_job" else None)
+        return fake.tasks
+
+    jobs = _jobs(clips_dir)
+    assert [j.clip for j in jobs] == ["broken", "cube_lift", "cylinder_lift_turn"]
+    assert tasks(jobs) == [
+        ("run_lead_job", "cube_lift", {"num_cpus": 2, "max_retries": 2, "max_calls": 1}, 2),
+        ("run_job", "cylinder_lift_turn", {"num_cpus": 1, "max_retries": 2}, 1),
+    ]
+    plain = [("run_job", c, {"num_cpus": 1, "max_retries": 2}, 1) for c in ("cube_lift", "cylinder_lift_turn")]
+    assert tasks(jobs, ray_address="127.0.0.1:6379") == plain
+    assert tasks(jobs, pin_cores=False) == plain
+    assert tasks(jobs, lead_clip=False) == plain
+    assert tasks(jobs, workers=1) == plain
+    assert tasks(jobs[1:2]) == plain[:1]
 
 
 def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path) -> None:
@@ -193,11 +294,12 @@ def test_clips_of_one_object_are_spread_apart(tmp_path: Path) -> None:
     assert [j.clip for j in spread_objects(jobs)] == ["a1", "b1", "c1", "zz", "a2", "b2", "a3"]
 
 
-def test_bench_batch_cluster_layouts_run_on_clusters_of_their_own(
+def test_bench_batch_cluster_layouts_start_run_on_and_stop_their_cluster_stand_in(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """cluster:NODESxCPUS starts that cluster (ray start processes of its own), runs the batch on it with
-    --ray's path and stops it, even when the batch fails; a local layout starts none. The table names both."""
+    """No Ray and no cluster here: LocalCluster and run_batch are stand-ins that record their calls.
+    cluster:NODESxCPUS asks for that cluster (LocalCluster.start), runs the batch on its address (--ray's path)
+    and stops and removes it, even when the batch fails; a local layout asks for none. The table names both."""
     import quasisim.bench.batch as bb
 
     calls: list[Any] = []

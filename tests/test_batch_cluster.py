@@ -2,7 +2,9 @@
 defaults it): a local batch never attaches to another Ray (a live cluster, its address file left behind,
 ``RAY_ADDRESS``), Ctrl-C ends a batch with status 130 and nothing of its Ray left and the same command resumes,
 and a batch on a cluster of two nodes loses one of them in the middle of a clip and still does every clip
-exactly once, with the results of a local batch. Every Ray process here is ours, stopped by its id."""
+exactly once, with the results of a local batch. Every Ray process here is ours, stopped through the process
+groups of our `ray start`s (or with the batch that started it); processes that merely name a cluster's folder
+are left alone."""
 
 from __future__ import annotations
 
@@ -19,13 +21,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quasisim.batch import GATE_ENV, HOLD_ENV
+from batch_hooks import DRIVER, ScriptedHooks, pythonpath
 from quasisim.errors import QuasisimError
-from quasisim.raycluster import LocalCluster, processes_with, resolve, token_available
+from quasisim.raycluster import LocalCluster, resolve, token_available
 
 pytest.importorskip("ray", reason="Ray is installed with the 'cluster' extra (make setup installs it)")
 
 N_CLIPS = 5
+MARK = "QUASISIM_TEST_BATCH"  # in the environment of a batch's driver, so of its local Ray's processes: finds them
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +63,15 @@ def token_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     mp.undo()
 
 
-def _batch(clips_dir: Path, out: Path, *extra: str, env: dict[str, str]) -> subprocess.Popen[str]:
-    """``quasisim batch`` (the cheapest method, the kinematic retarget judged in MuJoCo) in a subprocess."""
-    cmd = [sys.executable, "-m", "quasisim.cli", "batch", str(clips_dir), "--out", str(out), "--method", "kinematic",
+def _batch(
+    clips_dir: Path, out: Path, *extra: str, env: dict[str, str], hooks: ScriptedHooks | None = None
+) -> subprocess.Popen[str]:
+    """``quasisim batch`` (the cheapest method, the kinematic retarget judged in MuJoCo) in a subprocess, its
+    workers with ``hooks`` where given (:mod:`batch_hooks`)."""
+    cli = [sys.executable, str(DRIVER), hooks.to_json()] if hooks else [sys.executable, "-m", "quasisim.cli"]
+    cmd = [*cli, "batch", str(clips_dir), "--out", str(out), "--method", "kinematic",
            "--workers", "2", "--threads", "1", *extra]  # fmt: skip
-    env = {**os.environ, **env}
+    env = {**os.environ, "PYTHONPATH": pythonpath(), **env}
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -78,12 +85,53 @@ def _wait(cond: Callable[[], bool], timeout: float, what: str, proc: subprocess.
         time.sleep(0.2)
 
 
-def _gone(marker: str, timeout: float = 20.0) -> list[int]:
-    """The processes still marked with ``marker`` after up to ``timeout`` s (workers exit after their raylet)."""
+def _proc() -> Iterator[tuple[int, Path]]:
+    """(pid, /proc folder) of every process but this one."""
+    for d in Path("/proc").glob("[0-9]*"):
+        if int(d.name) != os.getpid():
+            yield int(d.name), d
+
+
+def processes_with(text: str) -> list[int]:
+    """Ids of the processes (this one aside) with ``text`` in their command line or environment."""
+    found = []
+    for pid, d in _proc():
+        try:
+            if text.encode() in (d / "cmdline").read_bytes() or text.encode() in (d / "environ").read_bytes():
+                found.append(pid)
+        except OSError:
+            continue
+    return found
+
+
+def processes_in_sessions(sessions: set[int]) -> list[int]:
+    """Ids of the processes in the sessions ``sessions`` (a LocalCluster node's: its `ray start`'s id)."""
+    found = []
+    for pid, d in _proc():
+        try:
+            if int((d / "stat").read_text().rsplit(")", 1)[1].split()[3]) in sessions:
+                found.append(pid)
+        except (OSError, IndexError, ValueError):
+            continue
+    return found
+
+
+def _gone(find: Callable[[], list[int]], timeout: float = 20.0) -> list[int]:
+    """The processes ``find()`` still finds after up to ``timeout`` s (workers exit after their raylet)."""
     t0 = time.monotonic()
-    while (left := processes_with(marker)) and time.monotonic() - t0 < timeout:
+    while (left := find()) and time.monotonic() - t0 < timeout:
         time.sleep(0.2)
     return left
+
+
+def _bystanders(cluster: LocalCluster) -> list[subprocess.Popen[bytes]]:
+    """Processes that name the cluster's temp folder without being its own: a `tail -f` of its head's log,
+    and a process started with RAY_TMPDIR there (a driver of its own Ray, say)."""
+    env = {**os.environ, "RAY_TMPDIR": str(cluster.temp)}
+    return [
+        subprocess.Popen(["tail", "-f", str(cluster.log(0))], stdout=subprocess.DEVNULL),
+        subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"], env=env),
+    ]
 
 
 @dataclass(frozen=True)
@@ -117,12 +165,13 @@ def local_run(clips_dir: Path, token_env: None, tmp_path_factory: pytest.TempPat
     cluster = LocalCluster.start((1,))
     try:
         env = {"RAY_TMPDIR": str(cluster.temp)}
-        p = _batch(clips_dir, out, env={**env, "RAY_ADDRESS": cluster.address, HOLD_ENV: str(hold)})
+        p = _batch(clips_dir, out, env={**env, "RAY_ADDRESS": cluster.address, MARK: str(hold)},
+                   hooks=ScriptedHooks(hold=str(hold)))  # fmt: skip
         _wait(lambda: any(out.glob("*/clip.json")), 240, "finished clip", p)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 60, "held clip", p)  # the others are running
         p.send_signal(signal.SIGINT)
         interrupted = _completed(p, 180)  # a hang guard: Ray's shutdown took over 60 s once on 2 loaded cores
-        left = _gone(f"{HOLD_ENV}={hold}")  # only the batch's own processes carry it
+        left = _gone(lambda: processes_with(f"{MARK}={hold}"))  # only the batch's own processes carry it
         first = next(out.glob("*/clip.json")).parent
         stamp = (first / "controls.npz").stat().st_mtime_ns
         assert not cluster.stop()  # SIGTERM ended every process of it
@@ -163,16 +212,18 @@ def test_local_batch_ignores_other_rays_stops_on_ctrl_c_and_resumes(local_run: L
 def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None, tmp_path: Path) -> None:
     """Clips run on both nodes; the second node's raylet is killed while it holds a clip, which Ray retries
     on the head: every clip done once, with the results of a local batch (run beside the live cluster, to its
-    end), and no process of the cluster left."""
+    end), no clip's scratch folder left on either node, and no process of the cluster left."""
     hold, out = tmp_path / "hold", tmp_path / "out"
     hold.mkdir()
-    # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips
-    cluster = LocalCluster.start((1, 1), node_env={0: {GATE_ENV: str(hold)}, 1: {HOLD_ENV: str(hold)}})
+    cluster = LocalCluster.start((1, 1), env={"PYTHONPATH": pythonpath()})  # its workers import batch_hooks
     try:
         assert b"Token authentication is enabled" in cluster.log(0).read_bytes()  # Ray's default, a token here
         raylet, node1 = cluster.raylet(1)
+        # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips;
+        # each node keeps its scratch folders apart (OUT/.work@NODE), as nodes of their own machines would
+        hooks = ScriptedHooks(hold=str(hold), hold_node=node1, gate=str(hold), node_scratch=True)
         # the explicit address: Ray sends no token unless told (RAY_AUTH_MODE), quasisim tells it
-        p = _batch(clips_dir, out, "--ray", cluster.address, env={})
+        p = _batch(clips_dir, out, "--ray", cluster.address, env={}, hooks=hooks)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 240, "held clip on the second node", p)
         first, held = (f.stem for f in sorted(hold.glob("*.started"), key=lambda f: f.stat().st_mtime_ns))
         os.kill(raylet, signal.SIGKILL)
@@ -188,6 +239,10 @@ def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None
         )  # every clip once
         assert nodes[first] == node1 and nodes[held] != node1  # the held clip ran again on the head
         assert not list(out.glob(".*.incoming"))  # no clip folder half written
+        # each node's scratch folder is empty: its workers removed their clips' (the held clip waited before
+        # writing any); the driver cannot reach them
+        assert sorted(d.name for d in out.glob(".work*")) == sorted(f".work@{n}" for n in set(nodes.values()))
+        assert not [str(c) for c in out.glob(".work*/*")]
         assert cluster.procs[1].poll() is not None  # the second node's `ray start` ended with its raylet
         # a local batch beside the live cluster (its address file where Ray looks) runs to its end, on its own Ray
         local = _completed(_batch(clips_dir, tmp_path / "local", env={"RAY_TMPDIR": str(cluster.temp)}))
@@ -200,9 +255,65 @@ def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None
             with np.load(out / c / "controls.npz") as a, np.load(tmp_path / "local" / c / "controls.npz") as b:
                 np.testing.assert_array_equal(a["q_targets"], b["q_targets"], err_msg=c)
     finally:
-        left = cluster.stop()
+        others = _bystanders(cluster)
+        try:
+            left = cluster.stop()
+            others_alive = [o.poll() is None for o in others]
+        finally:
+            for o in others:
+                o.kill()
+                o.wait()
+            cluster.remove()
+    # SIGTERM ended every process of the cluster, those of its sessions included (workers), and no other
+    assert not left and not _gone(lambda: processes_in_sessions({p.pid for p in cluster.procs}))
+    assert others_alive == [True, True]
+
+
+FAKE_RAY_START = """
+import os, signal, subprocess, sys, time
+from pathlib import Path
+
+ray = Path(os.environ["RAY_TMPDIR"]) / "ray"
+ray.mkdir(exist_ok=True)
+(ray / "ray_current_cluster").write_text("127.0.0.1:1")
+child = ray / "child.pid"
+subprocess.Popen([sys.executable, "-c", "import os, signal, sys, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+                  "open(sys.argv[1], 'w').write(str(os.getpid())); time.sleep(600)", str(child)])
+while not child.is_file() or not child.read_text():
+    time.sleep(0.05)
+signal.signal(signal.SIGTERM, lambda *a: os._exit(0))  # leaves its child behind
+print("Ray runtime started", flush=True)
+time.sleep(600)
+"""
+
+
+def test_stopping_a_local_cluster_ends_its_processes_and_no_others(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """LocalCluster.stop() ends what its `ray start`s started and nothing else. No Ray here: `ray start` is a
+    stand-in whose child ignores SIGTERM (a Ray process stuck past its node's clean-up; the two-node test
+    stops a real cluster). That child is killed with its node's process group; processes that name the
+    cluster's temp folder without being its own (a `tail -f` of its log, a process with RAY_TMPDIR there)
+    live on."""
+    import quasisim.raycluster as rc
+
+    fake = tmp_path / "ray_start.py"
+    fake.write_text(FAKE_RAY_START)
+    monkeypatch.setattr(rc, "_ray_cli", lambda *args: [sys.executable, str(fake), *args])
+    cluster = LocalCluster.start((1,))
+    others: list[subprocess.Popen[bytes]] = []
+    try:
+        node, child = cluster.procs[0], int((cluster.temp / "ray" / "child.pid").read_text())
+        others = _bystanders(cluster)
+        assert cluster.stop(grace=1.0) == [node.pid]  # its child outlived SIGTERM: its group was killed
+        assert node.poll() is not None and not _gone(lambda: [child] if Path(f"/proc/{child}").exists() else [], 10)
+        assert [o.poll() for o in others] == [None, None]  # alive
+    finally:
+        for o in others:
+            o.kill()
+            o.wait()
+        cluster.stop(grace=0.0)
         cluster.remove()
-    assert not left and not _gone(str(cluster.temp), 5)
 
 
 def test_ray_auto_finds_the_cluster_of_ray_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -227,19 +338,53 @@ def test_ray_auto_finds_the_cluster_of_ray_start(tmp_path: Path, monkeypatch: py
         resolve("nowhere")
 
 
-def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
-    """Ray turns a SystemExit raised by a signal handler while it waits into exit status 1: during a batch
-    SIGTERM raises KeyboardInterrupt instead, and the command exits 143 (Ctrl-C: 130) with one line."""
+def test_an_older_ray_is_one_line_naming_the_version_needed(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With a Ray older than 2.59 (its version monkeypatched; no Ray starts here) `quasisim batch` and a
+    LocalCluster fail where they first use Ray, with one line naming the version needed, the version
+    pyproject.toml asks for; 2.59 passes."""
+    import re
+    import tomllib
+
+    import ray
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+    from quasisim.raycluster import _import_ray
+
+    need = "quasisim needs Ray 2.59 or later, this is Ray 2.58.1: pip install 'ray[default]>=2.59'"
+    monkeypatch.setattr(ray, "__version__", "2.58.1")
+    with pytest.raises(QuasisimError, match=re.escape(need)):
+        _import_ray()
+    with pytest.raises(QuasisimError, match=re.escape(need)):
+        LocalCluster.start((1,))  # before any `ray start`
+    r = CliRunner().invoke(main, ["batch", str(clips_dir), "--out", str(tmp_path / "o"), "--method", "kinematic"])
+    assert r.exit_code == 2 and r.output.strip().splitlines()[-1].startswith(f"error: {need}"), r.output
+    assert "Traceback" not in r.output
+    monkeypatch.setattr(ray, "__version__", "2.59.0")
+    assert _import_ray() is ray
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
+    assert project["optional-dependencies"]["cluster"] == ["ray[default]>=2.59"]
+
+
+def test_sigterm_inside_sigterm_interrupts_is_an_interrupt_that_exits_143(capsys: pytest.CaptureFixture[str]) -> None:
+    """No Ray here: the part of a batch that waits on Ray (ray.wait, ray.get) runs inside sigterm_interrupts,
+    because Ray turns a SystemExit raised by a signal handler while it waits into exit status 1. Inside it,
+    SIGTERM raises KeyboardInterrupt (the handler from before is put back after it), and a resumable command
+    (_interruptible) then exits 143, Ctrl-C 130, with one line on stderr. The slow local-batch test stops a
+    real batch on Ray (with SIGINT)."""
     import quasisim.raycluster as rc
-    from quasisim.cli._common import INTERRUPTED, _interruptible
+    from quasisim.cli._common import _interruptible
 
     def interrupted() -> None:
         raise KeyboardInterrupt
 
+    line = "interrupted; rerun the same command to resume\n"
     try:
         with pytest.raises(SystemExit) as e:
             _interruptible(interrupted)()
-        assert e.value.code == 130
+        assert e.value.code == 130 and capsys.readouterr().err == line
         before = signal.getsignal(signal.SIGTERM)
         with pytest.raises(KeyboardInterrupt), rc.sigterm_interrupts():
             os.kill(os.getpid(), signal.SIGTERM)
@@ -247,7 +392,6 @@ def test_sigterm_while_ray_waits_is_an_interrupt_that_exits_143() -> None:
         assert rc.terminated() and signal.getsignal(signal.SIGTERM) == before
         with pytest.raises(SystemExit) as e:
             _interruptible(interrupted)()
-        assert e.value.code == 143
+        assert e.value.code == 143 and capsys.readouterr().err == line
     finally:
         rc._TERMINATED.clear()
-    assert INTERRUPTED == "interrupted; rerun the same command to resume"

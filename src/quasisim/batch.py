@@ -8,7 +8,9 @@ aside and renamed) with ``clip.json`` (the clip's metrics and settings) in it, a
 ``OUT/batch.md`` (per-clip rows, failures and the summary table) are rewritten atomically after every clip.
 
 - Resumable: a clip whose folder exists is never redone; a clip that was running when the batch was killed
-  resumes from its checkpoints in the scratch folder (``OUT/.work`` by default).
+  resumes from its checkpoints in the scratch folder (``OUT/.work/<clip>`` by default, on the node that runs
+  it). The worker removes that folder once its results are in its reply, or when the clip fails with an
+  error (:func:`run_job`; ``keep_scratch`` keeps it).
 - A worker that dies (killed, out of memory) has its clip retried (``max_retries``); a clip that fails
   with an error is reported with it and the batch goes on.
 - Local by default: a Ray of the batch's own with this machine's cores, whatever other Ray runs here;
@@ -30,21 +32,45 @@ import resource
 import shutil
 import time
 import traceback
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from quasisim.errors import QuasisimError
 from quasisim.files import LOCK, save_json_atomic, save_text_atomic
 from quasisim.method.spec import TransferSpec
 
+if TYPE_CHECKING:
+    from quasisim.pipeline import PieceHook
+
 CLIP_FILE = "clip.json"  # written last into a clip's folder: its metrics and what made them
 BATCH_FILE = "batch.json"
 SKIP_OUTPUT = ("checkpoints",)  # stays in the worker's scratch folder
-FAULT_ENV = "QUASISIM_BATCH_FAULT"  # tests: "<clip>" makes that clip's first attempt kill its worker
-HOLD_ENV = "QUASISIM_BATCH_HOLD"  # tests: a folder; every clip but the first started with it waits there
-GATE_ENV = "QUASISIM_BATCH_GATE"  # tests: a folder; clips wait until it shows a held clip
+
+
+class BatchHooks:
+    """Where tests reach into a clip's run on its worker (:func:`run_job`); here every hook does nothing.
+
+    A batch takes its hooks from :func:`run_batch`'s ``hooks`` (default: :data:`HOOKS`, which a test's
+    driver process may replace before the batch starts) and carries them to the workers with each task, so a
+    subclass must pickle: a class of a module that the workers can import."""
+
+    def scratch(self, scratch: Path) -> Path:
+        """The clip's scratch folder on this worker's node, given the batch's (``OUT/.work/<clip>``)."""
+        return scratch
+
+    def starting(self, clip: str) -> None:
+        """Called as the clip starts on its worker, before anything of it is written."""
+
+    def piece_hook(self, clip: str, scratch: Path) -> PieceHook | None:
+        """``run_transfer``'s ``piece_hook`` for the clip (each checkpointed piece's name and computation
+        go through it); None: none."""
+        return None
+
+
+NO_HOOKS = BatchHooks()
+HOOKS: BatchHooks = NO_HOOKS  # a batch's hooks where run_batch is given none
 
 
 @dataclass(frozen=True)
@@ -181,46 +207,6 @@ def _read_tree(root: Path) -> dict[str, bytes]:
     }
 
 
-def _fault_hook(clip: str, scratch: Path) -> Any:
-    """Tests of the retry: the first attempt of clip ``$QUASISIM_BATCH_FAULT`` kills its own worker in the
-    middle of the clip, as its second checkpointed piece starts (the first one is saved); None otherwise."""
-    if os.environ.get(FAULT_ENV) != clip or (scratch / "fault-injected").exists():
-        return None
-    pieces: list[str] = []
-
-    def hook(name: str, compute: Any) -> Any:
-        pieces.append(name)
-        if len(pieces) == 2:
-            scratch.mkdir(parents=True, exist_ok=True)
-            (scratch / "fault-injected").touch()
-            os.kill(os.getpid(), 9)
-        return compute()
-
-    return hook
-
-
-def _hold(clip: str, limit_s: float = 120.0) -> None:
-    """Tests of interrupts and lost nodes (no effect otherwise). In a worker whose environment names a folder
-    ``$QUASISIM_BATCH_HOLD``, every clip but the first one started with it writes ``<clip>.started`` there and
-    waits (until its worker is killed, or ``limit_s``); with ``$QUASISIM_BATCH_GATE`` (a folder), a clip waits
-    until that folder shows a held clip (two ``.started`` files), so that another node gets clips meanwhile."""
-    hold, gate = os.environ.get(HOLD_ENV), os.environ.get(GATE_ENV)
-    if hold:
-        waits = any(Path(hold).glob("*.started"))  # not the first clip
-        (Path(hold) / f"{clip}.started").write_text(str(os.getpid()))
-        if waits:
-            _sleep_until(lambda: False, limit_s)
-    elif gate:
-        _sleep_until(lambda: len(list(Path(gate).glob("*.started"))) >= 2, limit_s)
-
-
-def _sleep_until(done: Callable[[], bool], limit_s: float) -> None:
-    """Sleep until ``done()`` or for ``limit_s``."""
-    t0 = time.monotonic()
-    while not done() and time.monotonic() - t0 < limit_s:
-        time.sleep(0.2)
-
-
 def _node() -> str:
     """The Ray node this worker runs on (its id; the host name outside Ray)."""
     import socket
@@ -233,18 +219,46 @@ def _node() -> str:
         return socket.gethostname()
 
 
-def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> dict[str, Any]:
+def run_job(
+    job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: BatchHooks = NO_HOOKS
+) -> dict[str, Any]:
     """Run ``job``'s transfers in ``scratch`` (resumed from the checkpoints there); returns their output
-    files ({run/relative path: bytes}), a result row per run and the worker's peak memory."""
-    from quasisim.method.config import CONFIG_PATH, TransferConfig
-    from quasisim.pipeline import run_transfer
+    files ({run/relative path: bytes}), a result row per run and the worker's peak memory.
+
+    The worker removes ``scratch`` itself (unless ``s.keep_scratch``), on the node that holds it: once the
+    outputs are read into its result, or when the clip fails with an error (for good: Ray retries a clip
+    only when its worker dies). A clip whose worker dies (killed, out of memory, its node lost, the batch
+    interrupted) keeps it, to resume from."""
     from quasisim.runtime import configure, free_compiled_programs, pin_to_free_cores
 
-    _hold(job.clip)
+    scratch = hooks.scratch(scratch)
+    hooks.starting(job.clip)
     cores = pin_to_free_cores(s.threads) if s.pin_cores else None  # before JAX's CPU backend starts
     configure()
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
-    fault = _fault_hook(job.clip, scratch)
+    try:
+        out_files, rows = _run_transfers(job, files, s, scratch, hooks.piece_hook(job.clip, scratch))
+    except Exception:  # not BaseException: a worker stopped by the batch's end keeps its checkpoints
+        _drop_scratch(scratch, s)
+        raise
+    _drop_scratch(scratch, s)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
+            "node": _node()}  # fmt: skip
+
+
+def _drop_scratch(scratch: Path, s: Settings) -> None:
+    if not s.keep_scratch:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _run_transfers(
+    job: Job, files: dict[str, bytes], s: Settings, scratch: Path, fault: PieceHook | None
+) -> tuple[dict[str, bytes], list[dict[str, Any]]]:
+    """:func:`run_job`'s transfers in ``scratch``: their output files and result rows."""
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.pipeline import run_transfer
+
     cfg = TransferConfig.from_yaml(s.config_path or CONFIG_PATH, {"sampling.threads": s.threads, **s.overrides})
     _write_tree(scratch / "input", files)
     demo = scratch / "input" / job.demo_path.name
@@ -275,9 +289,7 @@ def run_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> di
         })  # fmt: skip
         prefix = f"{r.name}/" if r.name else ""
         out_files |= {prefix + k: v for k, v in _read_tree(run_dir).items()}
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
-            "node": _node()}  # fmt: skip
+    return out_files, rows
 
 
 # ---- the driver's side -------------------------------------------------------------------------------
@@ -348,8 +360,11 @@ def _ray_init(s: Settings) -> Any:
     return start_local(s.workers * s.threads, env)
 
 
-def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> BatchResult:
-    """The runs of ``jobs`` not finished in ``out``, on Ray; ``on_clip(rows, failures)`` after each clip."""
+def run_batch(
+    jobs: list[Job], out: Path, s: Settings, on_clip: Any = None, hooks: BatchHooks | None = None
+) -> BatchResult:
+    """The runs of ``jobs`` not finished in ``out``, on Ray; ``on_clip(rows, failures)`` after each clip;
+    ``hooks``: the workers' (tests; None: :data:`HOOKS`)."""
     s = s.resolved()
     out.mkdir(parents=True, exist_ok=True)
     scratch = (s.scratch or out / ".work").resolve()
@@ -368,9 +383,9 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
     t0 = time.perf_counter()
     lead = None
     # closed at once when the loop ends early (Ctrl-C, an error): a local Ray goes down with it
-    with contextlib.closing(_dispatch(spread_objects(todo), s, scratch)) as results:
+    with contextlib.closing(_dispatch(spread_objects(todo), s, scratch, HOOKS if hooks is None else hooks)) as results:
         for job, result in results:
-            _take(job, result, out, s, scratch, (rows, failures, peak, cores, nodes))
+            _take(job, result, out, s, (rows, failures, peak, cores, nodes))
             if isinstance(result, dict) and result.get("lead"):
                 lead = {"clip": job.clip, "pid": result["pid"]}
             if on_clip is not None:
@@ -378,16 +393,14 @@ def run_batch(jobs: list[Job], out: Path, s: Settings, on_clip: Any = None) -> B
     return BatchResult(rows, failures, time.perf_counter() - t0, len(todo), s.workers, peak, cores, lead, nodes)
 
 
-def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, scratch: Path, acc: tuple[Any, ...]) -> None:
+def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, acc: tuple[Any, ...]) -> None:
     """One clip's result into the batch: its folder written (or its error kept) and its row, memory, cores
     and node added to ``acc`` (rows, failures, peak, cores, nodes)."""
     rows, failures, peak, cores, nodes = acc
     if isinstance(result, str):
         failures[job.clip] = result
         return
-    _persist(out, job, s, result)
-    if not s.keep_scratch:
-        shutil.rmtree(scratch / job.clip, ignore_errors=True)
+    _persist(out, job, s, result)  # its scratch folder is its worker's to remove, on its node (run_job)
     rows.extend(result["rows"])
     peak[str(result["pid"])] = result["peak_rss_mb"]
     cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
@@ -403,13 +416,17 @@ def leads(s: Settings, n_todo: int) -> bool:
     return s.lead_clip and s.ray_address is None and s.pin_cores and s.workers > 1 and n_todo > 1
 
 
-def run_lead_job(job: Job, files: dict[str, bytes], s: Settings, scratch: Path) -> dict[str, Any]:
+def run_lead_job(
+    job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: BatchHooks = NO_HOOKS
+) -> dict[str, Any]:
     """:func:`run_job` for the lead clip (its own Ray function, so that its worker process, unpinned and
     with XLA's thread pool sized for every core, exits after it instead of running pinned clips)."""
-    return {**run_job(job, files, s, scratch), "lead": True}
+    return {**run_job(job, files, s, scratch, hooks), "lead": True}
 
 
-def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
+def _dispatch(
+    todo: list[Job], s: Settings, scratch: Path, hooks: BatchHooks
+) -> Iterator[tuple[Job, dict[str, Any] | str]]:
     """Yield (job, result or error text) as the workers finish, with a progress bar over clips; with
     :func:`leads`, the first readable clip runs alone on every core before the others are handed out."""
     from quasisim.raycluster import sigterm_interrupts
@@ -417,10 +434,12 @@ def _dispatch(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job
     if not todo:
         return
     with sigterm_interrupts():
-        yield from _dispatch_on_ray(todo, s, scratch)
+        yield from _dispatch_on_ray(todo, s, scratch, hooks)
 
 
-def _dispatch_on_ray(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tuple[Job, dict[str, Any] | str]]:
+def _dispatch_on_ray(
+    todo: list[Job], s: Settings, scratch: Path, hooks: BatchHooks
+) -> Iterator[tuple[Job, dict[str, Any] | str]]:
     """:func:`_dispatch` once SIGTERM interrupts: Ray started or reached, the clips run, Ray shut down."""
     from tqdm import tqdm
 
@@ -435,22 +454,22 @@ def _dispatch_on_ray(todo: list[Job], s: Settings, scratch: Path) -> Iterator[tu
                 lead_s = dataclasses.replace(s, threads=cores)
                 while rest:  # until one lead clip could be read and submitted
                     first, rest = rest[:1], rest[1:]
-                    if (yield from _run_group(ray, lead, lead_s, first, scratch, bar)):
+                    if (yield from _run_group(ray, lead, lead_s, first, scratch, bar, hooks)):
                         break
-            yield from _run_group(ray, task, s, rest, scratch, bar)
+            yield from _run_group(ray, task, s, rest, scratch, bar, hooks)
     finally:
         ray.shutdown(wait_for_processes=not s.ray_address)  # a local Ray's processes are gone when it returns
 
 
 def _run_group(
-    ray: Any, fn: Any, s: Settings, jobs: list[Job], scratch: Path, bar: Any
+    ray: Any, fn: Any, s: Settings, jobs: list[Job], scratch: Path, bar: Any, hooks: BatchHooks
 ) -> Generator[tuple[Job, dict[str, Any] | str], None, int]:
     """Submit ``jobs`` as tasks of the Ray function ``fn``, yield (job, result or error text) as they end;
     returns how many were submitted (a demo that cannot be read is not)."""
     pending = {}
     for j in jobs:
         try:
-            pending[fn.remote(j, pack_demo(j.demo_path), s, scratch / j.clip)] = j
+            pending[fn.remote(j, pack_demo(j.demo_path), s, scratch / j.clip, hooks)] = j
         except QuasisimError as e:  # an unreadable demo fails its clip only
             bar.update(1)
             yield j, str(e)

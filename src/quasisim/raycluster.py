@@ -14,14 +14,16 @@
 - Every failure to start or reach Ray is a :class:`~quasisim.errors.QuasisimError` (one line: the address
   and what to do).
 - :class:`LocalCluster`: ``ray start --block`` processes of our own (a head and more nodes, all on this
-  machine) for the two-node test and ``quasisim bench batch``'s cluster layouts; stopped by process id
-  (never ``ray stop``, which ends every Ray on the machine).
+  machine) for the two-node test and ``quasisim bench batch``'s cluster layouts; each started in a session
+  of its own and stopped through its process group (never ``ray stop``, which ends every Ray on the
+  machine, nor a search for processes that mention the cluster).
 
 Linux only where it reads ``/proc`` (finding running Ray processes), as Ray's own discovery does.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -40,6 +42,11 @@ from typing import Any
 from quasisim.errors import QuasisimError
 
 ADDRESS_FILE = "ray_current_cluster"  # written by `ray start --head` into Ray's temp folder
+# The oldest Ray with what this module and quasisim.batch count on: ray.shutdown(wait_for_processes=) (since
+# 2.57), and token authentication turned on by `ray start --head` where a token exists and by a local
+# ray.init (since 2.59; LocalCluster tells its other nodes RAY_AUTH_MODE=token where a token exists, which
+# a head of an older Ray leaves without authentication). Read in the sources of Ray 2.55.0 to 2.60.0.
+RAY_MIN = "2.59"
 TOKEN_HELP = (
     "a cluster with token authentication needs its token here (~/.ray/auth_token, RAY_AUTH_TOKEN or "
     "RAY_AUTH_TOKEN_PATH; `ray get-auth-token` on its head node prints it)"
@@ -166,14 +173,30 @@ def _send_token() -> None:
 
 
 def _import_ray() -> Any:
-    """The ``ray`` module, or an error saying how to install it."""
+    """The ``ray`` module, or an error saying how to install it (Ray not installed, or older than
+    :data:`RAY_MIN`). Called where a batch or a cluster first uses Ray, not when quasisim is imported."""
     try:
         import ray
     except ImportError:
         raise QuasisimError(
             "batches run on Ray, which is not installed here: pip install 'quasisim[cluster]' (make setup installs it)"
         ) from None
+    if _older(ray.__version__, RAY_MIN):
+        raise QuasisimError(
+            f"quasisim needs Ray {RAY_MIN} or later, this is Ray {ray.__version__}: pip install 'ray[default]>={RAY_MIN}' "
+            "(on every node of a cluster)"
+        )
     return ray
+
+
+def _older(version: str, than: str) -> bool:
+    """Whether the Ray version ``version`` is older than ``than`` (a version that cannot be read is not)."""
+    from packaging.version import InvalidVersion, Version  # Ray's own dependency
+
+    try:
+        return Version(version) < Version(than)
+    except InvalidVersion:
+        return False
 
 
 def _one_line(e: BaseException) -> str:
@@ -253,11 +276,11 @@ def connect(address: str, env: dict[str, str], min_cpus: int) -> Any:
 def start_local(num_cpus: int, env: dict[str, str]) -> Any:
     """``ray`` started on this machine for this batch alone (never attached to another Ray; one line on
     stderr when one is found)."""
+    ray = _import_ray()
     other = other_ray()
     if other:
         print(f"note: {other}; this batch starts a Ray of its own (--ray auto runs it on the cluster of `ray start`)",
               file=sys.stderr)  # fmt: skip
-    ray = _import_ray()
 
     before = os.environ.pop("RAY_ADDRESS", None)
     try:
@@ -307,6 +330,7 @@ class LocalCluster:
     def start(cls, cpus: tuple[int, ...], env: dict[str, str] | None = None,
               node_env: dict[int, dict[str, str]] | None = None) -> LocalCluster:  # fmt: skip
         """A head of ``cpus[0]`` CPUs and a node per later entry; ``node_env[i]``: more environment of node i."""
+        _import_ray()  # the `ray start`s are this Ray's: an error now where it is missing or too old
         c = cls(Path(tempfile.mkdtemp(prefix="qsray", dir="/tmp")))  # short: Unix socket paths
         try:
             c._start_node(0, cpus[0], {**(env or {}), **(node_env or {}).get(0, {})})
@@ -334,8 +358,9 @@ class LocalCluster:
         else:
             args = _ray_cli("start", "--address", self.address, *common)
         log = self.log(i)
-        with open(log, "wb") as f:
-            self.procs.append(subprocess.Popen(args, env=self._env(extra, i == 0), stdout=f, stderr=subprocess.STDOUT))
+        with open(log, "wb") as f:  # a session of its own: the process group of its processes is ours alone
+            self.procs.append(subprocess.Popen(args, env=self._env(extra, i == 0), stdout=f, stderr=subprocess.STDOUT,
+                                               start_new_session=True))  # fmt: skip
         self._wait_started(i)
         if i == 0:
             self.address = (self.temp / "ray" / ADDRESS_FILE).read_text().strip()
@@ -361,24 +386,26 @@ class LocalCluster:
                 return pid, node
         raise QuasisimError(f"node {i} of the cluster at {self.address} has no raylet")
 
-    def stop(self, timeout: float = 30.0) -> list[int]:
-        """End the nodes (the last first; SIGTERM, then SIGKILL), then any process still using ``temp``
-        (workers that outlived their raylet); returns the ids of those that had to be killed."""
+    def stop(self, timeout: float = 30.0, grace: float = 10.0) -> list[int]:
+        """End the nodes, the last first: SIGTERM to each ``ray start`` (which ends the processes it started),
+        then SIGKILL to its process group where anything is left in it ``grace`` s after it exited; returns
+        the groups that had to be killed so. Only the nodes' own processes are signalled: each ``ray start``
+        leads a session of its own, and its process group holds it, its GCS, raylet and agents; Ray puts each
+        worker in a group of its own, which its raylet ends (a worker whose raylet died exits by itself)."""
+        killed = []
         for p in reversed(self.procs):
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
                 try:
                     p.wait(timeout)
                 except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-        left = processes_of(self.temp)
-        for pid in left:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        return left
+                    pass
+            if not _group_ends(p.pid, grace if p.poll() is not None else 0.0):
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                killed.append(p.pid)
+            p.wait()
+        return killed
 
     def remove(self) -> None:
         """Delete ``temp`` (sessions, logs, the address file) once the cluster is stopped."""
@@ -392,24 +419,14 @@ def _ppid(pid: int) -> str:
         return ""
 
 
-def processes_of(temp: Path) -> list[int]:
-    """Ids of the processes (this one aside) that use the Ray temp folder ``temp``: in their command line
-    (raylet, GCS, agents) or their environment (workers, whose command line Ray rewrites, inherit
-    ``RAY_TMPDIR``)."""
-    return processes_with(str(temp))
-
-
-def processes_with(text: str) -> list[int]:
-    """Ids of the processes (this one aside) with ``text`` in their command line or environment."""
-    me, key = os.getpid(), text.encode()
-    out = []
-    for pid, args in _processes():
-        if pid == me:
-            continue
+def _group_ends(pgid: int, timeout: float) -> bool:
+    """Whether the process group ``pgid`` is empty within ``timeout`` s."""
+    t0 = time.monotonic()
+    while True:
         try:
-            environ = Path(f"/proc/{pid}/environ").read_bytes()
-        except OSError:
-            environ = b""
-        if any(text in a for a in args) or key in environ:
-            out.append(pid)
-    return out
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        if time.monotonic() - t0 >= timeout:
+            return False
+        time.sleep(0.1)
