@@ -5,6 +5,7 @@ perturbed worlds, closed loop). Short runs on the bundled example; the real runs
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -92,6 +93,22 @@ def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
     assert bad.returncode == 2 and "env.KEY" in bad.stderr
     unfinished = _cli("evaluate", tmp_path, "--out", tmp_path / "ev", ok=False)
     assert unfinished.returncode == 2 and "setup.json" in unfinished.stderr
+
+
+def test_overwrite_starts_the_training_afresh(clip, trained, tmp_path) -> None:
+    """--overwrite removes everything the previous training wrote, its best model and validation too: the new
+    run's checkpoints are judged among themselves, and the best model evaluated is one of the new run's."""
+    path = clip[0]
+    out = tmp_path / "again"
+    shutil.copytree(trained[0], out)
+    old_best = (out / "best.zip").read_bytes()
+    _cli("train", path, "--steps", 128, "--out", out, "--overwrite", *TINY)  # another reference: dgrasp-tracking
+    validation = json.loads((out / "validation.json").read_text())
+    assert [h[0] for h in validation["history"]] == [0, 64, 128]
+    info = json.loads((out / "training.json").read_text())
+    assert info["method"] == "dgrasp-tracking" and info["best"] == validation["best"]
+    assert validation["best"]["steps"] <= 128 and (out / "best.zip").read_bytes() != old_best
+    assert len(list((out / "logs").glob("*/progress.csv"))) == 1
 
 
 def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import click
@@ -70,7 +69,7 @@ def policy_train(
     _need_rl()
     _setup_runtime()
     from quasisim.files import check_out_dir, run_lock
-    from quasisim.policy.train import SETUP, TrainSetup, prepare, train
+    from quasisim.policy.train import SETUP, TrainSetup, clear, prepare, train
 
     check_out_dir(out)
     with run_lock(out, f"policy train {clip}"):
@@ -81,9 +80,7 @@ def policy_train(
         else:
             if (out / SETUP).exists() and not overwrite:
                 raise QuasisimError(f"{out} holds a training already: --resume to continue it, --overwrite to restart")
-            for name in ("logs", "checkpoint.zip", "checkpoint.json", "policy.zip", "training.json"):
-                p = out / name
-                shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+            clear(out)  # everything of the previous training: its best model and validation too
             env_o, ppo_o = _split_sets(sets)
             setup = prepare(clip, out, residual, hand, target, seed, env_o, ppo_o)
         click.echo(f"{setup.method} on {Path(setup.clip).stem} in {setup.target}: up to {steps} env steps")

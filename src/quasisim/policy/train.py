@@ -30,7 +30,9 @@ from quasisim.files import atomic_path, save_json_atomic
 
 METHODS = {"dgrasp-tracking": False, "ours+residual": True}  # method -> residual actions
 SETUP, REFERENCE, CHECKPOINT, POLICY = "setup.json", "reference.npz", "checkpoint.zip", "policy.zip"
+CHECKPOINT_META, TRAINING, LOGS = "checkpoint.json", "training.json", "logs"
 BEST, VALIDATION = "best.zip", "validation.json"  # the best validated model (Selector)
+OUTPUTS = (SETUP, REFERENCE, CHECKPOINT, CHECKPOINT_META, LOGS, BEST, VALIDATION, POLICY, TRAINING)  # all of a run
 
 
 @dataclass(frozen=True)
@@ -92,6 +94,16 @@ def prepare(
     setup = TrainSetup(str(Path(clip).resolve()), method, target, source, seed, "ppo", env_overrides, ppo_overrides)
     save_json_atomic(out / SETUP, asdict(setup))
     return setup
+
+
+def clear(out: Path) -> None:
+    """Remove everything a training wrote into ``out`` (:data:`OUTPUTS`; ``--overwrite``), so that nothing of
+    it (its best model, its validation scores) is taken for the next training's."""
+    import shutil
+
+    for name in OUTPUTS:
+        p = out / name
+        shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def make_env(out: Path, setup: TrainSetup) -> Any:
@@ -197,7 +209,7 @@ def save_checkpoint(model: Any, out: Path, wall0: float) -> None:
     """``checkpoint.zip`` and ``checkpoint.json`` (steps, wall seconds so far), each replaced atomically."""
     with atomic_path(out / CHECKPOINT) as tmp:
         model.save(tmp)
-    save_json_atomic(out / "checkpoint.json", {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0})
+    save_json_atomic(out / CHECKPOINT_META, {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0})
 
 
 def _vec_env(out: Path, setup: TrainSetup, n: int) -> Any:
@@ -222,7 +234,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
     ckpt = out / CHECKPOINT
     done_s = 0.0
     if resume and ckpt.is_file():
-        meta = out / "checkpoint.json"  # written after the model: a kill between the two leaves the older one
+        meta = out / CHECKPOINT_META  # written after the model: a kill between the two leaves the older one
         done_s = float(json.loads(meta.read_text())["wall_s"]) if meta.is_file() else 0.0
     elif resume:
         raise QuasisimError(f"{out}: nothing to resume (no {CHECKPOINT}); run without --resume")
@@ -232,7 +244,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
             model = PPO.load(ckpt, env=venv, device="cpu")
         else:
             model = PPO("MlpPolicy", venv, seed=setup.seed, device="cpu", verbose=0, **cfg.ppo_kwargs(setup.residual))
-        logs = out / "logs"
+        logs = out / LOGS
         segment = logs / f"{len(list(logs.glob('*'))) if logs.is_dir() else 0:03d}"
         model.set_logger(configure(str(segment), ["csv", "tensorboard"]))
         wall0 = time.time() - done_s
@@ -248,7 +260,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
         info = {"method": setup.method, "algo": setup.algo, "env_steps": int(model.num_timesteps),
                 "wall_s": time.time() - wall0, "n_envs": cfg.n_envs, "validation_s": select.state["seconds"],
                 "best": select.state["best"]}  # fmt: skip
-        save_json_atomic(out / "training.json", info)
+        save_json_atomic(out / TRAINING, info)
         return info
     finally:
         venv.close()
