@@ -40,7 +40,7 @@ def trained(clip, tmp_path_factory):
     out = tmp_path_factory.mktemp("trained") / "run"
     _cli("train", path, "--residual", path.parent / "kinematic.npz", "--steps", 128, "--out", out, *TINY)
     first = json.loads((out / "checkpoint.json").read_text())
-    _cli("train", path, "--steps", 256, "--out", out, "--resume", *TINY)
+    _cli("train", path, "--steps", 256, "--out", out, "--resume", "--no-progress")  # the stored settings
     return out, first
 
 
@@ -87,7 +87,10 @@ def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
     out, _ = trained
     again = _cli("train", path, "--steps", 64, "--out", out, *TINY, ok=False)
     assert again.returncode == 2 and "--resume" in again.stderr and "Traceback" not in again.stderr
-    nothing = _cli("train", path, "--steps", 64, "--out", tmp_path / "none", "--resume", *TINY, ok=False)
+    changed = _cli("train", path, "--steps", 256, "--out", out, "--resume", "--set", "ppo.n_steps=128", ok=False)
+    assert changed.returncode == 2 and "Traceback" not in changed.stderr
+    assert "--set" in changed.stderr and "stored settings" in changed.stderr  # not ignored silently
+    nothing = _cli("train", path, "--steps", 64, "--out", tmp_path / "none", "--resume", ok=False)
     assert nothing.returncode == 2 and "setup.json" in nothing.stderr
     bad = _cli("train", path, "--steps", 64, "--out", tmp_path / "bad", "--set", "reward.x=1", ok=False)
     assert bad.returncode == 2 and "env.KEY" in bad.stderr

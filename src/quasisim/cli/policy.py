@@ -55,9 +55,12 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
     "--set",
     "sets",
     multiple=True,
-    help="Override a setting: env.KEY=V (configs/track_env.yaml), ppo.KEY=V (configs/ppo.yaml).",
+    help="Override a setting: env.KEY=V (configs/track_env.yaml), ppo.KEY=V (configs/ppo.yaml). Not with "
+    "--resume, which continues with the stored settings.",
 )
-@click.option("--resume", is_flag=True, help="Continue the training in OUT from its last checkpoint.")
+@click.option(
+    "--resume", is_flag=True, help="Continue the training in OUT from its last checkpoint, with its settings."
+)
 @click.option("--progress/--no-progress", default=True, show_default=True, help="A progress bar.")
 @_OVERWRITE
 @_friendly
@@ -71,6 +74,9 @@ def policy_train(
     from quasisim.files import check_out_dir, run_lock
     from quasisim.policy.train import SETUP, TrainSetup, clear, prepare, train
 
+    if resume and sets:
+        raise QuasisimError(f"--set with --resume: a resumed training continues with the stored settings "
+                            f"({out / SETUP}); to change them, start again with --overwrite")  # fmt: skip
     check_out_dir(out)
     with run_lock(out, f"policy train {clip}"):
         if resume:
