@@ -133,6 +133,41 @@ def test_leaving_the_strict_limits_ends_the_episode(clip) -> None:
     env.close()
 
 
+@pytest.mark.parametrize("share", [0.4, 1.0])
+def test_tracked_is_strict_success(clip, monkeypatch, share) -> None:
+    """``info["tracked"]`` is the evaluation's strict success (:func:`quasisim.limits.strict_success`): within the
+    strict limits at every frame *and* the object moved as in the demo. A demo lifting the cube 3 cm; the world's
+    observations with the object scripted to move ``share`` of the demo's way: at 40 % every frame is within
+    2 cm, but the object rose 1.2 of 3 cm (less than half): not tracked; the whole way: tracked."""
+    from quasisim.data.demo import load_demo, save_demo
+    from quasisim.limits import STRICT_CM, strict_success
+    from quasisim.targets.mujoco_target import MujocoTarget
+
+    path, demo, _, _ = clip
+    p0 = demo.object_pos[0]
+    low = load_demo(save_demo(dataclasses.replace(demo, object_pos=p0 + 0.25 * (demo.object_pos - p0)),
+                              path.parent / "cube_low_lift.npz"))  # fmt: skip
+    env = gym.make(quasisim.envs.TRACK_ID, clip=low.path, reference=path.parent / "kinematic.npz", residual=True)
+    seen = []
+
+    def observe(self):
+        obs, t = observe.world(self), env.unwrapped._t
+        obs["obj_pos"] = low.object_pos[0] + share * (low.object_pos[t] - low.object_pos[0])
+        obs["obj_quat"] = np.asarray(low.object_quat[t], np.float64)
+        seen.append((obs["obj_pos"], obs["obj_quat"]))
+        return obs
+
+    observe.world = MujocoTarget.observe
+    monkeypatch.setattr(MujocoTarget, "observe", observe)
+    zeros = np.zeros(env.action_space.shape, np.float32)
+    _, _, info = _episode(env, [zeros] * (low.n_frames - 1), options={"world": None})
+    pos, quat = (np.array(x) for x in zip(*seen, strict=True))
+    assert info["frames"] == low.n_frames - 1 and len(pos) == low.n_frames  # the clip's end, every frame within
+    assert 100 * np.linalg.norm(pos - low.object_pos, axis=-1).max() <= STRICT_CM
+    assert info["tracked"] is strict_success(low.object_pos, low.object_quat, pos, quat) is (share == 1.0)
+    env.close()
+
+
 def test_bad_input_names_the_file_and_the_field(clip, tmp_path) -> None:
     path, _, controls, _ = clip
     short = dataclasses.replace(controls, q_targets=controls.q_targets[:-2])

@@ -76,7 +76,9 @@ class TrackEnv(gym.Env):
 
     ``reset(options={"world": i})`` uses training world ``i``; ``options={"world": None}`` the nominal scene.
     Each step's ``info`` holds the frame, the errors against the demo (:meth:`TrackTask.errors`) and, at the
-    episode's end, ``tracked`` (the clip ended within the strict limits) and ``frames`` (frames reached).
+    episode's end, ``tracked`` (strict success, :func:`quasisim.limits.strict_success`, as the evaluation judges
+    it: the clip's end reached within the strict limits at every frame and the object moved as in the demo) and
+    ``frames`` (frames reached).
     """
 
     metadata = {"render_modes": []}  # noqa: RUF012  (Gymnasium's class attribute)
@@ -98,7 +100,8 @@ class TrackEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (D,), np.float32)
         self.observation_space = gym.spaces.Box(-100.0, 100.0, (self.task.observation_size,), np.float32)
         self._world: Target | None = None
-        self._t, self._obs, self._prev, self._ok = 0, None, None, True
+        self._t, self._obs, self._prev = 0, None, None
+        self._poses: list[tuple[np.ndarray, np.ndarray]] = []  # the object's pose at every frame of the episode
 
     def world_scene(self, i: int | None) -> Scene:
         """Training world ``i`` (None: the nominal scene)."""
@@ -118,8 +121,9 @@ class TrackEnv(gym.Env):
         self._world = make_target(self.target, self.world_scene(i))
         q = self.task.reference
         self._world.reset(q[0], (q[1] - q[0]) * self.task.scene.fps)
-        self._t, self._prev, self._ok = 0, q[0], True
+        self._t, self._prev = 0, q[0]
         self._obs = self._world.observe()
+        self._poses = [(self._obs["obj_pos"], self._obs["obj_quat"])]
         return self.task.observation(0, self._obs), {"world": -1 if i is None else i}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -130,19 +134,25 @@ class TrackEnv(gym.Env):
         self._world.advance(self._prev, q)
         self._t, self._prev = t + 1, q
         self._obs = obs = self._world.observe()
+        self._poses.append((obs["obj_pos"], obs["obj_quat"]))
         warned = any(self._world.extras().get("sim_warnings", {}).values())  # MuJoCo resets a blown-up state
         if warned or task.unstable(obs):
             info = {"frame": t + 1, "unstable": True, "tracked": False, "frames": t + 1}
             return np.zeros(self.observation_space.shape, np.float32), 0.0, True, False, info
         r, errors = task.reward(t + 1, obs, np.clip(action, -1, 1))
-        ok = task.within_strict(errors)
-        self._ok = self._ok and ok
         end = t + 1 == task.n_frames - 1
-        done = end or (not ok and task.cfg.terminate == "strict")
+        done = end or (not task.within_strict(errors) and task.cfg.terminate == "strict")
         info: dict[str, Any] = {"frame": t + 1, **errors}
         if done:
-            info |= {"tracked": end and self._ok, "frames": t + 1}
+            info |= {"tracked": end and self._strict_success(), "frames": t + 1}
         return task.observation(t + 1, obs), r, done, False, info
+
+    def _strict_success(self) -> bool:
+        """Strict success of the episode's object poses (every frame of the clip) against the demo's."""
+        from quasisim.limits import strict_success
+
+        pos, quat = (np.array(x) for x in zip(*self._poses, strict=True))
+        return strict_success(self.task.demo.object_pos, self.task.demo.object_quat, pos, quat)
 
     def close(self) -> None:
         if self._world is not None:

@@ -167,12 +167,13 @@ class Selector:
 
 def _callbacks(out: Path, every: int, wall0: float, select: Selector) -> list[Any]:
     """Checkpoints with validation every ``every`` env steps (atomic) and the tracked fraction of the episodes
-    in the logs."""
+    (strict success) in the logs."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Tracked(BaseCallback):
-        """Logs ``rollout/tracked``: the share of the episodes ended in the last rollout that reached the
-        clip's end within the strict limits, and ``rollout/frames``: the share of the clip they reached."""
+        """Logs ``rollout/tracked``: the share of the episodes ended in the last rollout with strict success
+        (the env's ``info["tracked"]``: the clip's end reached within the strict limits, the object moved as in
+        the demo; what validation and evaluation count), and ``rollout/frames``: the frames they reached."""
 
         def _on_rollout_start(self) -> None:
             self.ended: list[tuple[bool, float]] = []
