@@ -82,6 +82,17 @@ def test_seeded_resets_repeat_worlds_and_transitions(clip) -> None:
     env.close()
 
 
+def test_skip_worlds_goes_on_after_the_first_worlds_of_a_seed(clip) -> None:
+    env = _env(clip, residual=True)
+    worlds = [env.reset(seed=5)[1]["world"]] + [env.reset()[1]["world"] for _ in range(3)]
+    assert env.unwrapped.worlds_drawn == 4
+    _, info = env.reset(seed=5, options={"skip_worlds": 2})
+    assert [info["world"], env.reset()[1]["world"]] == worlds[2:] and env.unwrapped.worlds_drawn == 4
+    with pytest.raises(ValueError, match=r"skip_worlds.*>= 0"):
+        env.reset(options={"skip_worlds": -1})
+    env.close()
+
+
 def test_a_vector_of_processes_matches_single_envs(clip) -> None:
     path = clip[0]
     kw = {"clip": path, "reference": path.parent / "kinematic.npz", "residual": True}

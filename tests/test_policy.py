@@ -46,7 +46,7 @@ def trained(clip, tmp_path_factory):
 
 def test_training_resumes_from_its_checkpoint(trained) -> None:
     out, first = trained
-    assert first["steps"] == 128
+    assert first["steps"] == 128 and len(first["worlds_drawn"]) == 2  # each process's training worlds so far
     info = json.loads((out / "training.json").read_text())
     assert info["env_steps"] == 256 and info["method"] == "ours+residual"
     assert info["wall_s"] > first["wall_s"]  # the resumed segment adds its time to the first's
@@ -112,6 +112,45 @@ def test_overwrite_starts_the_training_afresh(clip, trained, tmp_path) -> None:
     assert info["method"] == "dgrasp-tracking" and info["best"] == validation["best"]
     assert validation["best"]["steps"] <= 128 and (out / "best.zip").read_bytes() != old_best
     assert len(list((out / "logs").glob("*/progress.csv"))) == 1
+
+
+def test_a_resumed_training_continues_the_sequence_of_worlds(clip, tmp_path, monkeypatch) -> None:
+    """The training worlds drawn after a resume continue those drawn before it (PPO.load seeds the environments
+    again): the two segments together draw what one uninterrupted environment seeded as the trainer seeds it
+    draws. One environment in this process, 64 steps, then resumed to 192."""
+    import gymnasium as gym
+
+    import quasisim.envs
+    from quasisim.envs.track import TrackEnv
+    from quasisim.policy.train import REFERENCE, prepare, train
+
+    path = clip[0]
+    drawn: list[int] = []
+    reset = TrackEnv.reset
+
+    def recording(self, *, seed=None, options=None):
+        obs, info = reset(self, seed=seed, options=options)
+        drawn.append(info["world"])
+        return obs, info
+
+    monkeypatch.setattr(TrackEnv, "reset", recording)
+    out = tmp_path / "run"
+    out.mkdir()
+    ppo = {"n_envs": 1, "n_steps": 64, "batch_size": 64, "checkpoint_every": 64, "validate_worlds": 0}
+    prepare(path, out, path.parent / "kinematic.npz", "shadow", "mujoco", 3, {}, ppo)
+    train(out, 64, progress=False)
+    before = drawn.copy()
+    drawn.clear()
+    train(out, 192, resume=True, progress=False)
+    after = drawn.copy()
+    assert len(before) >= 2 and len(after) >= 2 and after[0] != before[0]  # not the same worlds again
+    env = gym.make(quasisim.envs.TRACK_ID, clip=path, reference=out / REFERENCE, residual=True)
+    drawn.clear()
+    env.reset(seed=3)  # the trainer's seed (+ the env's index, 0)
+    for _ in range(len(before) + len(after) - 1):
+        env.reset()
+    env.close()
+    assert before + after == drawn
 
 
 def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:
