@@ -201,3 +201,18 @@ def test_a_blow_up_ends_the_episode_with_no_reward(clip) -> None:
     _, r, terminated, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
     assert terminated and r == 0.0 and info["unstable"] and info["tracked"] is False
     env.close()
+
+
+def test_bench_env_times_resets_and_steps(clip) -> None:
+    """``quasisim bench env``: one markdown row of the environment's speed, with the counts asked for."""
+    import subprocess
+    import sys
+
+    path = clip[0]
+    args = ["bench", "env", path, "--reference", path.parent / "kinematic.npz", "--resets", 3, "--steps", 30]
+    r = subprocess.run([sys.executable, "-m", "quasisim.cli", *map(str, args)], capture_output=True, text=True,
+                       timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    row = r.stdout.strip().splitlines()[-1].strip("|").split("|")
+    assert "resets/s" in r.stdout and int(row[2]) == 3 and int(row[5]) == 30
+    assert all(float(x) > 0 for x in row)
