@@ -93,6 +93,30 @@ def test_skip_worlds_goes_on_after_the_first_worlds_of_a_seed(clip) -> None:
     env.close()
 
 
+def test_resets_set_the_world_on_the_compiled_model(clip, monkeypatch) -> None:
+    """MuJoCo: the model is compiled at the first reset only; later resets set the world's object mass and
+    inertia, friction, PD gains and object position on it, with the same transitions, bit for bit, as a model
+    compiled for that world (a fresh env's first reset), whichever worlds came before."""
+    import quasisim.targets.mujoco_target as mt
+
+    built = []
+    spec = mt.build_spec
+    monkeypatch.setattr(mt, "build_spec", lambda *a, **k: built.append(1) or spec(*a, **k))
+    kw = {"residual": True, "overrides": {"terminate": "unstable"}}
+    env = _env(clip, **kw)
+    actions = 0.3 * np.random.default_rng(1).uniform(-1, 1, (19, env.action_space.shape[0])).astype(np.float32)
+    seen = {w: _episode(env, actions, options={"world": w}) for w in (4, 9, None)}
+    assert len(built) == 1  # compiled once, at the first reset
+    assert not np.array_equal(seen[4][0][-1], seen[9][0][-1])  # the worlds differ
+    for w in (9, None):
+        fresh = _env(clip, **kw)
+        obs, rewards, _ = _episode(fresh, actions, options={"world": w})
+        np.testing.assert_array_equal(np.array(obs), np.array(seen[w][0]))
+        assert rewards == seen[w][1] and len(rewards) == 19
+        fresh.close()
+    env.close()
+
+
 def test_a_vector_of_processes_matches_single_envs(clip) -> None:
     path = clip[0]
     kw = {"clip": path, "reference": path.parent / "kinematic.npz", "residual": True}

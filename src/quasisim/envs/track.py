@@ -5,8 +5,10 @@ object at the scene's initial pose (as every replay of :mod:`quasisim.eval.robus
 control frame (:meth:`~quasisim.targets.base.Target.advance`). What the policy observes, how its action
 becomes PD targets, the reward and the termination are :class:`~quasisim.envs.task.TrackTask`'s. On reset,
 with ``randomize``, the world is a perturbed copy of the scene (:func:`~quasisim.targets.perturb.perturbed_scene`,
-the ranges of ``configs/robust.yaml``) seeded from ``(world_seed, a draw of the env's generator)``: seeded
-resets give the same worlds, and never the evaluation's (seed 0). :attr:`TrackEnv.worlds_drawn` counts the draws
+the ranges of ``configs/robust.yaml``) seeded from ``(world_seed, a draw of the env's generator)``: seeded resets
+give the same worlds, and never the evaluation's (seed 0). MuJoCo compiles its model at the first reset only and
+later sets each world's parameters on it (:meth:`~quasisim.targets.base.Target.set_world`; the same numbers as a
+model compiled for the world); PyBullet builds each world anew. :attr:`TrackEnv.worlds_drawn` counts the draws
 since the generator was seeded, and ``reset(seed=s, options={"skip_worlds": n})`` goes on after the first ``n``
 worlds of seed ``s``: a resumed training continues its sequence of worlds (:mod:`quasisim.policy.train`).
 
@@ -132,9 +134,11 @@ class TrackEnv(gym.Env):
             i = options["world"]
         else:
             i = self._draw_world() if self.task.cfg.randomize else None
-        if self._world is not None:
-            self._world.close()
-        self._world = make_target(self.target, self.world_scene(i))
+        scene = self.world_scene(i)
+        if self._world is None or not self._world.set_world(scene):  # MuJoCo: the parameters, not a new model
+            if self._world is not None:
+                self._world.close()
+            self._world = make_target(self.target, scene)
         q = self.task.reference
         self._world.reset(q[0], (q[1] - q[0]) * self.task.scene.fps)
         self._t, self._prev = 0, q[0]
