@@ -82,6 +82,41 @@ def test_seeded_resets_repeat_worlds_and_transitions(clip) -> None:
     env.close()
 
 
+def test_skip_worlds_goes_on_after_the_first_worlds_of_a_seed(clip) -> None:
+    env = _env(clip, residual=True)
+    worlds = [env.reset(seed=5)[1]["world"]] + [env.reset()[1]["world"] for _ in range(3)]
+    assert env.unwrapped.worlds_drawn == 4
+    _, info = env.reset(seed=5, options={"skip_worlds": 2})
+    assert [info["world"], env.reset()[1]["world"]] == worlds[2:] and env.unwrapped.worlds_drawn == 4
+    with pytest.raises(ValueError, match=r"skip_worlds.*>= 0"):
+        env.reset(options={"skip_worlds": -1})
+    env.close()
+
+
+def test_resets_set_the_world_on_the_compiled_model(clip, monkeypatch) -> None:
+    """MuJoCo: the model is compiled at the first reset only; later resets set the world's object mass and
+    inertia, friction, PD gains and object position on it, with the same transitions, bit for bit, as a model
+    compiled for that world (a fresh env's first reset), whichever worlds came before."""
+    import quasisim.targets.mujoco_target as mt
+
+    built = []
+    spec = mt.build_spec
+    monkeypatch.setattr(mt, "build_spec", lambda *a, **k: built.append(1) or spec(*a, **k))
+    kw = {"residual": True, "overrides": {"terminate": "unstable"}}
+    env = _env(clip, **kw)
+    actions = 0.3 * np.random.default_rng(1).uniform(-1, 1, (19, env.action_space.shape[0])).astype(np.float32)
+    seen = {w: _episode(env, actions, options={"world": w}) for w in (4, 9, None)}
+    assert len(built) == 1  # compiled once, at the first reset
+    assert not np.array_equal(seen[4][0][-1], seen[9][0][-1])  # the worlds differ
+    for w in (9, None):
+        fresh = _env(clip, **kw)
+        obs, rewards, _ = _episode(fresh, actions, options={"world": w})
+        np.testing.assert_array_equal(np.array(obs), np.array(seen[w][0]))
+        assert rewards == seen[w][1] and len(rewards) == 19
+        fresh.close()
+    env.close()
+
+
 def test_a_vector_of_processes_matches_single_envs(clip) -> None:
     path = clip[0]
     kw = {"clip": path, "reference": path.parent / "kinematic.npz", "residual": True}
@@ -133,6 +168,41 @@ def test_leaving_the_strict_limits_ends_the_episode(clip) -> None:
     env.close()
 
 
+@pytest.mark.parametrize("share", [0.4, 1.0])
+def test_tracked_is_strict_success(clip, monkeypatch, share) -> None:
+    """``info["tracked"]`` is the evaluation's strict success (:func:`quasisim.limits.strict_success`): within the
+    strict limits at every frame *and* the object moved as in the demo. A demo lifting the cube 3 cm; the world's
+    observations with the object scripted to move ``share`` of the demo's way: at 40 % every frame is within
+    2 cm, but the object rose 1.2 of 3 cm (less than half): not tracked; the whole way: tracked."""
+    from quasisim.data.demo import load_demo, save_demo
+    from quasisim.limits import STRICT_CM, strict_success
+    from quasisim.targets.mujoco_target import MujocoTarget
+
+    path, demo, _, _ = clip
+    p0 = demo.object_pos[0]
+    low = load_demo(save_demo(dataclasses.replace(demo, object_pos=p0 + 0.25 * (demo.object_pos - p0)),
+                              path.parent / "cube_low_lift.npz"))  # fmt: skip
+    env = gym.make(quasisim.envs.TRACK_ID, clip=low.path, reference=path.parent / "kinematic.npz", residual=True)
+    seen = []
+
+    def observe(self):
+        obs, t = observe.world(self), env.unwrapped._t
+        obs["obj_pos"] = low.object_pos[0] + share * (low.object_pos[t] - low.object_pos[0])
+        obs["obj_quat"] = np.asarray(low.object_quat[t], np.float64)
+        seen.append((obs["obj_pos"], obs["obj_quat"]))
+        return obs
+
+    observe.world = MujocoTarget.observe
+    monkeypatch.setattr(MujocoTarget, "observe", observe)
+    zeros = np.zeros(env.action_space.shape, np.float32)
+    _, _, info = _episode(env, [zeros] * (low.n_frames - 1), options={"world": None})
+    pos, quat = (np.array(x) for x in zip(*seen, strict=True))
+    assert info["frames"] == low.n_frames - 1 and len(pos) == low.n_frames  # the clip's end, every frame within
+    assert 100 * np.linalg.norm(pos - low.object_pos, axis=-1).max() <= STRICT_CM
+    assert info["tracked"] is strict_success(low.object_pos, low.object_quat, pos, quat) is (share == 1.0)
+    env.close()
+
+
 def test_bad_input_names_the_file_and_the_field(clip, tmp_path) -> None:
     path, _, controls, _ = clip
     short = dataclasses.replace(controls, q_targets=controls.q_targets[:-2])
@@ -155,3 +225,18 @@ def test_a_blow_up_ends_the_episode_with_no_reward(clip) -> None:
     _, r, terminated, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
     assert terminated and r == 0.0 and info["unstable"] and info["tracked"] is False
     env.close()
+
+
+def test_bench_env_times_resets_and_steps(clip) -> None:
+    """``quasisim bench env``: one markdown row of the environment's speed, with the counts asked for."""
+    import subprocess
+    import sys
+
+    path = clip[0]
+    args = ["bench", "env", path, "--reference", path.parent / "kinematic.npz", "--resets", 3, "--steps", 30]
+    r = subprocess.run([sys.executable, "-m", "quasisim.cli", *map(str, args)], capture_output=True, text=True,
+                       timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    row = r.stdout.strip().splitlines()[-1].strip("|").split("|")
+    assert "resets/s" in r.stdout and int(row[2]) == 3 and int(row[5]) == 30
+    assert all(float(x) > 0 for x in row)

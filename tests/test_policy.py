@@ -5,6 +5,7 @@ perturbed worlds, closed loop). Short runs on the bundled example; the real runs
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -39,13 +40,13 @@ def trained(clip, tmp_path_factory):
     out = tmp_path_factory.mktemp("trained") / "run"
     _cli("train", path, "--residual", path.parent / "kinematic.npz", "--steps", 128, "--out", out, *TINY)
     first = json.loads((out / "checkpoint.json").read_text())
-    _cli("train", path, "--steps", 256, "--out", out, "--resume", *TINY)
+    _cli("train", path, "--steps", 256, "--out", out, "--resume", "--no-progress")  # the stored settings
     return out, first
 
 
 def test_training_resumes_from_its_checkpoint(trained) -> None:
     out, first = trained
-    assert first["steps"] == 128
+    assert first["steps"] == 128 and len(first["worlds_drawn"]) == 2  # each process's training worlds so far
     info = json.loads((out / "training.json").read_text())
     assert info["env_steps"] == 256 and info["method"] == "ours+residual"
     assert info["wall_s"] > first["wall_s"]  # the resumed segment adds its time to the first's
@@ -86,12 +87,70 @@ def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
     out, _ = trained
     again = _cli("train", path, "--steps", 64, "--out", out, *TINY, ok=False)
     assert again.returncode == 2 and "--resume" in again.stderr and "Traceback" not in again.stderr
-    nothing = _cli("train", path, "--steps", 64, "--out", tmp_path / "none", "--resume", *TINY, ok=False)
+    changed = _cli("train", path, "--steps", 256, "--out", out, "--resume", "--set", "ppo.n_steps=128", ok=False)
+    assert changed.returncode == 2 and "Traceback" not in changed.stderr
+    assert "--set" in changed.stderr and "stored settings" in changed.stderr  # not ignored silently
+    nothing = _cli("train", path, "--steps", 64, "--out", tmp_path / "none", "--resume", ok=False)
     assert nothing.returncode == 2 and "setup.json" in nothing.stderr
     bad = _cli("train", path, "--steps", 64, "--out", tmp_path / "bad", "--set", "reward.x=1", ok=False)
     assert bad.returncode == 2 and "env.KEY" in bad.stderr
     unfinished = _cli("evaluate", tmp_path, "--out", tmp_path / "ev", ok=False)
     assert unfinished.returncode == 2 and "setup.json" in unfinished.stderr
+
+
+def test_overwrite_starts_the_training_afresh(clip, trained, tmp_path) -> None:
+    """--overwrite removes everything the previous training wrote, its best model and validation too: the new
+    run's checkpoints are judged among themselves, and the best model evaluated is one of the new run's."""
+    path = clip[0]
+    out = tmp_path / "again"
+    shutil.copytree(trained[0], out)
+    old_best = (out / "best.zip").read_bytes()
+    _cli("train", path, "--steps", 128, "--out", out, "--overwrite", *TINY)  # another reference: dgrasp-tracking
+    validation = json.loads((out / "validation.json").read_text())
+    assert [h[0] for h in validation["history"]] == [0, 64, 128]
+    info = json.loads((out / "training.json").read_text())
+    assert info["method"] == "dgrasp-tracking" and info["best"] == validation["best"]
+    assert validation["best"]["steps"] <= 128 and (out / "best.zip").read_bytes() != old_best
+    assert len(list((out / "logs").glob("*/progress.csv"))) == 1
+
+
+def test_a_resumed_training_continues_the_sequence_of_worlds(clip, tmp_path, monkeypatch) -> None:
+    """The training worlds drawn after a resume continue those drawn before it (PPO.load seeds the environments
+    again): the two segments together draw what one uninterrupted environment seeded as the trainer seeds it
+    draws. One environment in this process, 64 steps, then resumed to 192."""
+    import gymnasium as gym
+
+    import quasisim.envs
+    from quasisim.envs.track import TrackEnv
+    from quasisim.policy.train import REFERENCE, prepare, train
+
+    path = clip[0]
+    drawn: list[int] = []
+    reset = TrackEnv.reset
+
+    def recording(self, *, seed=None, options=None):
+        obs, info = reset(self, seed=seed, options=options)
+        drawn.append(info["world"])
+        return obs, info
+
+    monkeypatch.setattr(TrackEnv, "reset", recording)
+    out = tmp_path / "run"
+    out.mkdir()
+    ppo = {"n_envs": 1, "n_steps": 64, "batch_size": 64, "checkpoint_every": 64, "validate_worlds": 0}
+    prepare(path, out, path.parent / "kinematic.npz", "shadow", "mujoco", 3, {}, ppo)
+    train(out, 64, progress=False)
+    before = drawn.copy()
+    drawn.clear()
+    train(out, 192, resume=True, progress=False)
+    after = drawn.copy()
+    assert len(before) >= 2 and len(after) >= 2 and after[0] != before[0]  # not the same worlds again
+    env = gym.make(quasisim.envs.TRACK_ID, clip=path, reference=out / REFERENCE, residual=True)
+    drawn.clear()
+    env.reset(seed=3)  # the trainer's seed (+ the env's index, 0)
+    for _ in range(len(before) + len(after) - 1):
+        env.reset()
+    env.close()
+    assert before + after == drawn
 
 
 def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:

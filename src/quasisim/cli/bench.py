@@ -116,6 +116,29 @@ def bench_sim(
     run_sim_bench(data, clip, clips_, hand, substeps, study, as_json, sims)
 
 
+@bench.command("env")
+@click.argument("clip", type=click.Path(path_type=Path, exists=True, dir_okay=False))
+@click.option("--reference", type=click.Path(path_type=Path, exists=True), default=None,
+              help="The result tracked (run folder or controls.npz); default: the kinematic retarget to --hand.")  # fmt: skip
+@click.option("--hand", default="shadow", show_default=True, help="Robot hand without --reference.")
+@click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
+@click.option("--residual/--no-residual", default=True, show_default=True, help="Residual actions (ours+residual).")
+@click.option("--resets", type=click.IntRange(1), default=100, show_default=True, help="Resets into training worlds.")
+@click.option("--steps", type=click.IntRange(1), default=1000, show_default=True, help="Env steps.")
+@click.option("--noise", type=click.FloatRange(0, 1), default=0.1, show_default=True,
+              help="Std of the Gaussian actions (action units), as a fresh policy explores.")  # fmt: skip
+@_friendly
+def bench_env(
+    clip: Path, reference: Path | None, hand: str, target: str, residual: bool, resets: int, steps: int, noise: float
+) -> None:  # fmt: skip
+    """Speed of quasisim/Track-v0 on CLIP: resets per second (each into another training world) and env steps
+    per second, with and without the resets that end episodes; a markdown table."""
+    _setup_runtime()
+    from quasisim.bench.env import run_env_bench
+
+    click.echo(run_env_bench(clip, reference, hand, target, residual, resets, steps, noise))
+
+
 @bench.command("transfer")
 @click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import click
@@ -56,9 +55,12 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
     "--set",
     "sets",
     multiple=True,
-    help="Override a setting: env.KEY=V (configs/track_env.yaml), ppo.KEY=V (configs/ppo.yaml).",
+    help="Override a setting: env.KEY=V (configs/track_env.yaml), ppo.KEY=V (configs/ppo.yaml). Not with "
+    "--resume, which continues with the stored settings.",
 )
-@click.option("--resume", is_flag=True, help="Continue the training in OUT from its last checkpoint.")
+@click.option(
+    "--resume", is_flag=True, help="Continue the training in OUT from its last checkpoint, with its settings."
+)
 @click.option("--progress/--no-progress", default=True, show_default=True, help="A progress bar.")
 @_OVERWRITE
 @_friendly
@@ -70,8 +72,11 @@ def policy_train(
     _need_rl()
     _setup_runtime()
     from quasisim.files import check_out_dir, run_lock
-    from quasisim.policy.train import SETUP, TrainSetup, prepare, train
+    from quasisim.policy.train import SETUP, TrainSetup, clear, prepare, train
 
+    if resume and sets:
+        raise QuasisimError(f"--set with --resume: a resumed training continues with the stored settings "
+                            f"({out / SETUP}); to change them, start again with --overwrite")  # fmt: skip
     check_out_dir(out)
     with run_lock(out, f"policy train {clip}"):
         if resume:
@@ -81,9 +86,7 @@ def policy_train(
         else:
             if (out / SETUP).exists() and not overwrite:
                 raise QuasisimError(f"{out} holds a training already: --resume to continue it, --overwrite to restart")
-            for name in ("logs", "checkpoint.zip", "checkpoint.json", "policy.zip", "training.json"):
-                p = out / name
-                shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+            clear(out)  # everything of the previous training: its best model and validation too
             env_o, ppo_o = _split_sets(sets)
             setup = prepare(clip, out, residual, hand, target, seed, env_o, ppo_o)
         click.echo(f"{setup.method} on {Path(setup.clip).stem} in {setup.target}: up to {steps} env steps")

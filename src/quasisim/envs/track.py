@@ -5,8 +5,12 @@ object at the scene's initial pose (as every replay of :mod:`quasisim.eval.robus
 control frame (:meth:`~quasisim.targets.base.Target.advance`). What the policy observes, how its action
 becomes PD targets, the reward and the termination are :class:`~quasisim.envs.task.TrackTask`'s. On reset,
 with ``randomize``, the world is a perturbed copy of the scene (:func:`~quasisim.targets.perturb.perturbed_scene`,
-the ranges of ``configs/robust.yaml``) seeded from ``(world_seed, a draw of the env's generator)``: seeded
-resets give the same worlds, and never the evaluation's (seed 0).
+the ranges of ``configs/robust.yaml``) seeded from ``(world_seed, a draw of the env's generator)``: seeded resets
+give the same worlds, and never the evaluation's (seed 0). MuJoCo compiles its model at the first reset only and
+later sets each world's parameters on it (:meth:`~quasisim.targets.base.Target.set_world`; the same numbers as a
+model compiled for the world); PyBullet builds each world anew. :attr:`TrackEnv.worlds_drawn` counts the draws
+since the generator was seeded, and ``reset(seed=s, options={"skip_worlds": n})`` goes on after the first ``n``
+worlds of seed ``s``: a resumed training continues its sequence of worlds (:mod:`quasisim.policy.train`).
 
     import gymnasium as gym, quasisim.envs
     env = gym.make("quasisim/Track-v0", clip="grab_s1_cup_lift.npz", reference="out/cup/controls.npz",
@@ -62,6 +66,13 @@ def world_config(cfg: TrackEnvConfig) -> Any:
     return dataclasses.replace(replays(None, cfg.ranges), seed=cfg.world_seed)
 
 
+def _count(n: Any, option: str) -> int:
+    """``n`` as a count of worlds (a reset option), or a one-line error naming the option."""
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
+        raise ValueError(f"quasisim/Track-v0: reset option {option}: expected a count of worlds >= 0, got {n!r}")
+    return int(n)
+
+
 class TrackEnv(gym.Env):
     """Track a clip (see the module docstring).
 
@@ -74,9 +85,13 @@ class TrackEnv(gym.Env):
         target: the simulator (``mujoco`` or ``pybullet``).
         config: a :class:`TrackEnvConfig` (default ``configs/track_env.yaml`` with ``overrides``).
 
-    ``reset(options={"world": i})`` uses training world ``i``; ``options={"world": None}`` the nominal scene.
+    ``reset(options={"world": i})`` uses training world ``i``; ``options={"world": None}`` the nominal scene;
+    ``options={"skip_worlds": n}`` skips the generator's next ``n`` worlds first (with ``seed``: goes on after
+    that seed's first ``n`` worlds). :attr:`worlds_drawn`: the worlds drawn since the generator was seeded.
     Each step's ``info`` holds the frame, the errors against the demo (:meth:`TrackTask.errors`) and, at the
-    episode's end, ``tracked`` (the clip ended within the strict limits) and ``frames`` (frames reached).
+    episode's end, ``tracked`` (strict success, :func:`quasisim.limits.strict_success`, as the evaluation judges
+    it: the clip's end reached within the strict limits at every frame and the object moved as in the demo) and
+    ``frames`` (frames reached).
     """
 
     metadata = {"render_modes": []}  # noqa: RUF012  (Gymnasium's class attribute)
@@ -98,7 +113,9 @@ class TrackEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (D,), np.float32)
         self.observation_space = gym.spaces.Box(-100.0, 100.0, (self.task.observation_size,), np.float32)
         self._world: Target | None = None
-        self._t, self._obs, self._prev, self._ok = 0, None, None, True
+        self._t, self._obs, self._prev = 0, None, None
+        self.worlds_drawn = 0  # draws of the generator since it was seeded (a resumed training skips them)
+        self._poses: list[tuple[np.ndarray, np.ndarray]] = []  # the object's pose at every frame of the episode
 
     def world_scene(self, i: int | None) -> Scene:
         """Training world ``i`` (None: the nominal scene)."""
@@ -109,18 +126,30 @@ class TrackEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
         options = options or {}
+        if seed is not None:
+            self.worlds_drawn = 0
+        for _ in range(_count(options.get("skip_worlds", 0), "skip_worlds")):
+            self._draw_world()
         if "world" in options:
             i = options["world"]
         else:
-            i = int(self.np_random.integers(2**31)) if self.task.cfg.randomize else None
-        if self._world is not None:
-            self._world.close()
-        self._world = make_target(self.target, self.world_scene(i))
+            i = self._draw_world() if self.task.cfg.randomize else None
+        scene = self.world_scene(i)
+        if self._world is None or not self._world.set_world(scene):  # MuJoCo: the parameters, not a new model
+            if self._world is not None:
+                self._world.close()
+            self._world = make_target(self.target, scene)
         q = self.task.reference
         self._world.reset(q[0], (q[1] - q[0]) * self.task.scene.fps)
-        self._t, self._prev, self._ok = 0, q[0], True
+        self._t, self._prev = 0, q[0]
         self._obs = self._world.observe()
+        self._poses = [(self._obs["obj_pos"], self._obs["obj_quat"])]
         return self.task.observation(0, self._obs), {"world": -1 if i is None else i}
+
+    def _draw_world(self) -> int:
+        """The generator's next training world."""
+        self.worlds_drawn += 1
+        return int(self.np_random.integers(2**31))
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._world is None or self._obs is None:
@@ -130,19 +159,25 @@ class TrackEnv(gym.Env):
         self._world.advance(self._prev, q)
         self._t, self._prev = t + 1, q
         self._obs = obs = self._world.observe()
+        self._poses.append((obs["obj_pos"], obs["obj_quat"]))
         warned = any(self._world.extras().get("sim_warnings", {}).values())  # MuJoCo resets a blown-up state
         if warned or task.unstable(obs):
             info = {"frame": t + 1, "unstable": True, "tracked": False, "frames": t + 1}
             return np.zeros(self.observation_space.shape, np.float32), 0.0, True, False, info
         r, errors = task.reward(t + 1, obs, np.clip(action, -1, 1))
-        ok = task.within_strict(errors)
-        self._ok = self._ok and ok
         end = t + 1 == task.n_frames - 1
-        done = end or (not ok and task.cfg.terminate == "strict")
+        done = end or (not task.within_strict(errors) and task.cfg.terminate == "strict")
         info: dict[str, Any] = {"frame": t + 1, **errors}
         if done:
-            info |= {"tracked": end and self._ok, "frames": t + 1}
+            info |= {"tracked": end and self._strict_success(), "frames": t + 1}
         return task.observation(t + 1, obs), r, done, False, info
+
+    def _strict_success(self) -> bool:
+        """Strict success of the episode's object poses (every frame of the clip) against the demo's."""
+        from quasisim.limits import strict_success
+
+        pos, quat = (np.array(x) for x in zip(*self._poses, strict=True))
+        return strict_success(self.task.demo.object_pos, self.task.demo.object_quat, pos, quat)
 
     def close(self) -> None:
         if self._world is not None:

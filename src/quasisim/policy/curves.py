@@ -10,7 +10,7 @@ import numpy as np
 from quasisim.errors import QuasisimError
 from quasisim.policy.train import TrainSetup
 
-CURVES = (("rollout/tracked", "episodes tracked to the end\n(strict limits, randomised worlds)"),
+CURVES = (("rollout/tracked", "episodes tracked: strict success\n(randomised worlds)"),
           ("rollout/frames", "frames reached per episode"),
           ("rollout/ep_rew_mean", "episode return"))  # fmt: skip
 

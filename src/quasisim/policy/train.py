@@ -6,7 +6,9 @@ A training folder ``OUT`` holds:
 * ``reference.npz``: the reference PD targets: our result (``ours+residual``) or the kinematic retarget
   (``dgrasp-tracking``, which acts on the measured pose and sees the reference only in its observation);
 * ``checkpoint.zip`` + ``checkpoint.json``: the model and the steps and seconds so far, written atomically
-  every ``checkpoint_every`` env steps and at the end; ``--resume`` continues from them;
+  every ``checkpoint_every`` env steps and at the end, with the training worlds each environment has drawn;
+  ``--resume`` continues from them, each environment's sequence of worlds where it stopped (``PPO.load`` seeds
+  the environments again, and would otherwise replay the same worlds);
 * ``logs/<segment>/``: ``progress.csv`` and TensorBoard events, one segment per start or resume
   (:mod:`quasisim.policy.curves` reads them);
 * ``best.zip`` + ``validation.json``: the model that did best in validation (the nominal world and training
@@ -30,7 +32,9 @@ from quasisim.files import atomic_path, save_json_atomic
 
 METHODS = {"dgrasp-tracking": False, "ours+residual": True}  # method -> residual actions
 SETUP, REFERENCE, CHECKPOINT, POLICY = "setup.json", "reference.npz", "checkpoint.zip", "policy.zip"
+CHECKPOINT_META, TRAINING, LOGS = "checkpoint.json", "training.json", "logs"
 BEST, VALIDATION = "best.zip", "validation.json"  # the best validated model (Selector)
+OUTPUTS = (SETUP, REFERENCE, CHECKPOINT, CHECKPOINT_META, LOGS, BEST, VALIDATION, POLICY, TRAINING)  # all of a run
 
 
 @dataclass(frozen=True)
@@ -94,6 +98,16 @@ def prepare(
     return setup
 
 
+def clear(out: Path) -> None:
+    """Remove everything a training wrote into ``out`` (:data:`OUTPUTS`; ``--overwrite``), so that nothing of
+    it (its best model, its validation scores) is taken for the next training's."""
+    import shutil
+
+    for name in OUTPUTS:
+        p = out / name
+        shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+
+
 def make_env(out: Path, setup: TrainSetup) -> Any:
     """A function making one environment of the training (for stable-baselines3's vectorised envs)."""
 
@@ -155,12 +169,13 @@ class Selector:
 
 def _callbacks(out: Path, every: int, wall0: float, select: Selector) -> list[Any]:
     """Checkpoints with validation every ``every`` env steps (atomic) and the tracked fraction of the episodes
-    in the logs."""
+    (strict success) in the logs."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Tracked(BaseCallback):
-        """Logs ``rollout/tracked``: the share of the episodes ended in the last rollout that reached the
-        clip's end within the strict limits, and ``rollout/frames``: the share of the clip they reached."""
+        """Logs ``rollout/tracked``: the share of the episodes ended in the last rollout with strict success
+        (the env's ``info["tracked"]``: the clip's end reached within the strict limits, the object moved as in
+        the demo; what validation and evaluation count), and ``rollout/frames``: the frames they reached."""
 
         def _on_rollout_start(self) -> None:
             self.ended: list[tuple[bool, float]] = []
@@ -194,10 +209,24 @@ def _callbacks(out: Path, every: int, wall0: float, select: Selector) -> list[An
 
 
 def save_checkpoint(model: Any, out: Path, wall0: float) -> None:
-    """``checkpoint.zip`` and ``checkpoint.json`` (steps, wall seconds so far), each replaced atomically."""
+    """``checkpoint.zip`` and ``checkpoint.json`` (steps, wall seconds so far, the training worlds each
+    environment has drawn since it was seeded), each replaced atomically."""
     with atomic_path(out / CHECKPOINT) as tmp:
         model.save(tmp)
-    save_json_atomic(out / "checkpoint.json", {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0})
+    drawn = [int(n) for n in model.get_env().get_attr("worlds_drawn")]
+    meta = {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0, "worlds_drawn": drawn}
+    save_json_atomic(out / CHECKPOINT_META, meta)
+
+
+def _continue_worlds(venv: Any, meta: dict[str, Any]) -> None:
+    """Make the first reset of a resumed training's environments (seeded again by ``PPO.load``) go on after the
+    worlds they drew before (``checkpoint.json``); a checkpoint without that count starts them again."""
+    drawn = meta.get("worlds_drawn")
+    if drawn is None or len(drawn) != venv.num_envs:
+        print("checkpoint.json does not say which training worlds were drawn: they start their sequence again",
+              flush=True)  # fmt: skip
+        return
+    venv.set_options([{"skip_worlds": int(n)} for n in drawn])
 
 
 def _vec_env(out: Path, setup: TrainSetup, n: int) -> Any:
@@ -220,22 +249,23 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
     cfg = PPOConfig.from_yaml(None, setup.ppo_overrides)
     torch.set_num_threads(1)  # the env processes have the other cores; more threads only spin against them
     ckpt = out / CHECKPOINT
-    done_s = 0.0
+    meta: dict[str, Any] = {}
     if resume and ckpt.is_file():
-        meta = out / "checkpoint.json"  # written after the model: a kill between the two leaves the older one
-        done_s = float(json.loads(meta.read_text())["wall_s"]) if meta.is_file() else 0.0
+        p = out / CHECKPOINT_META  # written after the model: a kill between the two leaves the older one
+        meta = json.loads(p.read_text()) if p.is_file() else {}
     elif resume:
         raise QuasisimError(f"{out}: nothing to resume (no {CHECKPOINT}); run without --resume")
     venv = _vec_env(out, setup, cfg.n_envs)
     try:
         if resume:
             model = PPO.load(ckpt, env=venv, device="cpu")
+            _continue_worlds(venv, meta)
         else:
             model = PPO("MlpPolicy", venv, seed=setup.seed, device="cpu", verbose=0, **cfg.ppo_kwargs(setup.residual))
-        logs = out / "logs"
+        logs = out / LOGS
         segment = logs / f"{len(list(logs.glob('*'))) if logs.is_dir() else 0:03d}"
         model.set_logger(configure(str(segment), ["csv", "tensorboard"]))
-        wall0 = time.time() - done_s
+        wall0 = time.time() - float(meta.get("wall_s", 0.0))
         select = Selector(out, setup, cfg.validate_worlds)
         remaining = steps - model.num_timesteps
         if remaining > 0:
@@ -248,7 +278,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
         info = {"method": setup.method, "algo": setup.algo, "env_steps": int(model.num_timesteps),
                 "wall_s": time.time() - wall0, "n_envs": cfg.n_envs, "validation_s": select.state["seconds"],
                 "best": select.state["best"]}  # fmt: skip
-        save_json_atomic(out / "training.json", info)
+        save_json_atomic(out / TRAINING, info)
         return info
     finally:
         venv.close()

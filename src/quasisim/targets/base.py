@@ -265,6 +265,14 @@ class Target(abc.ABC):
         observed world's own next frame in the solver's last digits. Needs a run (:meth:`reset`) first."""
         raise NotImplementedError(f"target {self.name}: setting the state from an observation is not implemented")
 
+    def set_world(self, scene: Scene) -> bool:
+        """Simulate ``scene`` from the next :meth:`reset` on without building the simulator again, where
+        ``scene`` is this target's scene with other physical parameters only (a world of
+        :func:`~quasisim.targets.perturb.perturbed_scene`: the object's mass and inertia, friction, the PD gains,
+        the object's initial pose), exactly as a target built for ``scene`` would. Returns False where it cannot
+        (another structure, or a backend without it; the caller builds a target for ``scene``): by default."""
+        return False
+
     def extras(self) -> dict[str, Any]:
         """:attr:`TargetRollout.extras` of the run so far (the simulator's warnings, where it counts them)."""
         return {}

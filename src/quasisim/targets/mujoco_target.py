@@ -24,7 +24,7 @@ on a copy of the scene with ``framepos`` sensors on the metric keypoint sites.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
@@ -34,6 +34,9 @@ from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
 from quasisim.targets.base import Observation, Prediction, Prune, Target, pd_gains, pd_schedule
 from quasisim.targets.scene import Scene
+
+if TYPE_CHECKING:
+    from quasisim.assets.object import ObjectAsset
 
 HAND_PREFIX = "hand/"  # the one hand of a one-hand scene (Scene.prefixes: two hands are rhand/ and lhand/)
 # collision bits: hand (type 2, affinity 1) touches object/table (type 1, affinity 3), not itself.
@@ -194,13 +197,8 @@ def _add_object(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
     obj = scene.obj
     ob = wb.add_body(name="object", pos=scene.object_pos0.tolist(), quat=scene.object_quat0.tolist())
     ob.add_freejoint(name="object_free")
-    evals, evecs = np.linalg.eigh(obj.inertia)
-    if np.linalg.det(evecs) < 0:
-        evecs[:, 0] *= -1
-    ob.mass = float(obj.mass)
-    ob.ipos = obj.com.tolist()
-    ob.iquat = np_mat_to_quat(evecs).tolist()
-    ob.inertia = np.maximum(evals, 1e-9).tolist()
+    ob.mass, ipos, iquat, inertia = object_inertial(obj)
+    ob.ipos, ob.iquat, ob.inertia = ipos.tolist(), iquat.tolist(), inertia.tolist()
     ob.explicitinertial = True
     for i, (v, f) in enumerate(obj.convex_parts()):
         spec.add_mesh(name=f"object_part{i}", uservert=v.ravel().tolist(), userface=f.ravel().tolist())
@@ -215,6 +213,27 @@ def _add_object(spec: Any, scene: Scene, visual: bool, fr: list[float]) -> None:
             name="object_visual", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="object_visual",
             contype=0, conaffinity=0, group=1, rgba=[0.85, 0.35, 0.25, 1], density=0.0,
         )  # fmt: skip
+
+
+def object_inertial(obj: ObjectAsset) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """The object body's mass, centre of mass (3,), principal axes (4,; w x y z) and principal moments (3,)."""
+    evals, evecs = np.linalg.eigh(obj.inertia)
+    if np.linalg.det(evecs) < 0:
+        evecs[:, 0] *= -1
+    return float(obj.mass), np.asarray(obj.com, np.float64), np_mat_to_quat(evecs), np.maximum(evals, 1e-9)
+
+
+def same_structure(a: Scene, b: Scene) -> bool:
+    """Whether scenes ``a`` and ``b`` compile to models that differ in physical parameters only (those of
+    :meth:`MujocoModel.set_physics`): the same hands on the same bases, object mesh, centre of mass and initial
+    orientation, table, frame rate, time step and gravity."""
+    pa, pb = a.physics, b.physics
+    return (
+        a.placements == b.placements and a.table == b.table and a.fps == b.fps
+        and a.obj.content_hash == b.obj.content_hash and np.array_equal(a.obj.com, b.obj.com)
+        and np.array_equal(a.object_quat0, b.object_quat0)
+        and (pa.mujoco_dt, pa.gravity) == (pb.mujoco_dt, pb.gravity)
+    )  # fmt: skip
 
 
 def _add_actuators(spec: Any, hand: HandModel, prefix: str, gain_scale: float = 1.0) -> None:
@@ -251,6 +270,13 @@ def object_twist(quat: np.ndarray, qvel: np.ndarray, com: np.ndarray) -> tuple[n
     return qvel[..., 0:3] + np.cross(w, R @ np.asarray(com)), w
 
 
+def _normalized(quat: np.ndarray) -> np.ndarray:
+    """``quat`` (4,) normalised as MuJoCo's compiler does (``mju_normalize4``)."""
+    q = np.array(quat, np.float64)
+    mujoco.mju_normalize4(q)
+    return q
+
+
 class MujocoModel:
     """A compiled scene with index maps for the hand dofs, keypoint sites and the object."""
 
@@ -272,6 +298,31 @@ class MujocoModel:
         self.obj_qpos = int(m.jnt_qposadr[oj])
         self.obj_dof = int(m.jnt_dofadr[oj])
         self.obj_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")
+        self.contact_geoms = np.flatnonzero((m.geom_contype != 0) | (m.geom_conaffinity != 0))  # friction fr
+
+    def set_physics(self, scene: Scene) -> None:
+        """Give the compiled model the physical parameters of ``scene`` (of the model's structure,
+        :func:`same_structure`) as compiling it would: the object's mass, inertia and initial position, the sliding
+        friction of every colliding geom, the PD gains (kp, kv); then the constants derived from them
+        (``mj_setConst``) and the statistics the compiler computes (``meanmass``, ``meaninertia``, which scales
+        the solver's tolerance), which ``mj_setConst`` leaves."""
+        m, b, o = self.model, self.obj_body, self.obj_qpos
+        m.body_mass[b], m.body_ipos[b], iquat, m.body_inertia[b] = object_inertial(scene.obj)
+        m.body_iquat[b] = _normalized(iquat)
+        m.body_pos[b] = m.qpos0[o : o + 3] = m.qpos_spring[o : o + 3] = scene.object_pos0  # the free joint's origin
+        m.geom_friction[self.contact_geoms, 0] = scene.physics.friction
+        gains = [pd_gains(h, scene.physics.gain_scale) for h in scene.hands]
+        kp, kv = np.concatenate([g.kp for g in gains]), np.concatenate([g.kv for g in gains])
+        m.actuator_gainprm[self.pd_act, 0], m.actuator_biasprm[self.pd_act, 1] = kp, -kp
+        m.actuator_biasprm[self.pd_act, 2], m.actuator_gainprm[self.ff_act, 0] = -kv, kv
+        d = mujoco.MjData(m)
+        mujoco.mj_setConst(m, d)
+        d.qpos[:] = m.qpos0
+        mujoco.mj_forward(m, d)
+        m.stat.meanmass = sum(float(x) for x in m.body_mass[1:]) / (m.nbody - 1)
+        diag = d.M[m.M_rowadr + m.M_rownnz - 1]
+        m.stat.meaninertia = sum(float(x) for x in diag) / m.nv
+        self.scene = scene
 
     def set_state(self, data: Any, qfull: np.ndarray, obj_pos: np.ndarray, obj_quat: np.ndarray) -> None:
         data.qpos[self.hand_qpos] = qfull
@@ -480,6 +531,17 @@ class MujocoTarget(Target):
         """How often MuJoCo raised each warning of :data:`UNSTABLE_WARNINGS` in this run."""
         w = self._run().warning
         return {k: int(w[int(getattr(mujoco.mjtWarning, f"mjWARN_{k}"))].number) for k in UNSTABLE_WARNINGS}
+
+    def set_world(self, scene: Scene) -> bool:
+        """``scene``'s physical parameters on the compiled model (:meth:`MujocoModel.set_physics`): a world of
+        the same structure (:func:`same_structure`) without compiling again; the run ends (:meth:`reset` next)
+        and the window model, compiled from the old parameters, is dropped (built again on first use)."""
+        if not same_structure(self.scene, scene):
+            return False
+        self.mm.set_physics(scene)
+        self.scene, self.data = scene, None
+        self.close()
+        return True
 
     def close(self) -> None:
         """Close the rollout pool (idempotent)."""
