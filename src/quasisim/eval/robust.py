@@ -17,27 +17,27 @@ closed-loop gate); they are imported here under the same names.
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from quasisim.data.demo import Demo
-from quasisim.errors import QuasisimError
 from quasisim.targets.perturb import CLOSED_LOOP_SUFFIX as CLOSED_LOOP_SUFFIX
-from quasisim.targets.perturb import CONFIGS, ROBUST_PATH, RobustConfig, world_replays
+from quasisim.targets.perturb import RANGES as RANGES
 from quasisim.targets.perturb import ROBUST_KEY as ROBUST_KEY
+from quasisim.targets.perturb import ROBUST_PATH as ROBUST_PATH
 from quasisim.targets.perturb import Policy as Policy
+from quasisim.targets.perturb import RobustConfig as RobustConfig
 from quasisim.targets.perturb import Sensor as Sensor
 from quasisim.targets.perturb import finger_columns as finger_columns
 from quasisim.targets.perturb import perturbed_scene as perturbed_scene
 from quasisim.targets.perturb import push_of as push_of
 from quasisim.targets.perturb import replay as replay
+from quasisim.targets.perturb import replays as replays
+from quasisim.targets.perturb import resolve_ranges as resolve_ranges
+from quasisim.targets.perturb import world_replays
 from quasisim.targets.scene import Scene
 
-RANGES = {  # --ranges NAME
-    "default": ROBUST_PATH, "wide": CONFIGS / "robust_wide.yaml", "sensing": CONFIGS / "robust_sensing.yaml",
-}  # fmt: skip
 # metrics.json key of each shipped perturbation set -> what it perturbs (reports, tables)
 ROBUST_SETS = {
     "robust": "object mass, friction, initial object position, PD gains; configs/robust.yaml",
@@ -45,43 +45,6 @@ ROBUST_SETS = {
     "robust_sensing": "the default worlds seen through noise (2 mm, 2 deg, 0.01 rad) and one frame of latency; "
     "configs/robust_sensing.yaml",
 }
-
-
-ROBUST_SET_FIXED = ("n", "name", "path")  # not settable by --robust-set (n: --robust N)
-
-
-def resolve_ranges(name: str) -> str:
-    """``name`` if it is a shipped set of :data:`RANGES`, else the absolute path of a perturbation-set YAML file
-    of the user's own (the keys of ``configs/robust.yaml``); a one-line error listing the options otherwise."""
-    if name in RANGES:
-        return name
-    p = Path(name).expanduser()
-    if p.suffix in (".yaml", ".yml") and p.is_file():
-        return str(p.resolve())
-    raise QuasisimError(
-        f"unknown perturbation ranges {name!r}; valid options: {', '.join(RANGES)}, or the path of an existing "
-        "YAML file with the keys of configs/robust.yaml"
-    )
-
-
-def replays(n: int | None, ranges: str = "default", overrides: dict[str, Any] | None = None) -> RobustConfig:
-    """The settings of ``ranges`` (a shipped set of :data:`RANGES`, or a YAML file of the user's own:
-    :func:`resolve_ranges`) with ``overrides`` (``--robust-set seed=7``) and ``n`` replays where given
-    (``--robust N``). A file of the user's own without a ``name`` reports under ``robust_<file stem>``."""
-    over = dict(overrides or {})
-    if fixed := sorted(set(over) & set(ROBUST_SET_FIXED)):
-        hint = "use --robust N for the number of replays" if fixed[0] == "n" else "a set's name is its file's"
-        raise QuasisimError(f"--robust-set {fixed[0]}: not settable ({hint})")
-    path = resolve_ranges(ranges)
-    if path not in RANGES:
-        import yaml
-
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        if isinstance(data, dict) and "name" not in data:
-            over["name"] = "robust_" + "".join(ch if ch.isalnum() else "_" for ch in Path(path).stem)
-    if n is not None:
-        over["n"] = n
-    return RobustConfig.from_yaml(RANGES.get(path, path), over or None)
 
 
 def robust_success(

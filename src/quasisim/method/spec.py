@@ -74,7 +74,7 @@ class TransferSpec:
     def robust_configs(self) -> list[Any]:
         """The :class:`~quasisim.targets.perturb.RobustConfig` of each set of ``ranges``, with ``robust``
         replays and the ``robust_set`` overrides."""
-        from quasisim.eval.robust import replays
+        from quasisim.targets.perturb import replays
 
         return [replays(self.robust, r, dict(self.robust_set)) for r in self.ranges]
 

@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from quasisim.config import load
-from quasisim.errors import InputError
+from quasisim.errors import InputError, QuasisimError
 from quasisim.targets.scene import Scene
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -248,3 +248,43 @@ def world_replays(
                 cost = ctl.cost()
                 ctl.close()
         yield rollout, cost, time.perf_counter() - t0
+
+
+RANGES = {  # --ranges NAME
+    "default": ROBUST_PATH, "wide": CONFIGS / "robust_wide.yaml", "sensing": CONFIGS / "robust_sensing.yaml",
+}  # fmt: skip
+ROBUST_SET_FIXED = ("n", "name", "path")  # not settable by --robust-set (n: --robust N)
+
+
+def resolve_ranges(name: str) -> str:
+    """``name`` if it is a shipped set of :data:`RANGES`, else the absolute path of a perturbation-set YAML file
+    of the user's own (the keys of ``configs/robust.yaml``); a one-line error listing the options otherwise."""
+    if name in RANGES:
+        return name
+    p = Path(name).expanduser()
+    if p.suffix in (".yaml", ".yml") and p.is_file():
+        return str(p.resolve())
+    raise QuasisimError(
+        f"unknown perturbation ranges {name!r}; valid options: {', '.join(RANGES)}, or the path of an existing "
+        "YAML file with the keys of configs/robust.yaml"
+    )
+
+
+def replays(n: int | None, ranges: str = "default", overrides: dict[str, Any] | None = None) -> RobustConfig:
+    """The settings of ``ranges`` (a shipped set of :data:`RANGES`, or a YAML file of the user's own:
+    :func:`resolve_ranges`) with ``overrides`` (``--robust-set seed=7``) and ``n`` replays where given
+    (``--robust N``). A file of the user's own without a ``name`` reports under ``robust_<file stem>``."""
+    over = dict(overrides or {})
+    if fixed := sorted(set(over) & set(ROBUST_SET_FIXED)):
+        hint = "use --robust N for the number of replays" if fixed[0] == "n" else "a set's name is its file's"
+        raise QuasisimError(f"--robust-set {fixed[0]}: not settable ({hint})")
+    path = resolve_ranges(ranges)
+    if path not in RANGES:
+        import yaml
+
+        data = yaml.safe_load(Path(path).read_text()) or {}
+        if isinstance(data, dict) and "name" not in data:
+            over["name"] = "robust_" + "".join(ch if ch.isalnum() else "_" for ch in Path(path).stem)
+    if n is not None:
+        over["n"] = n
+    return RobustConfig.from_yaml(RANGES.get(path, path), over or None)
