@@ -173,23 +173,6 @@ def _ranges(text: str) -> tuple[str, ...]:
     return tuple(resolve_ranges(n) for n in names)
 
 
-def _robust_over(robust_sets: tuple[str, ...]) -> dict[str, Any]:
-    """``--robust-set KEY=VALUE`` options as overrides of every perturbation set."""
-    return _parse_sets(robust_sets, "--robust-set")
-
-
-def _robust_sets(robust: int | None, ranges: str, closed_loop: bool, robust_sets: tuple[str, ...] = ()) -> list[Any]:
-    """The perturbation sets of ``--ranges`` with ``--robust`` replays each and the ``--robust-set`` overrides
-    (validated); ``--closed-loop`` needs replays."""
-    from quasisim.eval.robust import replays
-
-    over = _robust_over(robust_sets)
-    sets = [replays(robust, r, over) for r in _ranges(ranges)]
-    if closed_loop and not any(c.n for c in sets):
-        raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
-    return sets
-
-
 _LEAD_CLIP = click.option(
     "--lead-clip/--no-lead-clip", default=True, show_default=True,
     help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
@@ -321,10 +304,12 @@ def _judging(
         robust: int | None, ranges: str, robust_sets: tuple[str, ...], closed_loop: bool = False,
         tracker: str = "track.yaml", track_sets: tuple[str, ...] = (),
     ) -> Judging:  # fmt: skip
-        _robust_sets(robust, ranges, closed_loop, robust_sets)  # bad sets or overrides fail here
-        over = tuple(sorted(_robust_over(robust_sets).items()))
-        track = _track_overrides(tracker, track_sets) if closed_loop else {}
-        return Judging(robust, closed_loop, _ranges(ranges), over, track)
+        over = tuple(sorted(_parse_sets(robust_sets, "--robust-set").items()))
+        judging = Judging(robust, closed_loop, _ranges(ranges), over)
+        sets = judging.configs()  # bad sets or overrides fail here
+        if closed_loop and not any(c.n for c in sets):
+            raise QuasisimError("--closed-loop replays the perturbed worlds of robust success: add --robust N (N > 0)")
+        return dataclasses.replace(judging, track=_track_overrides(tracker, track_sets) if closed_loop else {})
 
     loop = (closed_loop, *((_TRACKER, _TRACK_SET) if tracker else ())) if closed_loop else ()
     return _bundle("judging", build, robust, *loop, _RANGES, _ROBUST_SET)

@@ -10,6 +10,7 @@ import click
 
 from quasisim.cli._common import (
     _CONFIG,
+    _HAND,
     _OVERWRITE,
     TARGET_CHOICE,
     Clips,
@@ -56,12 +57,7 @@ def example(out: Path, names: tuple[str, ...], frames: int, overwrite: bool) -> 
 
 @main.command()
 @click.argument("demo", type=click.Path(path_type=Path))
-@click.option(
-    "--hand",
-    default="shadow",
-    show_default=True,
-    help="Built-in hand (shadow, shadow-left, shadow-short-thumb, allegro) or a hand YAML (docs/hands.md).",
-)
+@_HAND
 @click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @_OVERWRITE
 @_friendly
