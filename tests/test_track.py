@@ -226,10 +226,14 @@ def test_transfer_and_the_bench_pass_write_closed_loop_beside_open_loop(clip, tm
     assert m["robust"]["n"] == m["robust_closed_loop"]["n"] == 1 and "robust_wide" not in m
     assert "closed loop strict" in r.output
     rows = [{"clip": path.stem, "method": "retarget", "seconds": {"sample": 1.0}}]
+    first = cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default",), "mujoco", 1)
+    (cached,) = run.glob("robust_closed_loop-*.json")  # one cache per (run, set)
+    stamp = cached.stat().st_mtime_ns
     out = cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default", "wide"), "mujoco", 1)
     assert {"robust", "robust_closed_loop", "robust_wide", "robust_wide_closed_loop"} <= set(out[0])
     assert out[0]["robust"] == m["robust"]  # the same seeded worlds as the run's own judging
-    assert len(list(run.glob("robust_closed_loop-*.json"))) == 1
+    assert out[0]["robust_closed_loop"] == first[0]["robust_closed_loop"] and cached.stat().st_mtime_ns == stamp
+    assert len(list(run.glob("robust_closed_loop-*.json"))) == 2  # the set added later reused the first
     (run / "controls.npz").rename(run / "moved.npz")  # a cached run needs no controls
     again = cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default", "wide"), "mujoco", 1)
     assert again == out

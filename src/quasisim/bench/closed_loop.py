@@ -1,9 +1,10 @@
 """Closed-loop robust success for the finished runs of a batch (``quasisim bench transfer --closed-loop``).
 
 Every finished run's controls (``OUT/<clip>/<run>/controls.npz``) are replayed in the seeded perturbed worlds of
-each perturbation set, open loop and closed loop (:mod:`quasisim.method.track`), in ``workers`` processes. Each
-run's result is cached in ``OUT/<clip>/<run>/robust_closed_loop-<hash of the settings>.json`` with the settings
-that made it, so the pass resumes where it stopped, and variants of the tracker (``--track-set``) sit side by side.
+each perturbation set, open loop and closed loop (:mod:`quasisim.method.track`), in ``workers`` processes, one
+(run, set) per task. Each is cached in ``OUT/<clip>/<run>/robust_closed_loop-<hash of the settings>.json`` with the
+settings that made it (the set, the tracker, the target), so the pass resumes where it stopped, a set added later
+reuses the others, and variants of the tracker (``--track-set``) sit side by side.
 """
 
 from __future__ import annotations
@@ -27,14 +28,14 @@ CACHE = "robust_closed_loop-{}.json"
 
 
 def settings(
-    n: int, ranges: tuple[str, ...], track: dict[str, Any], target: str, robust_set: dict[str, Any] | None = None
+    n: int, ranges: str, track: dict[str, Any], target: str, robust_set: dict[str, Any] | None = None
 ) -> dict[str, Any]:
-    """What a cached result must match: the replays, the sets (their files' contents with the ``--robust-set``
-    overrides), the tracker, the target."""
+    """What a cached result of the set ``ranges`` must match: its replays (the set's file contents with the
+    ``--robust-set`` overrides), the tracker, the target."""
     from quasisim.eval.robust import replays
 
-    sets = {r: {k: v for k, v in dataclasses.asdict(replays(n, r, robust_set)).items() if k != "path"} for r in ranges}
-    return json.loads(json.dumps({"sets": sets, "track": track, "target": target}))
+    cfg = {k: v for k, v in dataclasses.asdict(replays(n, ranges, robust_set)).items() if k != "path"}
+    return json.loads(json.dumps({"sets": {ranges: cfg}, "track": track, "target": target}))
 
 
 def cache_name(want: dict[str, Any]) -> str:
@@ -43,10 +44,11 @@ def cache_name(want: dict[str, Any]) -> str:
 
 
 def judge_run(
-    demo_path: str, run_dir: str, n: int, ranges: tuple[str, ...], target: str, track: dict[str, Any],
+    demo_path: str, run_dir: str, n: int, ranges: str, target: str, track: dict[str, Any],
     robust_set: dict[str, Any] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """One run's robust success in every set, open and closed loop (written to its cache); in a worker."""
+    """One run's robust success in the set ``ranges``, open and closed loop (written to its cache); in a
+    worker."""
     from quasisim.data.controls import load_controls
     from quasisim.data.demo import load_demo
     from quasisim.eval.evaluate import hands_of, robust_metrics
@@ -58,8 +60,7 @@ def judge_run(
     demo, c = load_demo(demo_path), load_controls(Path(run_dir) / "controls.npz")
     scene = scene_for(demo, place_hands(hands_of(c, run_dir), c.base_rots))
     opts = TrackOptions.from_yaml(None, track)
-    cfgs = [replays(n, r, robust_set) for r in ranges]
-    metrics = robust_metrics(demo, scene, c.q_targets, target, cfgs, closed_loop(opts))
+    metrics = robust_metrics(demo, scene, c.q_targets, target, [replays(n, ranges, robust_set)], closed_loop(opts))
     want = settings(n, ranges, _track_dict(opts), target, robust_set)
     out = {"settings": want, "metrics": metrics}
     save_json_atomic(Path(run_dir) / cache_name(want), out)
@@ -80,25 +81,29 @@ def add_closed_loop(
     from quasisim.method.track import TrackOptions
 
     track = track or {}
-    want = settings(n, ranges, _track_dict(TrackOptions.from_yaml(None, track)), target, robust_set)
-    todo, done = [], {}
+    opts = _track_dict(TrackOptions.from_yaml(None, track))
+    todo, done = [], {(r["clip"], r["method"]): {} for r in rows}
     for r in rows:
+        run_dir = out / r["clip"] / r["method"]
         if r["method"] == "kinematic":
             continue
-        run_dir = out / r["clip"] / r["method"]
-        cache = run_dir / cache_name(want)
-        if cache.is_file():
-            done[(r["clip"], r["method"])] = json.loads(cache.read_text())["metrics"]
-        elif (run_dir / "controls.npz").is_file():
-            todo.append((r["clip"], r["method"], str(demo_paths[r["clip"]]), str(run_dir)))
-        else:
+        missing = []
+        for s in ranges:
+            cache = run_dir / cache_name(settings(n, s, opts, target, robust_set))
+            if cache.is_file():
+                done[(r["clip"], r["method"])].update(json.loads(cache.read_text())["metrics"])
+            else:
+                missing.append(s)
+        if missing and not (run_dir / "controls.npz").is_file():
             print(f"closed loop: {r['clip']} {r['method']}: no controls.npz in {run_dir}; skipped")
+        elif missing:
+            todo += [(r["clip"], r["method"], s, str(demo_paths[r["clip"]]), str(run_dir)) for s in missing]
     if todo:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max(1, workers), mp_context=ctx) as pool:
-            futs = {pool.submit(judge_run, d, rd, n, ranges, target, track, robust_set): (c, m) for c, m, d, rd in todo}
-            for f in tqdm(as_completed(futs), total=len(futs), desc="closed loop", unit="run"):
-                done[futs[f]] = f.result()["metrics"]
+            futs = {pool.submit(judge_run, d, rd, n, s, target, track, robust_set): (c, m) for c, m, s, d, rd in todo}
+            for f in tqdm(as_completed(futs), total=len(futs), desc="closed loop", unit="run x set"):
+                done[futs[f]].update(f.result()["metrics"])
     return [r | done.get((r["clip"], r["method"]), {}) for r in rows]
 
 
