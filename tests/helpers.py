@@ -30,6 +30,24 @@ def swapped_modules(mods: dict[str, ModuleType]) -> Iterator[None]:
                 sys.modules[k] = v
 
 
+def ctrl_c_restored(argv: list[str]) -> list[str]:
+    """``[python, "-m", module, *args]`` or ``[python, script, *args]`` as a command that a test can stop with
+    SIGINT as Ctrl-C in a terminal would: a test run started in the background (``make test &`` in a shell
+    without job control) ignores SIGINT, its children inherit that, and their Python then never raises
+    KeyboardInterrupt, so the signal would go unnoticed. The command puts Python's handler back first."""
+    py, first, *rest = argv
+    if first == "-m":
+        run, rest = f"runpy.run_module({rest[0]!r}, run_name='__main__', alter_sys=True)", rest[1:]
+    else:
+        run = f"sys.argv[0] = {first!r}; runpy.run_path({first!r}, run_name='__main__')"
+    return [
+        py,
+        "-c",
+        f"import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); {run}",
+        *rest,
+    ]
+
+
 def missing_data(reason: str) -> NoReturn:
     """A test whose shipped data (../shared: development clips, robot models) is missing: skipped on a
     developer's machine, failed under CI (``CI=true``), where a suite must not pass by skipping."""

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from batch_hooks import DRIVER, ScriptedHooks, pythonpath
+from helpers import ctrl_c_restored
 from quasisim.errors import QuasisimError
 from quasisim.raycluster import LocalCluster, resolve, token_available
 
@@ -72,7 +73,7 @@ def _batch(
     cmd = [*cli, "batch", str(clips_dir), "--out", str(out), "--method", "kinematic",
            "--workers", "2", "--threads", "1", *extra]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": pythonpath(), **env}
-    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(ctrl_c_restored(cmd), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def _wait(cond: Callable[[], bool], timeout: float, what: str, proc: subprocess.Popen[str] | None = None) -> None:

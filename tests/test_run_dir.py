@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from helpers import ctrl_c_restored
 from quasisim.cli import main
 from quasisim.files import MANIFEST, output_set, read_manifest, remove_orphans, save_npz_atomic
 from quasisim.method.checkpoints import IDENTITY_KEY, Checkpoints
@@ -418,7 +419,7 @@ def test_resume_without_run_json_never_reuses_another_demos_checkpoints(clip: di
 def _transfer(demo: Path, out: Path, *extra: str) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "quasisim.cli", "transfer", str(demo), *FAST, "--no-render", "--out", str(out)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    return subprocess.Popen([*cmd, *extra], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    return subprocess.Popen(ctrl_c_restored([*cmd, *extra]), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
 @pytest.mark.slow

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from helpers import CHROMIUM, UNDER_CI
+from helpers import CHROMIUM, UNDER_CI, ctrl_c_restored
 from quasisim.cli import main
 
 WAIT = 180.0  # s, the longest any one wait may take (a loaded CI machine renders WebGL in software slowly)
@@ -151,12 +151,8 @@ def _line(stream: Any, timeout: float) -> str:
 
 def test_cli_prints_the_url_and_serves_until_ctrl_c(run_dir: Path) -> None:
     _need_viser()
-    # Ctrl-C as from a terminal: a test run started in the background (`make test &`) ignores SIGINT and its
-    # children inherit that (Python then never raises KeyboardInterrupt), so the command runs with it restored
-    start = "import signal, runpy; signal.signal(signal.SIGINT, signal.default_int_handler); "
-    start += "runpy.run_module('quasisim.cli', run_name='__main__')"
-    cmd = [sys.executable, "-c", start, "view", str(run_dir), "--web", "--port", "0"]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = [sys.executable, "-m", "quasisim.cli", "view", str(run_dir), "--web", "--port", "0"]
+    p = subprocess.Popen(ctrl_c_restored(cmd), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         url = _line(p.stdout, WAIT).strip()
         assert re.fullmatch(r"http://127\.0\.0\.1:\d+", url), (url, p.poll())
