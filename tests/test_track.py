@@ -403,3 +403,52 @@ def test_a_low_observation_gain_filters_the_sensors_noise(clip, sampled) -> None
     err_obs = np.linalg.norm(np.array(seen) - np.array(true), axis=1).mean()
     err_est = np.linalg.norm(np.array(est) - np.array(true), axis=1).mean()
     assert err_est < 0.6 * err_obs, (err_est, err_obs)
+
+
+def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(clip, sampled) -> None:
+    """lead 2: the re-plan that starts at frame t plans from the state predicted at t + 2 and leaves the targets
+    of frames up to t + 2 as they were committed (a planner in its own thread cannot change what the controller
+    applies meanwhile); in a perturbed world it still re-plans (its result differs from the plan), and it keeps
+    the re-plan times that real time is judged by."""
+    from quasisim.targets.perturb import scaled_scene
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    opts = dataclasses.replace(FAST, every=2, lead=2)
+    calls = []
+    world_scene = scaled_scene(scene, friction=0.7, gains=0.9)
+    with make_target("mujoco", world_scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        plan = tr._replan
+
+        def watched(t: int, obs: dict) -> None:
+            before = tr._work.copy()
+            plan(t, obs)
+            calls.append((t, before, tr._work.copy(), obs["obj_pos"]))
+
+        tr._replan = watched
+        run = replay(world, q, tr)
+    assert [c[0] for c in calls] == list(range(2, len(q) - 1, 2))  # started at 0, 2, ..., acting 2 frames on
+    for t, before, after, _ in calls:
+        np.testing.assert_array_equal(after[: t + 1], before[: t + 1], err_msg=f"re-plan for frame {t}")
+    assert any(not np.array_equal(a[t + 1 :], b[t + 1 :]) for t, b, a, _ in calls)
+    # it planned from the state predicted 2 frames ahead: closer to the world's then than the observation was
+    ahead = np.array([np.linalg.norm(p - run.object_pos[t]) for t, _, _, p in calls])
+    seen = np.array([np.linalg.norm(run.object_pos[t - 2] - run.object_pos[t]) for t, _, _, _ in calls])
+    assert ahead.mean() < 0.5 * seen.mean() and seen.max() > 2e-3
+    assert np.isfinite(run.object_pos).all()
+    c = tr.cost()
+    assert len(tr.replan_seconds) == len(calls) and 0 < c["replan_ms_p50"] <= c["replan_ms_p95"]
+
+
+def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() -> None:
+    """A setting added to the tracker later (``lead``) stays out of the cache key at its default, so the 25-clip
+    caches of BENCHMARKS.md, made before it existed, still match; set, it makes a cache of its own."""
+    from quasisim.bench import closed_loop as cl
+
+    old = {"sets": {"default": {}}, "target": "mujoco"}
+    assert cl._track_dict(TrackOptions()) == {
+        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", "lead")
+    }
+    assert cl._track_dict(TrackOptions(lead=2))["lead"] == 2
+    names = {cl.cache_name({**old, "track": cl._track_dict(TrackOptions(lead=n))}) for n in (0, 2)}
+    assert len(names) == 2

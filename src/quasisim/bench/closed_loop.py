@@ -67,8 +67,14 @@ def judge_run(
     return out
 
 
+# tracker settings added after caches were written: left out of the settings at their default, so that the
+# older caches (made when the setting did not exist, i.e. at that default) still match
+ADDED_LATER = {"lead": 0}
+
+
 def _track_dict(track: Any) -> dict[str, Any]:
-    return {k: v for k, v in dataclasses.asdict(track).items() if k != "path"}
+    d = dataclasses.asdict(track)
+    return {k: v for k, v in d.items() if k != "path" and not (k in ADDED_LATER and v == ADDED_LATER[k])}
 
 
 def add_closed_loop(
@@ -119,13 +125,14 @@ def markdown(
         "### Robust success open vs closed loop",
         "",
         "Fractions of the perturbed replays that pass (%), open loop / closed loop; the tracker's cost per replay and "
-        "its time per control step (median / 95th percentile, ms, the mean over replays); `replays / plan`: the "
+        "its time per control step and per re-plan (median / 95th percentile, ms, the mean over replays; a re-plan "
+        "beside the controller, `lead` > 0, must take at most `every` frame periods); `replays / plan`: the "
         "closed-loop replays' seconds over the run's own (its stages'). Tracker: "
         "configs/track.yaml" + (" with " + ", ".join(f"{k}={v}" for k, v in track.items()) if track else "") + ".",
         "",
         "| set | method | clips | strict open | strict closed | 20/20 open | 20/20 closed | s per replay | ms per "
-        "step p50 / p95 | re-plans per replay | replays / plan |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "step p50 / p95 | ms per re-plan p50 / p95 | re-plans per replay | replays / plan |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key in keys:
         for run in runs:
@@ -152,16 +159,16 @@ def _summary_row(key: str, run: str, rs: list[dict[str, Any]]) -> str:
     ratio = [x["seconds_per_replay"] * x["n"] / r["wall_s"] for x, r in zip(c, rs, strict=True) if r.get("wall_s")]
     return (
         f"| {key} | {run} | {len(rs)} | {' | '.join(cols)} | {np.mean([x['seconds_per_replay'] for x in c]):.1f} | "
-        f"{step_ms(c)} | {np.mean([x['tracker']['replans'] for x in c]):.0f} | "
+        f"{step_ms(c)} | {step_ms(c, 'replan')} | {np.mean([x['tracker']['replans'] for x in c]):.0f} | "
         + (f"{np.mean(ratio):.2f} (max {np.max(ratio):.2f})" if ratio else "-")
         + " |"
     )
 
 
-def step_ms(results: list[dict[str, Any]]) -> str:
-    """The tracker's time per control step over closed-loop results, "p50 / p95" ms (means over runs; "-" for
-    results cached before the tracker timed its steps)."""
-    t = [r["tracker"] for r in results if "step_ms_p50" in r["tracker"]]
+def step_ms(results: list[dict[str, Any]], what: str = "step") -> str:
+    """The tracker's time per control step (``what`` "step") or per re-plan ("replan") over closed-loop results,
+    "p50 / p95" ms (means over runs; "-" for results cached before the tracker timed them)."""
+    t = [r["tracker"] for r in results if f"{what}_ms_p50" in r["tracker"]]
     if not t:
         return "-"
-    return f"{np.mean([x['step_ms_p50'] for x in t]):.0f} / {np.mean([x['step_ms_p95'] for x in t]):.0f}"
+    return f"{np.mean([x[f'{what}_ms_p50'] for x in t]):.0f} / {np.mean([x[f'{what}_ms_p95'] for x in t]):.0f}"

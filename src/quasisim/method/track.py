@@ -23,6 +23,15 @@ An observation that carries a time stamp ``frame`` older than ``t`` (a late sens
 :class:`~quasisim.targets.perturb.Sensor`) is brought up to date in the model first: synced there, then advanced
 through the targets the tracker applied since (a Smith predictor); the re-plan starts from that prediction.
 
+**Planning beside the controller** (``lead`` > 0): a robot's planner runs in its own thread while the
+controller applies the plan, so a re-plan may take several frame periods. With ``lead`` = L, the re-plan that
+starts at frame ``t`` plans from the state predicted at ``t + L`` (the observation advanced in the model through
+the targets already committed for frames ``t + 1 .. t + L``) and changes the plan from frame ``t + L + 1`` on;
+the controller meanwhile applies the committed targets. With ``every`` = ``lead``, one core keeps up when a
+re-plan takes at most ``every`` frame periods (``replan_ms_p95`` against ``every / fps``), whatever a single
+control step costs; the simulation runs the re-plan inside :meth:`Tracker.act` but lets its result act only
+where a concurrent planner's could.
+
 **Filtering noisy observations** (``obs_gain`` < 1): the state the tracker re-plans from is its own estimate: the
 previous estimate advanced in the model through the target applied since, moved toward the (latency-corrected)
 observation by ``obs_gain`` (positions and velocities linearly, the object's orientation by spherical
@@ -83,6 +92,7 @@ class TrackOptions:
             weight of the older errors in that score, in [0, 1).
         obs_gain: how far each observation moves the tracker's state estimate from its model's prediction, in
             (0, 1] (1: the observation as it is).
+        lead: frames a re-plan takes to act (0: within its control step; see "Planning beside the controller").
     """
 
     every: int = 1
@@ -103,11 +113,13 @@ class TrackOptions:
     adapt: bool = False
     adapt_decay: float = 0.8
     obs_gain: float = 1.0
+    lead: int = 0
     path: str = ""
 
     def __post_init__(self) -> None:
         where = self.path or None
-        for name, lo in (("every", 0), ("samples", 2), ("horizon", 1), ("knots", 1), ("threads", 1), ("seed", 0)):
+        for name, lo in (("every", 0), ("samples", 2), ("horizon", 1), ("knots", 1), ("threads", 1), ("seed", 0),
+                         ("lead", 0)):  # fmt: skip
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise InputError(where, name, f"an integer >= {lo}", repr(v))
@@ -217,6 +229,7 @@ class Tracker:
         self._base_cols = base if len(scene.hands) > 1 else None  # window_costs' smoothness split (one hand: None)
         self.replans, self.physics_steps, self.seconds = 0, 0, 0.0
         self.step_seconds: list[float] = []  # wall time of every act() (s)
+        self.replan_seconds: list[float] = []  # wall time of every re-plan (s)
         self.offset = np.zeros(3)  # the start shift of step 1 (m), set by start()
         self._work: np.ndarray | None = None
 
@@ -249,8 +262,14 @@ class Tracker:
             self._learn(t, obs)
         if self.opts.obs_gain < 1:
             self._est = self._filtered(t, self._now(t, obs))
-        if every and t % every == 0:
-            self._replan(t, self._est if self.opts.obs_gain < 1 else self._now(t, obs))
+        lead = self.opts.lead
+        if every and t % every == 0 and t + lead < len(self.plan) - 1:
+            state = self._est if self.opts.obs_gain < 1 else self._now(t, obs)
+            if lead:  # the state when the re-plan will act, through the targets committed until then
+                state = self._predicted(self.model, state, t, t + lead, self._work)
+            t1 = time.perf_counter()
+            self._replan(t + lead, state)
+            self.replan_seconds.append(time.perf_counter() - t1)
             self.seconds += time.perf_counter() - t0
         self._applied = self._work[t + 1].copy()
         self._history.append(self._applied)
@@ -297,12 +316,14 @@ class Tracker:
             return obs
         return self._predicted(self.model, obs, max(taken, 0), t)
 
-    def _predicted(self, model: Target, obs: Observation, a: int, b: int) -> Observation:
+    def _predicted(self, model: Target, obs: Observation, a: int, b: int, targets: Any = None) -> Observation:
         """``obs``, the state at frame ``a``, synced into ``model`` and advanced there through the targets
-        applied since: the model's state at frame ``b``."""
+        applied since (``targets``: the targets at the end of each frame; default the applied ones): the
+        model's state at frame ``b``."""
+        targets = self._history if targets is None else targets
         model.sync(obs)
         for j in range(a, b):
-            model.advance(self._history[j], self._history[j + 1])
+            model.advance(targets[j], targets[j + 1])
         self.physics_steps += (b - a) * model.substeps
         return model.observe()
 
@@ -311,10 +332,9 @@ class Tracker:
         from quasisim.method.stages.sampling import window_costs
 
         o, H, T = self.opts, self.opts.horizon, len(self.plan)
-        current = self._work[t : t + H + 1].copy()
-        current[0] = self._applied
+        current = self._work[t : t + H + 1].copy()  # its first row: the target at the end of frame t, committed
         untouched = self._planned[t : t + H + 1].copy()
-        untouched[0] = self._applied
+        untouched[0] = current[0]
         wins = self._sample(self._rng, current)
         wins[-1] = untouched  # the plan as made is always a candidate
         offset = np.asarray(obs["obj_pos"]) - self._ref[0][t]  # the object against the plan's nominal rollout
@@ -346,12 +366,14 @@ class Tracker:
     def cost(self) -> dict[str, float]:
         """What tracking cost so far: seconds re-planning, re-plans, the share of the clip's steps that
         re-planned, physics steps in the model, and the median and 95th percentile of the time per control
-        step (ms, :meth:`act`'s wall time)."""
+        step (ms, :meth:`act`'s wall time) and of the time per re-plan (ms)."""
         ms = 1e3 * np.asarray(self.step_seconds or [0.0])
+        rp = 1e3 * np.asarray(self.replan_seconds or [0.0])
         return {
             "replan_seconds": self.seconds, "replans": float(self.replans),
             "replan_share": self.replans / max(len(self.plan) - 1, 1), "physics_steps": float(self.physics_steps),
             "step_ms_p50": float(np.median(ms)), "step_ms_p95": float(np.percentile(ms, 95)),
+            "replan_ms_p50": float(np.median(rp)), "replan_ms_p95": float(np.percentile(rp, 95)),
         }  # fmt: skip
 
     def close(self) -> None:
