@@ -8,7 +8,7 @@ export QUASISIM_ROBOT_PATH ?= $(SHARED)/robots
 export QUASISIM_DATA ?= $(SHARED)/data
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo demo-ours test test-all test-fast lint bench-baseline clean
+.PHONY: setup demo demo-ours test test-all test-fast lint clean
 
 setup: $(VENV)/.installed
 
@@ -58,9 +58,6 @@ test-fast: setup
 
 lint: setup
 	$(VENV)/bin/ruff check src tests examples scripts
-
-bench-baseline: setup
-	$(VENV)/bin/quasisim bench baseline $(QUASISIM_DATA) --hand shadow --out bench_out/baseline
 
 clean:
 	rm -rf out bench_out .pytest_cache .ruff_cache

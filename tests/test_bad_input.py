@@ -501,7 +501,7 @@ OPTION_CASES = [
         ("c.yaml", "stages[0].k_n", "finite"),
     ),
     Case("transfer-config-npz", _nothing, TR + "--config {d}/cube_lift.npz", ("cube_lift.npz", "YAML")),
-    Case("bench-out-proc", _nothing, "bench baseline {d} --out /proc/quasisim_out", ("/proc/quasisim_out", "--out")),
+    Case("bench-out-proc", _nothing, "bench transfer {d} --out /proc/quasisim_out", ("/proc/quasisim_out", "--out")),
     Case("transfer-config-absent", _nothing, TR + "--config {d}/cfg.yaml", ("cfg.yaml", "no such file")),
     Case("transfer-resume-overwrite", _nothing, TR + "--resume --overwrite", ("--resume", "--overwrite")),
     Case("transfer-hand", _nothing, TR + "--hand nohand", ("nohand", "allegro")),
@@ -517,10 +517,6 @@ OPTION_CASES = [
     Case("batch-workers-negative", _nothing, "batch {d} --out {d}/bout --workers -1", ("--workers", "x>=0")),
     Case("batch-hand", _nothing, "batch {d} --out {d}/bout --hand nohand", ("nohand", "shadow")),
     Case("batch-curriculum", _nothing, "batch {d} --out {d}/bout --curriculum soft", ("soft", "default")),
-    Case("bench-sim-substeps", _nothing, "bench sim --substeps -1", ("--substeps", "x>=1")),
-    Case("bench-sim-dt-study", _nothing, "bench sim --dt-study a,b", ("--dt-study", "'a,b'")),
-    Case("bench-sim-study-sims", _nothing, "bench sim --study-sims 10", ("--study-sims", "[10]", "valid: [1, 2")),
-    Case("bench-sim-study-sims-zero", _nothing, "bench sim --study-sims 0", ("--study-sims", "positive integers")),
 ]
 
 # ---- convert landmarks: the base demo written as a user's files -------------------------------------------

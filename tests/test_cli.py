@@ -76,6 +76,8 @@ def test_help_names_the_examples_and_commands() -> None:
     assert all(n in _run(["example", "--help"]) for n in EXAMPLES)
     top = _run(["--help"])
     assert all(c in top for c in ("view", "convert", "transfer", "evaluate"))
+    # `bench`: the commands behind the tables of BENCHMARKS.md and the failure analysis, nothing else
+    assert sorted(main.commands["bench"].commands) == ["batch", "compare", "env", "failures", "policy", "transfer"]
 
 
 def test_evaluate_rejects_mismatched_controls(tmp_path: Path) -> None:

@@ -131,24 +131,3 @@ def test_the_command_finds_the_runs_and_tabulates_them(run, tmp_path) -> None:
     assert "| kinematic | 1 |" in md and (tmp_path / "failures.json").is_file()
     empty = subprocess.run([*cmd[:5], str(tmp_path), "--data", str(demo_path.parent)], capture_output=True, text=True)
     assert empty.returncode != 0 and "no finished runs" in empty.stderr and "Traceback" not in empty.stderr
-
-
-def test_sensitivity_at_scale_zero_is_the_run_itself(run, tmp_path) -> None:
-    """``bench sensitivity``: at scale 0 every replay is the run itself (its own strict and 20 / 20 outcome in
-    every replay); a bad --scales is refused naming the option."""
-    import json
-
-    from click.testing import CliRunner
-
-    from quasisim.cli import main
-
-    demo, out = run
-    args = ["bench", "sensitivity", str(out.parent), "--data", str(demo.parent), "--scales", "0,1", "--n", "2"]
-    res = CliRunner().invoke(main, [*args, "--out", str(tmp_path)])
-    assert res.exit_code == 0, res.output
-    (row,) = json.loads((tmp_path / "sensitivity.json").read_text())
-    ok = json.loads((out / "metrics.json").read_text())["success"]
-    assert row["0"]["strict"] == float(ok["strict"]) and row["0"]["20deg_20cm"] == float(ok["20deg_20cm"])
-    assert 0.0 <= row["1"]["strict"] <= 1.0 and "| kinematic | 1 |" in (tmp_path / "sensitivity.md").read_text()
-    bad = CliRunner().invoke(main, ["bench", "sensitivity", str(out.parent), "--scales", "0,-1"])
-    assert bad.exit_code != 0 and "--scales" in bad.output

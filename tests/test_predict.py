@@ -47,23 +47,3 @@ def test_prediction_error_against_mujoco(tmp_path: Path) -> None:
     # held-out windows start after every training window has ended
     train, test = split_starts(2, 60, 10, 0.3)
     assert max(t for _, t in train) + 10 <= min(t for _, t in test) and max(t for _, t in test) == 49
-
-
-def test_bench_predict_rejects_unknown_clips(tmp_path: Path) -> None:
-    from click.testing import CliRunner
-
-    from quasisim.cli import main
-
-    r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--clips", "nope"])
-    assert r.exit_code == 2 and "clips not found" in r.output and "nope" in r.output
-
-
-def test_bench_predict_rejects_bad_simulator_and_friction(tmp_path: Path) -> None:
-    from click.testing import CliRunner
-
-    from quasisim.cli import main
-
-    r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--sim", "1"])  # sim 1 is the point set
-    assert r.exit_code == 2 and "--sim 1" in r.output and "valid: 2, 3, 4, 5, 6, 7, 8, 9" in r.output
-    r = CliRunner().invoke(main, ["bench", "predict", str(tmp_path), "--sim", "9", "--mu", "-1"])
-    assert r.exit_code == 2 and "--mu" in r.output and "positive" in r.output

@@ -120,25 +120,3 @@ def test_ablation_flags_and_the_run_identity() -> None:
     assert "networks" not in TransferSpec(render=False).checked().identity()  # default stages: no stage 3
     with pytest.raises(QuasisimError, match="valid"):
         TransferSpec(networks=("locl",)).checked()
-
-
-@pytest.mark.slow
-@pytest.mark.extended  # a benchmark of stage 3, outside the default method
-def test_bench_fit_rows_on_a_short_clip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``quasisim bench fit`` on one short clip: a row per simulator variant with finite held-out errors (one
-    network row, with every network, instead of five: each row compiles its own program)."""
-    from quasisim.bench import fit as bench_fit
-    from quasisim.bench.fit import fit_clip
-    from quasisim.data.synthetic import write_example
-    from quasisim.method.config import TransferConfig
-
-    every = "+residual both, control transformation"
-    monkeypatch.setattr(bench_fit, "NETWORK_ROWS", {every: bench_fit.NETWORK_ROWS[every]})
-
-    p = write_example("cube_lift", tmp_path, n_frames=24)
-    over = {"stage3.horizon": 3, "stage3.steps": 2, "stage3.batch": 4, "stage3.variants": 1, "stage3.residual_steps": 1,
-            "budgets.fast.substeps": 5, "budgets.fast.n_candidates": 32}  # fmt: skip
-    rows = fit_clip(p, "shadow", TransferConfig.from_yaml(overrides=over), residual=True)
-    assert [r["simulator"] for r in rows] == ["nominal", "+S, constants", every]
-    assert all(np.isfinite(r["obj_pos_cm"]) and np.isfinite(r["obj_rot_deg"]) for r in rows)
-    assert all(r["loss_last"] is not None for r in rows[1:])  # every fitted row trained

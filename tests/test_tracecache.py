@@ -119,16 +119,6 @@ def test_key_by_keys_static_data_by_the_part_the_programs_read(cache: Path, monk
     assert len(list(cache.glob("*.bin"))) == 2
 
 
-def test_use_folder_is_for_its_block_alone(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """After a ``use_folder`` block (a cold profile) the folder follows ``QUASISIM_CACHE`` again, so a later
-    change of the cache (another test, another run in the process) is not pinned to the old folder."""
-    with tracecache.use_folder(tmp_path / "cold"):
-        tracecache.cached_jit(f, static_argnames=("n",))(*_args(), n=3)
-    assert len(list((tmp_path / "cold").glob("*.bin"))) == 1 and not cache.exists()
-    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path / "later"))
-    assert tracecache.folder() == tmp_path / "later" / "traces"
-
-
 def test_a_fresh_process_traces_none_of_the_per_clip_kinematics(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The programs every command runs on a clip: the retarget (its solver, keypoints and the rest pose of the
     root fit), the evaluation's hand surface points and the sampling stage's pre-screen keypoints. Once

@@ -284,29 +284,6 @@ def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path
             np.testing.assert_allclose(d["start_qvel"][t, c], d["run_qvel"][t], rtol=0, atol=0)
 
 
-def test_bench_profile_splits_a_transfer_into_its_checkpointed_pieces(
-    short_demo: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """``quasisim bench profile``: one row per checkpointed piece and one for the rest, with compile events
-    counted (a fresh XLA cache, so the sampling stage compiles something)."""
-    from quasisim import tracecache
-    from quasisim.bench.profile import GLUE, run_profile
-    from quasisim.method.config import TransferConfig
-    from quasisim.method.spec import TransferSpec
-
-    cfg = TransferConfig.from_yaml(overrides={"sampling.samples": 6, "sampling.horizon": 3})
-    spec = TransferSpec(method="sample-target", render=False, progress=False).checked()
-    run_profile(short_demo, spec, cfg, tmp_path / "prof", cold=True, cprofile=False)
-    # the cold run's empty trace folder was for it alone: the folder follows QUASISIM_CACHE again
-    monkeypatch.setenv("QUASISIM_CACHE", str(tmp_path / "after"))
-    assert tracecache.folder() == tmp_path / "after" / "traces"
-    rows = {r["piece"]: r for r in json.loads((tmp_path / "prof" / "profile.json").read_text())}
-    assert {"kinematic", "sample", GLUE} <= set(rows), sorted(rows)
-    assert all(r["wall_s"] >= 0 and 0 <= r["compile_s"] for r in rows.values())
-    assert rows["sample"]["wall_s"] > 0 and sum(r["n_compiles"] for r in rows.values()) > 0
-    assert (tmp_path / "prof" / "run" / "controls.npz").is_file()
-
-
 @pytest.mark.slow
 @pytest.mark.extended  # stage 3 and the MPC are not the default method; test_stage3.py and test_mpc.py cover them in CI
 def test_stage3_fits_the_model_of_the_mpc(short_demo: Path, tmp_path: Path) -> None:

@@ -60,7 +60,8 @@ def run_transfer(
     """Transfer one demonstration (see the module docstring); writes ``OUT/controls.npz``,
     ``OUT/metrics.json`` (judged in ``spec.target``), ``OUT/report.html`` and ``OUT/summary.json``.
     An ``out`` holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (start afresh).
-    ``piece_hook`` wraps the computation of each checkpointed piece (``quasisim bench profile`` times them);
+    ``piece_hook`` wraps the computation of each checkpointed piece (:class:`quasisim.batch.BatchHooks`: the tests
+    kill a batch's worker there);
     ``record_transitions``: a folder where the sampling stage keeps every window it rolls out in the target
     (``<demo>.<method>.npz``; the results are the same with or without it)."""
     spec = (spec or TransferSpec()).checked()
@@ -152,7 +153,7 @@ def _kinematic(hands: tuple[Any, ...], demo: Any, progress: Progress) -> dict[st
     return out if len(rt) == 1 else {**out, "left_base_rot": rt[1].base_rot}
 
 
-# memory per frame of a transfer (bench long: 0.15-0.2 MB per frame for sample-target), with the fast budget
+# memory per frame of a transfer (0.15-0.2 MB per frame for sample-target, docs/history "Commands on long clips"), with the fast budget
 MB_PER_FRAME = 0.2
 
 

@@ -22,7 +22,6 @@ Python's own bytecode caches are.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import inspect
@@ -30,7 +29,7 @@ import io
 import os
 import pickle
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,25 +39,11 @@ from quasisim.files import cache_dir, write_atomic
 
 ENV = "QUASISIM_TRACE_CACHE"
 FORMAT = b"quasisim-trace-v1"
-_FOLDER: list[Path] = []  # set inside use_folder (e.g. an empty one for a cold profile); default cache_dir()/traces
-
-
-@contextlib.contextmanager
-def use_folder(path: Path) -> Iterator[None]:
-    """Read and write traced programs in ``path`` inside the ``with`` block (instead of
-    ``cache_dir()/traces``, which follows ``QUASISIM_CACHE``); the setting before it, the default included,
-    comes back after. Programs already in memory stay."""
-    before = list(_FOLDER)
-    _FOLDER[:] = [Path(path)]
-    try:
-        yield
-    finally:
-        _FOLDER[:] = before
 
 
 def folder() -> Path:
     """Where traced programs are read and written."""
-    return _FOLDER[0] if _FOLDER else cache_dir() / "traces"
+    return cache_dir() / "traces"
 
 
 @functools.cache

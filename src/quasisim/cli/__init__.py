@@ -5,7 +5,7 @@ modules here registers them all."""
 
 from __future__ import annotations
 
-from quasisim.cli import bench, bench_studies, convert, policy, results, run  # noqa: F401  (they register the commands)
+from quasisim.cli import bench, convert, policy, results, run  # noqa: F401  (they register the commands)
 from quasisim.cli._common import main
 
 __all__ = ["main"]

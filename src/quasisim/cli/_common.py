@@ -100,17 +100,6 @@ _CONFIG = click.option(
 )
 
 
-def _positive_ints(text: str, option: str, example: str) -> tuple[int, ...]:
-    """``text`` as comma-separated positive integers; a one-line error naming ``option`` otherwise."""
-    try:
-        values = tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        values = ()
-    if not values or min(values) < 1:
-        raise QuasisimError(f"{option}: expected comma-separated positive integers (e.g. {example}), got {text!r}")
-    return values
-
-
 _ROBUST = click.option(
     "--robust", type=click.IntRange(0, 1000), default=None,
     help="Perturbed replays for robust success (default: n of configs/robust.yaml; 0: none).",

@@ -1,5 +1,5 @@
-"""`quasisim bench`: the group and its main benchmarks (baseline, sim, transfer, compare, batch, profile,
-long, failures); the studies are in bench_studies."""
+"""`quasisim bench`: the benchmarks behind the tables of BENCHMARKS.md (transfer, compare, batch, policy, env)
+and the strict-failure analysis of finished runs (failures)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,6 @@ import click
 from quasisim.cli._common import (
     _BUDGET,
     _HAND,
-    _ROBUST,
-    _SPEC,
     _TARGET,
     TARGET_CHOICE,
     Clips,
@@ -23,7 +21,6 @@ from quasisim.cli._common import (
     _judging,
     _outputs_free,
     _parse_sets,
-    _positive_ints,
     _setup_runtime,
     _stages,
     main,
@@ -37,83 +34,7 @@ if TYPE_CHECKING:
 
 @main.group()
 def bench() -> None:
-    """Benchmarks whose output goes into BENCHMARKS.md."""
-
-
-@bench.command("baseline")
-@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
-@click.option("--hand", default="shadow", show_default=True)
-@click.option(
-    "--target", "targets", type=TARGET_CHOICE, multiple=True, default=("mujoco", "pybullet"), show_default=True
-)
-@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/baseline"), show_default=True)
-@click.option(
-    "--pattern", default="*.npz", show_default=True, help="Clips to run (glob); *_long.npz are skipped unless named."
-)
-@click.option("--render/--no-render", default=False, show_default=True)
-@_ROBUST
-@_friendly
-def bench_baseline(
-    data_dir: Path, hand: str, targets: tuple[str, ...], out: Path, pattern: str, render: bool, robust: int | None
-) -> None:  # fmt: skip
-    """Kinematic-replay baseline on every clip of DATA_DIR: metrics table, success rates, wall time."""
-    _outputs_free(out)  # resumable: only a folder that can be written is required
-    _setup_runtime()
-    from quasisim.bench.baseline import run_baseline
-    from quasisim.eval.robust import replays
-
-    run_baseline(data_dir, hand, targets, out, pattern, render, replays(robust))
-
-
-@bench.command("sim")
-@click.option(
-    "--data",
-    "data_dir",
-    type=click.Path(path_type=Path, file_okay=False),
-    default=None,
-    help="Folder of clips (default: $QUASISIM_DATA).",
-)
-@click.option("--clip", default="grab_s1_apple_lift", show_default=True, help="Clip of the speed measurement.")
-@click.option("--study-clips", default="grab_s1_apple_lift,grab_s1_cubesmall_lift,grab_s1_mug_lift", show_default=True)
-@click.option("--hand", default="shadow", show_default=True)
-@click.option(
-    "--substeps", type=click.IntRange(1, None), default=None, help="Substeps per frame (default: the fast budget's)."
-)
-@click.option(
-    "--dt-study",
-    default="50,20,10",
-    show_default=True,
-    help="Substeps per frame compared with 100 (dt 0.5 ms at 20 fps).",
-)
-@click.option(
-    "--study-sims", default="", help="Simulators of the default curriculum (1-based) of the step-size study "
-    "(default: the stiffest analytical one).",
-)  # fmt: skip
-@click.option("--json", "as_json", is_flag=True, help="Print JSON only.")
-@_friendly
-def bench_sim(
-    data_dir: Path | None, clip: str, study_clips: str, hand: str, substeps: int | None, dt_study: str,
-    study_sims: str, as_json: bool,
-) -> None:  # fmt: skip
-    """Simulator speed (forward, forward+backward, memory), MuJoCo on the same scene, step-size study."""
-    import os
-
-    _setup_runtime()
-    from quasisim.bench.sim import run_sim_bench
-    from quasisim.method.curriculum import load_curriculum
-
-    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
-    if not (data / f"{clip}.npz").is_file():
-        raise QuasisimError(f"clip {clip} not found in {data} (pass --data or set QUASISIM_DATA)")
-    study = _positive_ints(dt_study, "--dt-study", "50,20,10")
-    sims = _positive_ints(study_sims, "--study-sims", "1,5,9") if study_sims.strip() else ()
-    analytical = [i + 1 for i, st in enumerate(load_curriculum("default").stages) if not st.residual]
-    if bad := sorted(set(sims) - set(analytical)):
-        raise QuasisimError(
-            f"--study-sims: {bad} are not analytical simulators of the default curriculum (valid: {analytical})"
-        )
-    clips_ = tuple(c for c in study_clips.split(",") if c.strip())
-    run_sim_bench(data, clip, clips_, hand, substeps, study, as_json, sims)
+    """The benchmarks behind the tables of BENCHMARKS.md, and why finished runs fail strict (failures)."""
 
 
 @bench.command("env")
@@ -294,46 +215,39 @@ def _layout(text: str) -> Layout:
     return Layout(a * b, 1, True, a) if kind else Layout(a, b, flag == "")
 
 
-@bench.command("profile")
-@click.argument("demo", type=click.Path(path_type=Path, exists=True, dir_okay=False))
-@click.option("--stages", default="1,2,3,mpc", show_default=True, help="Stages of the profiled transfer.")
-@click.option("--curriculum", default=_SPEC.curriculum, show_default=True)
-@click.option("--budget", default=_SPEC.budget, show_default=True)
-@click.option("--cold", is_flag=True, help="Start from empty XLA compilation and trace caches.")
-@click.option("--cprofile", is_flag=True, help="Also measure MuJoCo's share (cProfile; slows tracing).")
-@click.option("--set", "sets", multiple=True, help="Override a config key (as in transfer).")
-@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/profile"), show_default=True)
+@bench.command("policy")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--clips", "clip_names", required=True, help="Comma-separated clip names.")
+@click.option("--runs", "runs", type=click.Path(path_type=Path, exists=True, file_okay=False), required=True,
+              help="Folder of our results (RUNS/<clip>/<run>/controls.npz and metrics.json with --robust N).")  # fmt: skip
+@click.option("--run", "run", default="cascade", show_default=True, help="Which run of each clip is ours.")
+@click.option("--steps", type=click.IntRange(1), default=81920, show_default=True, help="Env steps per policy.")
+@click.option("--robust", type=click.IntRange(1, 1000), default=8, show_default=True, help="Perturbed worlds.")
+@click.option("--workers", type=click.IntRange(1), default=2, show_default=True,
+              help="Processes for the closed-loop replays of ours.")  # fmt: skip
+@click.option("--methods", default="ours+residual,dgrasp-tracking", show_default=True, help="Policies to train.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/policy"), show_default=True)
 @_friendly
-def bench_profile(
-    demo: Path, stages: str, curriculum: str, budget: str, cold: bool, cprofile: bool, sets: tuple[str, ...], out: Path
-) -> None:
-    """Where one transfer's time goes: per piece, XLA compilation, MuJoCo, the rest (JAX execution, Python)."""
+def bench_policy(
+    data_dir: Path, clip_names: str, runs: Path, run: str, steps: int, robust: int, workers: int, methods: str,
+    out: Path,
+) -> None:  # fmt: skip
+    """Learned tracking policies (ours+residual, dgrasp-tracking) beside ours open and closed loop, per clip;
+    resumable (finished policies are kept, unfinished ones resume from their checkpoints)."""
+    from quasisim.cli.policy import _need_rl
+
+    _need_rl()
     _outputs_free(out)
     _setup_runtime()
-    import shutil
+    from quasisim.bench.policy import POLICY_METHODS, run_policy_bench
+    from quasisim.errors import choice_error
 
-    from quasisim.bench.profile import run_profile
-    from quasisim.method.config import TransferConfig
-
-    spec = TransferSpec(curriculum=curriculum, stages=parse_stages(stages), budget=budget, render=False, progress=False)
-    shutil.rmtree(out / "run", ignore_errors=True)
-    run_profile(demo, spec.checked(), TransferConfig.from_yaml(overrides=_parse_sets(sets)), out, cold, cprofile)
-
-
-@bench.command("long")
-@click.option("--frames", "frames_", default="60,600,3000,10000", show_default=True, help="Clip lengths.")
-@click.option("--commands", default=",".join(("retarget", "evaluate", "sample-target")), show_default=True)
-@click.option("--render/--no-render", default=True, show_default=True, help="evaluate and transfer render videos.")
-@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/long"), show_default=True)
-@_friendly
-def bench_long(frames_: str, commands: str, render: bool, out: Path) -> None:
-    """Wall time and peak memory of retarget, evaluate and sample-target on clips of 60 to 10,000 frames,
-    beside the clip-length warning's estimate (resumable per row)."""
-    _outputs_free(out)  # resumable: only a folder that can be written is required
-    from quasisim.bench.long import run_long_bench
-
-    lengths = _positive_ints(frames_, "--frames", "60,600,3000,10000")
-    click.echo(run_long_bench(lengths, tuple(c.strip() for c in commands.split(",") if c.strip()), out, render))
+    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
+    for m in chosen:
+        if m not in POLICY_METHODS:
+            raise choice_error("--methods entry", m, POLICY_METHODS)
+    names = [c.strip() for c in clip_names.split(",") if c.strip()]
+    run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen)
 
 
 @bench.command("failures")

@@ -250,7 +250,7 @@ def _validate_hand(j: np.ndarray, side: str, object_pos: np.ndarray, path: str |
 
 
 # what every command costs whatever the clip's length (start-up, compiling, the scene): the constant term of
-# the clip-length warning's estimate (bench long, BENCHMARKS.md "Commands on long clips")
+# the clip-length warning's estimate (docs/history "Commands on long clips")
 BASE_S, BASE_MB = 15.0, 600.0
 
 

@@ -27,7 +27,7 @@ from quasisim.targets.build import demo_hands, scene_for
 from quasisim.targets.scene import Scene, place_hands
 
 CD_SPACING = 0.006  # m between robot surface samples for the Chamfer distance
-# the clip-length warning's estimate of judging a clip, per frame (2-core machine, MuJoCo; bench long):
+# the clip-length warning's estimate of judging a clip, per frame (2-core machine, MuJoCo; docs/history "Commands on long clips"):
 # the rollout, metrics and outputs; each perturbed replay of robust success; rendering the report's video
 JUDGE_S_PER_FRAME, REPLAY_S_PER_FRAME, RENDER_S_PER_FRAME, JUDGE_MB_PER_FRAME = 0.004, 0.002, 0.2, 0.15
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import platform
-import resource
 import shlex
 import sys
 from pathlib import Path
@@ -13,12 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.data.demo import Demo
 from quasisim.errors import QuasisimError
 from quasisim.eval.metrics import SUCCESS_KEYS
 from quasisim.eval.robust import CLOSED_LOOP_SUFFIX
 from quasisim.files import save_json_atomic, save_text_atomic
-from quasisim.targets import TargetRollout
 
 
 def machine_line() -> str:
@@ -114,13 +111,6 @@ def clip_row(r: dict[str, Any], group: str) -> str:
     )
 
 
-def lifted(demo: Demo, rollout: TargetRollout, min_lift: float = 0.03) -> bool:
-    """Did the simulated object rise >= 3 cm (or half the demo's lift, if smaller) above its start?"""
-    demo_lift = float(demo.object_pos[:, 2].max() - demo.object_pos[0, 2])
-    need = min(min_lift, 0.5 * demo_lift)
-    return bool(rollout.object_pos[:, 2].max() - rollout.object_pos[0, 2] >= need) and demo_lift > 0.01
-
-
 def publish(out: Path, name: str, rows: list[dict[str, Any]], lines: list[str]) -> str:
     """Write ``out/name.json`` (rows) and ``out/name.md`` (the markdown), print the markdown."""
     text = "\n".join(lines) + "\n"
@@ -129,28 +119,3 @@ def publish(out: Path, name: str, rows: list[dict[str, Any]], lines: list[str]) 
     save_text_atomic(out / f"{name}.md", text)
     print(text)
     return text
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process (MB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-PREDICTION_HEAD = (
-    "| simulator | clips | object pos (cm) | object rot (deg) | keypoints (mm) | zero-motion pos (cm) | zero-motion rot (deg) | diverged |\n"
-    "|---|---|---|---|---|---|---|---|"
-)
-
-
-def prediction_summary(rows: list[dict[str, Any]]) -> list[str]:
-    """One row per simulator: mean prediction errors over clips (``bench predict``, ``bench fit``)."""
-    lines = [PREDICTION_HEAD]
-    for sim in dict.fromkeys(r["simulator"] for r in rows):
-        rs = [r for r in rows if r["simulator"] == sim]
-        mean = lambda k, rs=rs: float(np.nanmean([r[k] for r in rs]))  # noqa: E731
-        lines.append(
-            f"| {sim} | {len(rs)} | {mean('obj_pos_cm'):.2f} | {mean('obj_rot_deg'):.1f} | {mean('keypoints_mm'):.1f} | "
-            f"{mean('static_pos_cm'):.2f} | {mean('static_rot_deg'):.1f} | "
-            f"{sum(r['n_diverged'] for r in rs)} of {sum(r['n_windows'] for r in rs)} |"
-        )
-    return lines

@@ -192,15 +192,6 @@ class WindowErrors:
     n_windows: int
     n_diverged: int
 
-    def summary(self) -> dict[str, float]:
-        """The figures after the last frame of the horizon."""
-        return {
-            "horizon": len(self.obj_pos_cm), "n_windows": self.n_windows, "n_diverged": self.n_diverged,
-            "obj_pos_cm": float(self.obj_pos_cm[-1]), "obj_rot_deg": float(self.obj_rot_deg[-1]),
-            "keypoints_mm": float(self.keypoints_mm[-1]), "static_pos_cm": float(self.static_pos_cm[-1]),
-            "static_rot_deg": float(self.static_rot_deg[-1]),
-        }  # fmt: skip
-
 
 def prediction_errors(
     model: Model, params: Params, w: Windows, fps: float, base_quat: np.ndarray, chunk: int = 16

@@ -71,7 +71,7 @@ def rigid_root_fit(hand: HandModel, joints: np.ndarray) -> tuple[np.ndarray, np.
     return np.array(Rs), np.array(ps)
 
 
-# the clip-length warning's estimate of the retarget, per frame (2-core machine; bench long)
+# the clip-length warning's estimate of the retarget, per frame (2-core machine; docs/history "Commands on long clips")
 RETARGET_S_PER_FRAME, RETARGET_MB_PER_FRAME = 0.008, 0.03
 
 

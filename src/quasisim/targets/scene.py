@@ -278,7 +278,7 @@ def make_scene(
     if n < len(sides):  # a one-hand code path reached with a two-hand demo
         raise QuasisimError(
             f"{demo.path or demo.name}: a demo with two hands (left_joints); this command handles one-hand demos "
-            "only (two hands: quasisim retarget, evaluate, transfer, bench baseline, bench transfer)"
+            "only (two hands: quasisim retarget, evaluate, transfer, bench transfer)"
         )
     if tuple(p.side for p in placements) != sides:
         got = ", ".join(p.side for p in placements)

@@ -882,7 +882,7 @@ def _save_transitions(ctx: Context, kept: Transitions) -> None:
     ctx.progress.write(f"recorded {len(kept.steps)} sampling steps in {path}")
 
 
-# s_per_frame: 0.27 s per frame measured on 60-frame GRAB clips, 0.13-0.15 on the long examples (bench long)
+# s_per_frame: 0.27 s per frame measured on 60-frame GRAB clips, 0.13-0.15 on the long examples (docs/history "Commands on long clips")
 STAGE = Stage(
     name="sample", word="sample", config=("sampling",), s_per_frame=0.19, run=run, plans=True, uses_target=True
 )
