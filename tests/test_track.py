@@ -177,6 +177,19 @@ def test_bad_tracker_settings_name_the_field(tmp_path) -> None:
         RobustConfig(push=5.0)
 
 
+def test_the_shipped_trackers_load_and_the_real_time_one_plans_beside_the_controller() -> None:
+    """Every shipped tracker preset is valid; ``track_realtime.yaml`` re-plans every ``lead`` frames (a planner
+    that may take that many frame periods per re-plan) with a smaller search than the fast one."""
+    from quasisim.method.options import tracker_file
+
+    names = [p.name for p in tracker_file("track.yaml").parent.glob("track*.yaml") if p.name != "track_env.yaml"]
+    assert {"track.yaml", "track_fast.yaml", "track_realtime.yaml"} <= set(names)
+    opts = {n: TrackOptions.preset(n) for n in names}
+    rt, fast = opts["track_realtime.yaml"], opts["track_fast.yaml"]
+    assert rt.lead == rt.every > 1 and opts["track.yaml"].lead == fast.lead == 0
+    assert rt.samples * rt.horizon < fast.samples * fast.horizon
+
+
 def test_evaluate_closed_loop_writes_both_loops_for_both_sets(clip, tmp_path) -> None:
     path, _, _, _ = clip
     out = tmp_path / "eval"
@@ -441,14 +454,32 @@ def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(c
 
 
 def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() -> None:
-    """A setting added to the tracker later (``lead``) stays out of the cache key at its default, so the 25-clip
-    caches of BENCHMARKS.md, made before it existed, still match; set, it makes a cache of its own."""
+    """Settings added to the tracker later (``lead``, ``keep``) stay out of the cache key at their defaults, so
+    the 25-clip caches of BENCHMARKS.md, made before they existed, still match; set, they make caches of their
+    own."""
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
     assert cl._track_dict(TrackOptions()) == {
-        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", "lead")
+        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", "lead", "keep")
     }
-    assert cl._track_dict(TrackOptions(lead=2))["lead"] == 2
-    names = {cl.cache_name({**old, "track": cl._track_dict(TrackOptions(lead=n))}) for n in (0, 2)}
-    assert len(names) == 2
+    assert cl._track_dict(TrackOptions(lead=2))["lead"] == 2 and cl._track_dict(TrackOptions(keep=0.1))["keep"] == 0.1
+    variants = [TrackOptions(), TrackOptions(lead=2), TrackOptions(keep=0.1)]
+    assert len({cl.cache_name({**old, "track": cl._track_dict(o)}) for o in variants}) == 3
+
+
+@pytest.mark.parametrize("keep", [0.0, 0.999999])
+def test_keep_leaves_the_plan_where_no_candidate_is_clearly_cheaper(clip, sampled, keep) -> None:
+    """keep: a candidate replaces the current window only below (1 - keep) x its cost. In a world with less
+    friction and weaker gains the cheapest candidates move the plan (keep 0); with keep near 1 none is cheap
+    enough, and the targets applied are the plan's own (shifted by the start offset) at every frame."""
+    from quasisim.targets.perturb import scaled_scene
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    opts = dataclasses.replace(FAST, keep=keep)
+    world_scene = scaled_scene(scene, friction=0.7, gains=0.9)
+    with make_target("mujoco", world_scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        replay(world, q, tr)
+    T = len(q)
+    assert tr.replans > 0 and np.array_equal(tr._work[:T], tr._planned[:T]) == (keep > 0)

@@ -93,6 +93,9 @@ class TrackOptions:
         obs_gain: how far each observation moves the tracker's state estimate from its model's prediction, in
             (0, 1] (1: the observation as it is).
         lead: frames a re-plan takes to act (0: within its control step; see "Planning beside the controller").
+        keep: a candidate replaces the current plan's window only where its cost is below ``1 - keep`` times the
+            current window's (0: the cheapest always), so that differences the model cannot resolve do not move
+            the plan.
     """
 
     every: int = 1
@@ -114,6 +117,7 @@ class TrackOptions:
     adapt_decay: float = 0.8
     obs_gain: float = 1.0
     lead: int = 0
+    keep: float = 0.0
     path: str = ""
 
     def __post_init__(self) -> None:
@@ -138,6 +142,8 @@ class TrackOptions:
                 raise InputError(where, name, "true or false", repr(getattr(self, name)))
         if isinstance(self.obs_gain, bool) or not isinstance(self.obs_gain, int | float) or not 0 < self.obs_gain <= 1:
             raise InputError(where, "obs_gain", "a gain in (0, 1]", repr(self.obs_gain))
+        if isinstance(self.keep, bool) or not isinstance(self.keep, int | float) or not 0 <= self.keep < 1:
+            raise InputError(where, "keep", "a fraction in [0, 1)", repr(self.keep))
         if not 0 <= self.adapt_decay < 1:
             raise InputError(where, "adapt_decay", "a weight in [0, 1)", repr(self.adapt_decay))
 
@@ -356,6 +362,8 @@ class Tracker:
             )
         costs = np.where(np.isfinite(costs), costs, np.inf)
         best = int(np.argmin(costs))
+        if not costs[best] < (1 - o.keep) * costs[0]:  # row 0: the current plan's window
+            best = 0
         self._work[t : t + H + 1] = wins[best]
         k = len(wins) - 2 - best
         if 0 <= k < len(shifts):  # a moved window: the rest of the plan moves with it
