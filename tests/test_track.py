@@ -454,18 +454,19 @@ def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(c
 
 
 def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() -> None:
-    """Settings added to the tracker later (``lead``, ``keep``) stay out of the cache key at their defaults, so
+    """Settings added to the tracker later (``lead``, ``keep``, ``shift_fade``) stay out of the cache key at their defaults, so
     the 25-clip caches of BENCHMARKS.md, made before they existed, still match; set, they make caches of their
     own."""
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
     assert cl._track_dict(TrackOptions()) == {
-        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", "lead", "keep")
+        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", "lead", "keep", "shift_fade")
     }
-    assert cl._track_dict(TrackOptions(lead=2))["lead"] == 2 and cl._track_dict(TrackOptions(keep=0.1))["keep"] == 0.1
-    variants = [TrackOptions(), TrackOptions(lead=2), TrackOptions(keep=0.1)]
-    assert len({cl.cache_name({**old, "track": cl._track_dict(o)}) for o in variants}) == 3
+    variants = [TrackOptions(), TrackOptions(lead=2), TrackOptions(keep=0.1), TrackOptions(shift_fade=0.03)]
+    for o, (k, v) in zip(variants[1:], (("lead", 2), ("keep", 0.1), ("shift_fade", 0.03)), strict=True):
+        assert cl._track_dict(o)[k] == v
+    assert len({cl.cache_name({**old, "track": cl._track_dict(o)}) for o in variants}) == 4
 
 
 @pytest.mark.parametrize("keep", [0.0, 0.999999])
@@ -483,3 +484,35 @@ def test_keep_leaves_the_plan_where_no_candidate_is_clearly_cheaper(clip, sample
         replay(world, q, tr)
     T = len(q)
     assert tr.replans > 0 and np.array_equal(tr._work[:T], tr._planned[:T]) == (keep > 0)
+
+
+def test_the_shift_weight_fades_with_the_objects_travel_and_never_returns() -> None:
+    """w_t = min_{u <= t} max(0, 1 - |p_u - p_0| / s): 1 at rest, linear in the travel, 0 beyond s, and it
+    stays 0 when the object comes back to its start; all 1 without a fade."""
+    from quasisim.method.track import shift_weights
+
+    travel = np.array([0.0, 0.0, 0.01, 0.02, 0.04, 0.0, 0.01])
+    p = np.stack([travel, np.zeros(7), np.full(7, 0.1)], axis=1)
+    np.testing.assert_allclose(shift_weights(p, 0.04), [1, 1, 0.75, 0.5, 0, 0, 0])
+    np.testing.assert_array_equal(shift_weights(p, 0.0), np.ones(7))
+
+
+def test_a_fading_shift_reaches_for_the_object_where_it_is_and_brings_it_back_to_the_plans_path(clip, sampled):
+    """The world's object starts 5 mm off; the tracker (no re-planning) shifts the hands by that offset while the
+    object rests and, with shift_fade, applies the plan's own targets once the object has travelled the fade."""
+    from quasisim.method.track import shift_weights
+
+    _, demo, _, scene = clip
+    q, weights, d = sampled, TransferConfig.from_yaml().weights, np.array([0.004, -0.003, 0.0])
+    world_scene = dataclasses.replace(scene, object_pos0=scene.object_pos0 + d)
+    opts = dataclasses.replace(FAST, every=0, shift_fade=0.01)
+    with make_target("mujoco", world_scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        replay(world, q, tr)
+        w = shift_weights(tr.nominal.object_pos, 0.01)
+    T = len(q)
+    assert w[1] > 0.95 and w[-1] == 0  # the example's cube rests (settling), then is lifted more than 1 cm
+    np.testing.assert_allclose(tr.offset, d, atol=1e-6)
+    base = scene.dof_slices[0].start
+    shifted = tr._work[1:T, base : base + 3] - q[1:, base : base + 3]
+    np.testing.assert_allclose(shifted, w[1:, None] * tr.offset, atol=1e-9)
+    np.testing.assert_allclose(tr._ref[0][:T] - tr.nominal.object_pos, w[:, None] * tr.offset, atol=1e-9)

@@ -7,7 +7,11 @@ touches the object. :class:`Tracker` closes the loop. It drives a world it knows
 and acts on it with PD targets, frame by frame:
 
 1. **Shift** (frame 0): the object's observed position minus its nominal start, ``d`` (x, y), moves the plan's
-   hand bases and the reference by ``d`` from frame 1 on (the object where it is, not where it was planned).
+   hand bases and the reference by ``w_t d`` from frame 1 on (the object where it is, not where it was planned).
+   ``w_t`` = 1 throughout by default; with ``shift_fade`` = s > 0 it fades as the plan carries the object away
+   from its start, ``w_t = min_{u <= t} max(0, 1 - |p_u - p_0| / s)`` (``p``: the object's position in the
+   plan's nominal rollout), so the hands reach for the object where it is and bring it back to the demo's path
+   once they hold it.
 2. **Follow**: between re-plans, apply the plan's next PD targets ``q*_{t+1}``.
 3. **Re-plan** every ``every`` frames from the observed state: put the observation into the tracker's **model**,
    a target of the nominal scene (:meth:`~quasisim.targets.base.Target.sync`; the world's hidden parameters are
@@ -81,6 +85,8 @@ class TrackOptions:
         knots: noise knots per window.  noise_base_pos (m), noise_base_rot (rad), noise_joints (rad):
             noise std per dof group.  noise_scales: per-candidate std multipliers, cycled.
         shift: move the plan by the object's observed start offset (step 1).
+        shift_fade: the object's travel in the plan's nominal rollout (m) over which that shift fades back to
+            none (0: it never fades).
         follow: fractions ``f``: at each re-plan, candidates with the hands' bases moved by ``f`` x the object's
             offset from the plan's nominal rollout (``f > 0`` follows the object, ``f < 0`` pushes it back); when
             one is kept, the rest of the plan moves with it.
@@ -107,6 +113,7 @@ class TrackOptions:
     noise_joints: float = 0.08
     noise_scales: tuple[float, ...] = (0.5, 1.0, 2.0)
     shift: bool = True
+    shift_fade: float = 0.0
     follow: tuple[float, ...] = ()
     strict_weight: float = 0.0
     strict_margin: float = 0.75
@@ -127,7 +134,8 @@ class TrackOptions:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise InputError(where, name, f"an integer >= {lo}", repr(v))
-        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "model_dt"):
+        for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "model_dt",
+                     "shift_fade"):  # fmt: skip
             v = getattr(self, name)
             if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < float("inf"):
                 raise InputError(where, name, "a finite number >= 0", repr(v))
@@ -176,12 +184,22 @@ class TrackOptions:
 
 
 def shift_bases(scene: Scene, q: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """PD targets ``q`` (..., D) with every hand's base moved by ``d`` (3,) m in the world: the first three base
-    coordinates of each hand are slides along world x, y, z (:mod:`quasisim.targets.mujoco_target`)."""
+    """PD targets ``q`` (..., D) with every hand's base moved by ``d`` (3,) m in the world, or per row by ``d``
+    (..., 3): the first three base coordinates of each hand are slides along world x, y, z (:mod:`quasisim.targets.mujoco_target`)."""
     q = np.array(q, np.float64)
     for sl in scene.dof_slices:
         q[..., sl.start : sl.start + 3] += d
     return q
+
+
+def shift_weights(object_pos: np.ndarray, fade: float) -> np.ndarray:
+    """(T,) the weight ``w_t`` of the start shift at each frame: 1 while the object (``object_pos``, (T, 3) m,
+    the plan's nominal rollout) has not left its start, falling linearly to 0 as it travels ``fade`` m from it,
+    never rising again; all 1 for ``fade`` 0."""
+    if fade == 0:
+        return np.ones(len(object_pos))
+    travel = np.linalg.norm(object_pos - object_pos[0], axis=-1)
+    return np.minimum.accumulate(np.clip(1 - travel / fade, 0, 1))
 
 
 def candidate_scenes(scene: Scene) -> list[Scene]:
@@ -246,10 +264,12 @@ class Tracker:
         if self.opts.shift:
             d[:2] = (np.asarray(obs["obj_pos"]) - nom.object_pos[0])[:2]
         self.offset = d
-        moved = shift_bases(self.scene, self.plan[1:], d)
+        dt = shift_weights(nom.object_pos, self.opts.shift_fade)[:, None] * d  # (T, 3) the shift per frame
+        moved = shift_bases(self.scene, self.plan[1:], dt[1:])
         self._planned = padded(np.concatenate([self.plan[:1], moved]), H)  # the untouched plan (shifted)
         self._work = self._planned.copy()  # the plan as re-planning changes it
-        self._ref = [padded(nom.object_pos + d, H), padded(nom.object_quat, H), padded(nom.robot_keypoints + d, H)]
+        kp = nom.robot_keypoints + dt[:, None, :]
+        self._ref = [padded(nom.object_pos + dt, H), padded(nom.object_quat, H), padded(kp, H)]
         self._demo_ref = [padded(self.demo.object_pos, H), padded(self.demo.object_quat, H)]
         self._rng = np.random.default_rng(self.opts.seed)
         self._applied = self.plan[0].copy()
