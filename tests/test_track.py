@@ -229,6 +229,7 @@ def test_transfer_and_the_bench_pass_write_closed_loop_beside_open_loop(clip, tm
 
     from quasisim.bench import closed_loop as cl
     from quasisim.cli import main
+    from quasisim.data.controls import load_controls
 
     path = clip[0]
     run = tmp_path / "runs" / path.stem / "retarget"
@@ -250,6 +251,11 @@ def test_transfer_and_the_bench_pass_write_closed_loop_beside_open_loop(clip, tm
     (run / "controls.npz").rename(run / "moved.npz")  # a cached run needs no controls
     again = cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default", "wide"), "mujoco", 1)
     assert again == out
+    c = load_controls(run / "moved.npz")  # the run planned again: other controls are judged again
+    dataclasses.replace(c, q_targets=c.q_targets + 0.01).save(run / "controls.npz")
+    cl.add_closed_loop(rows, tmp_path / "runs", {path.stem: path}, 1, ("default",), "mujoco", 1)
+    assert cached.stat().st_mtime_ns != stamp
+    assert json.loads(cached.read_text())["controls_sha256"] == cl.controls_sha(run)
     text = "\n".join(cl.markdown(out, ("retarget",), ("default", "wide")))
     assert "| robust | retarget | 1 |" in text and "| robust_wide | retarget | 1 |" in text
 

@@ -3,8 +3,10 @@
 Every finished run's controls (``OUT/<clip>/<run>/controls.npz``) are replayed in the seeded perturbed worlds of
 each perturbation set, open loop and closed loop (:mod:`quasisim.method.track`), in ``workers`` processes, one
 (run, set) per task. Each is cached in ``OUT/<clip>/<run>/robust_closed_loop-<hash of the settings>.json`` with the
-settings that made it (the set, the tracker, the target), so the pass resumes where it stopped, a set added later
-reuses the others, and variants of the tracker (``--track-set``) sit side by side.
+settings that made it (the set, the tracker, the target) and the SHA-256 of the controls it replayed, so the pass
+resumes where it stopped, a set added later reuses the others, variants of the tracker (``--track-set``) sit side
+by side, and a run planned again (other controls) is judged again. A cache from before the hash was kept is used
+only where the run's controls are gone (a table read back from tracked caches).
 """
 
 from __future__ import annotations
@@ -43,6 +45,25 @@ def cache_name(want: dict[str, Any]) -> str:
     return CACHE.format(hashlib.sha256(json.dumps(want, sort_keys=True).encode()).hexdigest()[:12])
 
 
+def controls_sha(run_dir: str | Path) -> str | None:
+    """The SHA-256 of the run's ``controls.npz`` (None where it is gone)."""
+    path = Path(run_dir) / "controls.npz"
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+
+
+def cached(run_dir: Path, name: str) -> dict[str, Any] | None:
+    """The metrics of the cache ``name`` in ``run_dir``, None where there is none or it judged other controls
+    than the run's own (a run planned again)."""
+    path = run_dir / name
+    if not path.is_file():
+        return None
+    data = json.loads(path.read_text())
+    sha = controls_sha(run_dir)
+    if sha is not None and data.get("controls_sha256") != sha:
+        return None
+    return data["metrics"]
+
+
 def judge_run(
     demo_path: str, run_dir: str, n: int, ranges: str, target: str, track: dict[str, Any],
     robust_set: dict[str, Any] | None = None,
@@ -62,7 +83,7 @@ def judge_run(
     opts = TrackOptions.from_yaml(None, track)
     metrics = robust_metrics(demo, scene, c.q_targets, target, [replays(n, ranges, robust_set)], closed_loop(opts))
     want = settings(n, ranges, _track_dict(opts), target, robust_set)
-    out = {"settings": want, "metrics": metrics}
+    out = {"settings": want, "controls_sha256": controls_sha(run_dir), "metrics": metrics}
     save_json_atomic(Path(run_dir) / cache_name(want), out)
     return out
 
@@ -95,9 +116,9 @@ def add_closed_loop(
             continue
         missing = []
         for s in ranges:
-            cache = run_dir / cache_name(settings(n, s, opts, target, robust_set))
-            if cache.is_file():
-                done[(r["clip"], r["method"])].update(json.loads(cache.read_text())["metrics"])
+            metrics = cached(run_dir, cache_name(settings(n, s, opts, target, robust_set)))
+            if metrics is not None:
+                done[(r["clip"], r["method"])].update(metrics)
             else:
                 missing.append(s)
         if missing and not (run_dir / "controls.npz").is_file():
