@@ -460,15 +460,15 @@ def serve(run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, demo: 
     until Ctrl-C."""
     run_dir = Path(run_dir)
     view = WebView(run_dir, host, port, None if demo is None else Path(demo))
-    print(view.url, flush=True)
-    p = view.server.get_port()
-    print(
-        f"serving {run_dir} until Ctrl-C; {view.demo_note}; from another machine: ssh -L {p}:localhost:{p} "
-        f"{socket.gethostname()}, then open http://localhost:{p}",
-        file=sys.stderr,
-        flush=True,
-    )
-    try:
+    try:  # from the first line printed on: a client may connect and Ctrl-C may come at once
+        print(view.url, flush=True)
+        p = view.server.get_port()
+        print(
+            f"serving {run_dir} until Ctrl-C; {view.demo_note}; from another machine: ssh -L {p}:localhost:{p} "
+            f"{socket.gethostname()}, then open http://localhost:{p}",
+            file=sys.stderr,
+            flush=True,
+        )
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
