@@ -503,7 +503,7 @@ def test_the_shift_weight_fades_with_the_objects_travel_and_never_returns() -> N
     np.testing.assert_array_equal(shift_weights(p, 0.0), np.ones(7))
 
 
-def test_a_fading_shift_reaches_for_the_object_where_it_is_and_brings_it_back_to_the_plans_path(clip, sampled):
+def test_a_fading_shift_moves_the_hands_by_the_offset_at_rest_and_by_none_once_the_object_travelled(clip, sampled):
     """The world's object starts 5 mm off; the tracker (no re-planning) shifts the hands by that offset while the
     object rests and, with shift_fade, applies the plan's own targets once the object has travelled the fade."""
     from quasisim.method.track import shift_weights

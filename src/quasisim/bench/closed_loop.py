@@ -51,14 +51,13 @@ def controls_sha(run_dir: str | Path) -> str | None:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
 
 
-def cached(run_dir: Path, name: str) -> dict[str, Any] | None:
+def cached(run_dir: Path, name: str, sha: str | None) -> dict[str, Any] | None:
     """The metrics of the cache ``name`` in ``run_dir``, None where there is none or it judged other controls
-    than the run's own (a run planned again)."""
+    than the run's own, whose hash is ``sha`` (:func:`controls_sha`; a run planned again)."""
     path = run_dir / name
     if not path.is_file():
         return None
     data = json.loads(path.read_text())
-    sha = controls_sha(run_dir)
     if sha is not None and data.get("controls_sha256") != sha:
         return None
     return data["metrics"]
@@ -114,14 +113,14 @@ def add_closed_loop(
         run_dir = out / r["clip"] / r["method"]
         if r["method"] == "kinematic":
             continue
-        missing = []
+        missing, sha = [], controls_sha(run_dir)
         for s in ranges:
-            metrics = cached(run_dir, cache_name(settings(n, s, opts, target, robust_set)))
+            metrics = cached(run_dir, cache_name(settings(n, s, opts, target, robust_set)), sha)
             if metrics is not None:
                 done[(r["clip"], r["method"])].update(metrics)
             else:
                 missing.append(s)
-        if missing and not (run_dir / "controls.npz").is_file():
+        if missing and sha is None:
             print(f"closed loop: {r['clip']} {r['method']}: no controls.npz in {run_dir}; skipped")
         elif missing:
             todo += [(r["clip"], r["method"], s, str(demo_paths[r["clip"]]), str(run_dir)) for s in missing]

@@ -264,12 +264,12 @@ class Tracker:
         if self.opts.shift:
             d[:2] = (np.asarray(obs["obj_pos"]) - nom.object_pos[0])[:2]
         self.offset = d
-        dt = shift_weights(nom.object_pos, self.opts.shift_fade)[:, None] * d  # (T, 3) the shift per frame
-        moved = shift_bases(self.scene, self.plan[1:], dt[1:])
+        shifts = shift_weights(nom.object_pos, self.opts.shift_fade)[:, None] * d  # (T, 3) the shift per frame
+        moved = shift_bases(self.scene, self.plan[1:], shifts[1:])
         self._planned = padded(np.concatenate([self.plan[:1], moved]), H)  # the untouched plan (shifted)
         self._work = self._planned.copy()  # the plan as re-planning changes it
-        kp = nom.robot_keypoints + dt[:, None, :]
-        self._ref = [padded(nom.object_pos + dt, H), padded(nom.object_quat, H), padded(kp, H)]
+        kp = nom.robot_keypoints + shifts[:, None, :]
+        self._ref = [padded(nom.object_pos + shifts, H), padded(nom.object_quat, H), padded(kp, H)]
         self._demo_ref = [padded(self.demo.object_pos, H), padded(self.demo.object_quat, H)]
         self._rng = np.random.default_rng(self.opts.seed)
         self._applied = self.plan[0].copy()
