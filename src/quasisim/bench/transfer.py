@@ -53,15 +53,29 @@ def run_spec(run: str, stages: tuple[str, ...], base: TransferSpec) -> TransferS
 
 def jobs(paths: list[Path], specs: dict[str, TransferSpec]) -> list[Job]:
     """One batch job per clip: its runs, each ``CURRICULUM+A+B`` run after (and seeded by the checkpoints of)
-    the longest of ``CURRICULUM+A``, ``CURRICULUM`` asked for too (checkpoints are reused only where they
-    match, piece by piece)."""
+    the longest of ``CURRICULUM+A``, ``CURRICULUM`` asked for too, and each of the paper's ablations
+    (``paper-no-residual`` ...) after the first run asked for with its curriculum (checkpoints are reused
+    only where they match, piece by piece: stage 3 with other networks is computed again)."""
     order = sorted(specs, key=lambda r: r.count("+"))
-    return [Job(p, tuple(Run(r, specs[r], _seed(r, specs)) for r in order)) for p in paths]
+    seeds = {r: _seed(r, specs) or _preset_seed(r, order, specs) for r in order}
+    return [Job(p, tuple(Run(r, specs[r], seeds[r]) for r in order)) for p in paths]
 
 
 def _seed(run: str, specs: dict[str, TransferSpec]) -> str | None:
     parts = run.split("+")
     return next((p for p in ("+".join(parts[:n]) for n in range(len(parts) - 1, 0, -1)) if p in specs), None)
+
+
+def _preset_seed(run: str, order: list[str], specs: dict[str, TransferSpec]) -> str | None:
+    """For a method with a curriculum of its own (:data:`quasisim.method.registry.METHODS`), the first run
+    before it in ``order`` with the same curriculum and stage 1 (None for every other run: the seeds of
+    folders made before these methods stay as they were)."""
+    m = registry.METHODS.get(run)
+    if m is None or m.curriculum is None:
+        return None
+    earlier = order[: order.index(run)]
+    same = (r for r in earlier if specs[r].curriculum == specs[run].curriculum and "1" in specs[r].stages)
+    return next(same, None)
 
 
 def _rows(r: dict[str, Any], run_dir: Path, demo_path: Path, judge: str | None, target: str) -> list[dict[str, Any]]:

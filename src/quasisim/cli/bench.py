@@ -1,5 +1,5 @@
-"""`quasisim bench`: the benchmarks behind the tables of BENCHMARKS.md (transfer, compare, batch, policy, env)
-and the strict-failure analysis of finished runs (failures)."""
+"""`quasisim bench`: the benchmarks behind the tables of BENCHMARKS.md (transfer, compare, batch, policy, env,
+paper) and the strict-failure analysis of finished runs (failures)."""
 
 from __future__ import annotations
 
@@ -248,6 +248,42 @@ def bench_policy(
             raise choice_error("--methods entry", m, POLICY_METHODS)
     names = [c.strip() for c in clip_names.split(",") if c.strip()]
     run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen)
+
+
+@bench.command("paper")
+@click.argument("data_dir", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--tables", default="main,ablation", show_default=True,
+              help="Which of the paper's tables: main (baselines), ablation.")  # fmt: skip
+@click.option("--policy", "policy", type=click.Path(path_type=Path, exists=True, file_okay=False), default=None,
+              help="A folder of `quasisim bench policy` on these clips: its policies fill the learned rows.")  # fmt: skip
+@click.option("--robust", type=click.IntRange(0, 1000), default=None,
+              help="Perturbed replays per run (default: n of configs/robust.yaml; 0: none).")  # fmt: skip
+@_BUDGET
+@click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/paper"), show_default=True)
+@click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
+@_clips_options(
+    ray_help="Run on an existing Ray cluster: auto (the one `ray start` made here) or HOST:PORT (default: local Ray).",
+    set_help="Override a config key (as in transfer).",
+)
+@_interruptible
+@_friendly
+def bench_paper(
+    data_dir: Path, tables: str, policy: Path | None, robust: int | None, budget: str, out: Path, report_only: bool,
+    clips: Clips,
+) -> None:  # fmt: skip
+    """The paper's two tables (baselines, ablations) on clips of DATA_DIR: every row quasisim has, run as one
+    resumable batch in MuJoCo with the Shadow hand, beside the paper's own figures; writes OUT/paper.md."""
+    _outputs_free(out)
+    _setup_runtime()
+    from quasisim.batch import Settings
+    from quasisim.bench.paper import run_paper_bench
+    from quasisim.method.config import TransferConfig
+
+    c = clips
+    TransferConfig.from_yaml(overrides=c.overrides)
+    s = Settings(c.ray_address, c.workers, overrides=c.overrides, keep_scratch=True, lead_clip=c.lead_clip)
+    chosen = tuple(t.strip() for t in tables.split(",") if t.strip())
+    run_paper_bench(data_dir, c.names, c.pattern, chosen, out, policy, report_only, s, robust, budget)
 
 
 @bench.command("failures")

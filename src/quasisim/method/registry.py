@@ -52,17 +52,23 @@ class Method:
         stages: the stages it runs; None: the stages the user asks for (``--stages``).
         configure: the settings it changes (a function of the transfer config), or None.
         summary: one line for ``--help``.
+        curriculum: the curriculum it runs (None: the user's, ``--curriculum``).
+        networks: stage 3's networks (of :data:`quasisim.method.spec.NETWORKS`; None: the user's, the
+            ablation flags).
     """
 
     stages: tuple[str, ...] | None
     summary: str
     configure: Callable[[Any], Any] | None = None
+    curriculum: str | None = None
+    networks: tuple[str, ...] | None = None
 
     def config(self, cfg: TransferConfig) -> TransferConfig:
         return cfg if self.configure is None else self.configure(cfg)
 
 
 CASCADE = ("quick", "1", "2", "sample", "select")
+PAPER = ("1", "2", "3", "mpc")  # the paper's method: curriculum, fit to the target, MPC in the fitted simulator
 
 METHODS: dict[str, Method] = {
     "cascade": Method(
@@ -74,4 +80,22 @@ METHODS: dict[str, Method] = {
     "mpc-soften": Method(("mpc",), "mpc-base with gradients averaged over softened contact", _soften),
     "sample-target": Method(("sample",), "sampling MPC with the target itself as the model, from the kinematic retarget"),
     "kinematic": Method((), "the kinematic retarget only"),
+    # the paper's method and its ablations (its ablation table; docs/paper_tables.md says where a row differs)
+    "paper": Method(
+        PAPER, "the paper's method in full: its 8-simulator curriculum (stages 1, 2), the simulator fitted to "
+        "MuJoCo with residual physics (stage 3), closed-loop MPC in the fitted simulator", curriculum="default",
+    ),
+    "paper-no-residual": Method(
+        PAPER, "paper without residual physics (stage 3 fits the analytical constants and the control "
+        "transformation only)", curriculum="default", networks=("control",),
+    ),
+    "paper-no-local-force": Method(
+        PAPER, "paper without the local force network (the global residual network kept)", curriculum="default",
+        networks=("global", "control"),
+    ),
+    "paper-no-curriculum": Method(
+        PAPER, "paper without the curriculum: stages 1 and 2 in the stiffest simulator only", curriculum="none"
+    ),
+    "paper-curriculum2": Method(PAPER, "paper with the paper's curriculum II (stages left out)",
+                                curriculum="curriculum2"),
 }  # fmt: skip

@@ -104,8 +104,11 @@ class TransferSpec:
                 f"stage 3 and closed-loop MPC run in MuJoCo only (target {self.target!r}); use --target mujoco or "
                 "leave out stages 3 and mpc"
             )
-        networks = tuple(n for n in NETWORKS if n in self.networks)
-        return dataclasses.replace(self, method=method, stages=registry.order(stages), networks=networks)
+        curriculum, nets = _preset_settings(method, self.curriculum, self.networks)
+        networks = tuple(n for n in NETWORKS if n in nets)
+        return dataclasses.replace(
+            self, method=method, stages=registry.order(stages), networks=networks, curriculum=curriculum
+        )
 
     def identity(self) -> dict[str, object]:
         """The fields that determine the run's results (progress and robust replays aside; stage 3's networks
@@ -114,6 +117,21 @@ class TransferSpec:
         if "3" not in self.stages:
             d.pop("networks")
         return d
+
+
+def _preset_settings(method: str, curriculum: str, networks: tuple[str, ...]) -> tuple[str, tuple[str, ...]]:
+    """The curriculum and stage 3's networks of ``method``: its preset's where it has them (the paper's
+    ablations), else those given; a value given that differs from both the default and the preset's is
+    refused."""
+    m, default = registry.METHODS[method], TransferSpec()
+    for what, given, preset, base in (("curriculum", curriculum, m.curriculum, default.curriculum),
+                                      ("networks", networks, m.networks, default.networks)):  # fmt: skip
+        if preset is not None and given not in (base, preset):
+            raise QuasisimError(
+                f"method {method} runs {what} {preset!r} of its own, and {given!r} was given: leave that option "
+                "out, or use method ours with --stages and the option"
+            )
+    return m.curriculum or curriculum, m.networks if m.networks is not None else networks
 
 
 def networks_from_flags(no_residual: bool, no_local_residual: bool, no_control_transform: bool) -> tuple[str, ...]:
