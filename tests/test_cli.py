@@ -77,7 +77,15 @@ def test_help_names_the_examples_and_commands() -> None:
     top = _run(["--help"])
     assert all(c in top for c in ("view", "convert", "transfer", "evaluate"))
     # `bench`: the commands behind the tables of BENCHMARKS.md and the failure analysis, nothing else
-    assert sorted(main.commands["bench"].commands) == ["batch", "compare", "env", "failures", "paper", "policy", "transfer"]
+    assert sorted(main.commands["bench"].commands) == [
+        "batch",
+        "compare",
+        "env",
+        "failures",
+        "paper",
+        "policy",
+        "transfer",
+    ]
 
 
 def test_evaluate_rejects_mismatched_controls(tmp_path: Path) -> None:

@@ -46,9 +46,12 @@ def test_the_tables_runs_and_the_ablations_seeded_by_the_full_method() -> None:
     assert seeds["paper-no-residual"] == seeds["paper-no-local-force"] == "paper"
     assert seeds["paper-no-curriculum"] is seeds["paper-curriculum2"] is seeds["paper"] is None
     assert seeds["mpc-base"] is seeds["cascade"] is None and seeds["short+sample"] == "short"
-    with pytest.raises(QuasisimError, match="valid tables"):
-        from quasisim.bench.paper import run_paper_bench
 
+
+def test_an_unknown_table_is_refused_with_the_valid_ones() -> None:
+    from quasisim.bench.paper import run_paper_bench
+
+    with pytest.raises(QuasisimError, match="valid tables: main, ablation"):
         run_paper_bench(Path("."), (), "*.npz", ("mian",), Path("unused"), None, True, None, 0)
 
 
