@@ -1,4 +1,4 @@
-"""`quasisim convert`: bring your own data in (landmarks, GRAB, ARCTIC)."""
+"""`quasisim convert`: bring your own data in (landmarks, GRAB, ARCTIC, TACO, OakInk2)."""
 
 from __future__ import annotations
 
@@ -135,3 +135,84 @@ def convert_taco(
 
     opts = ct.TacoOptions(fps=fps or None, start=start, frames=frames, name=name, source_fps=source_fps, up=up)
     click.echo(str(ct.convert_taco(seq, mano_dir, out, taco_root, object_models, opts)))
+
+
+def _frame_range(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int] | None:
+    """``--range BEGIN:END`` -> (BEGIN, END)."""
+    if value is None:
+        return None
+    try:
+        b, e = (int(x) for x in value.split(":"))
+    except ValueError:
+        raise click.BadParameter(f"expected BEGIN:END (mocap frame ids, END excluded), got {value!r}") from None
+    return b, e
+
+
+@convert.command("oakink2")
+@click.argument("seq", type=click.Path(path_type=Path))
+@click.option("--mano-dir", type=click.Path(path_type=Path), default=None,
+              help="Folder holding MANO_RIGHT.pkl and MANO_LEFT.pkl (your own download of MANO).")  # fmt: skip
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="Demo file to write (.npz).")
+@click.option(
+    "--oakink2-root",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Folder holding anno_preview/, program/ and object_*/ (default: two levels above SEQ's pickle).",
+)
+@click.option(
+    "--object-dir",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="The align_ds folder of <obj_id>/ meshes (default: OAKINK2_ROOT/object_repair/align_ds, object_raw/...).",
+)
+@click.option(
+    "--segment", default=None, help="Primitive-task segment: its index or name, e.g. 3 or pour:00 (default 0)."
+)
+@click.option("--range", "frame_range", default=None, callback=_frame_range,
+              help="Mocap frames BEGIN:END (END excluded) instead of a segment.")  # fmt: skip
+@click.option("--hands", type=click.Choice(["right", "left", "both"]), default=None,
+              help="Hands to write (default: the segment's; the left alone is written mirrored).")  # fmt: skip
+@click.option("--object", "object_id", default=None, help="Object id (default: the segment's main object).")
+@click.option("--fps", type=float, default=20.0, show_default=True, help="Clip frame rate (0: OakInk2's 120).")
+@click.option("--source-fps", type=float, default=120.0, show_default=True, help="OakInk2's mocap rate.")
+@click.option("--frames", type=int, default=None, help="Clip frames at most (default: to the segment's end).")
+@click.option("--up", type=click.Choice(["y", "z", "-y", "x", "-x", "-z"]), default="y", show_default=True,
+              help="OakInk2's up axis.")  # fmt: skip
+@click.option("--table-height", type=float, default=0.8, show_default=True,
+              help="Height (m) of the object's lowest point at clip frame 0: the table top.")  # fmt: skip
+@click.option("--name", default=None, help="Clip name (default: OUT's file name).")
+@click.option("--list-segments", is_flag=True, help="List the sequence's segments and exit.")
+@_friendly
+def convert_oakink2(
+    seq: Path, mano_dir: Path | None, out: Path | None, oakink2_root: Path | None, object_dir: Path | None,
+    segment: str | None, frame_range: tuple[int, int] | None, hands: str | None, object_id: str | None, fps: float,
+    source_fps: float, frames: int | None, up: str, table_height: float, name: str | None, list_segments: bool,
+) -> None:  # fmt: skip
+    """An OakInk2 sequence (anno_preview/<scene>++<seq>.pkl, or its key with --oakink2-root) -> OUT (demo npz:
+    one primitive-task segment, its hands and its object) and the object's mesh in meshes/.
+    docs/demo_format.md, "From OakInk2"."""
+    from quasisim.data import convert_oakink2 as co
+
+    if list_segments:
+        for seg in co.read_segments(co.find_sequence(seq, oakink2_root)):
+            objs = ", ".join(seg.objects())
+            click.echo(
+                f"{seg.describe()} {seg.interaction_mode} objects: {objs}" + (f" - {seg.desc}" if seg.desc else "")
+            )
+        return
+    if mano_dir is None or out is None:
+        raise click.UsageError("--mano-dir and --out are required (unless --list-segments)")
+    which: int | str | None = int(segment) if segment is not None and segment.isdigit() else segment
+    opts = co.OakInk2Options(
+        segment=which,
+        frame_range=frame_range,
+        hands=hands,
+        object_id=object_id,
+        fps=fps or None,
+        frames=frames,
+        name=name,
+        source_fps=source_fps,
+        up=up,
+        table_height=table_height,
+    )
+    click.echo(str(co.convert_oakink2(seq, mano_dir, out, oakink2_root, object_dir, opts)))
