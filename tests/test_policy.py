@@ -190,3 +190,48 @@ def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:
                         timeout=900)  # fmt: skip
     assert r2.returncode == 0 and "from the start" not in r2.stdout
     assert (out / path.stem / "ours+residual" / "eval" / "metrics.json").stat().st_mtime_ns == before
+
+
+def test_dgrasp_base_trains_on_its_guide_and_is_judged_on_the_clip(clip, tmp_path) -> None:
+    """dgrasp-base on a cube lift whose fingers slide up the faces after the grasp: the policy trains against
+    the guide (the first grasp carried with the cube), resumes, and is judged against the clip itself."""
+    import dataclasses
+
+    from quasisim.data.demo import load_demo, save_demo
+    from quasisim.eval.evaluate import scene_surface
+    from quasisim.eval.metrics import evaluate_rollout
+    from quasisim.policy.evaluate import evaluate_policy
+    from quasisim.policy.train import TrainSetup, training_task
+
+    path, demo = clip[0], clip[1]
+    shutil.copytree(path.parent / "meshes", tmp_path / "meshes")
+    slide = np.zeros_like(demo.right_joints)
+    slide[11:, :, 2] = 0.002 * np.arange(1, demo.n_frames - 10)[:, None]
+    mesh = tmp_path / "meshes" / demo.object_mesh_path.name
+    sliding = save_demo(dataclasses.replace(demo, right_joints=demo.right_joints + slide, object_mesh_path=mesh),
+                        tmp_path / "slide.npz")  # fmt: skip
+    out = tmp_path / "base"
+    refused = _cli("train", sliding, "--method", "dgrasp-base", "--residual", out, "--steps", 64, "--out", out,
+                   ok=False)  # fmt: skip
+    assert refused.returncode == 2 and "ours+residual" in refused.stderr and "Traceback" not in refused.stderr
+    one = ["--set", "ppo.n_envs=1", "--set", "ppo.validate_worlds=1"]  # one process, one validation world
+    _cli("train", sliding, "--method", "dgrasp-base", "--steps", 64, "--out", out, *TINY, *one)
+    assert json.loads((out / "checkpoint.json").read_text())["steps"] == 64
+    _cli("train", sliding, "--steps", 128, "--out", out, "--resume", "--no-progress")
+    setup = TrainSetup.read(out)
+    assert setup.method == "dgrasp-base" and setup.guide == str((out / "guide.npz").resolve())
+    assert json.loads((out / "guide.json").read_text())["hands"]["right"] == {"grasp_frame": 10,
+                                                                              "rule": "force closure"}  # fmt: skip
+    assert json.loads((out / "training.json").read_text())["env_steps"] == 128
+    clip_demo, guide = load_demo(sliding), load_demo(out / "guide.npz")
+    assert np.abs(guide.right_joints - clip_demo.right_joints)[11:].max() > 0.01  # the guide holds the grasp
+    task, _ = training_task(out, setup)
+    np.testing.assert_array_equal(task.demo.right_joints, guide.right_joints)  # trained against the guide
+    ev = evaluate_policy(out, tmp_path / "ev", 1)
+    judged = {
+        name: evaluate_rollout(d, ev.rollout, scene_surface(ev.scene, ev.rollout.qpos))[0]["MPJPE_mm"]
+        for name, d in (("clip", clip_demo), ("guide", guide))
+    }
+    assert ev.metrics["MPJPE_mm"] == judged["clip"] != judged["guide"]  # judged against the clip
+    m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert m["policy"]["method"] == "dgrasp-base" and m["robust_closed_loop"]["n"] == 1

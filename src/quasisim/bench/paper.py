@@ -55,7 +55,7 @@ class PaperRow:
 OURS_BULLET: Figures = (24.21, 1.97, 24.40, 9.85, 27.45, 37.25, 58.82)  # the paper's method, in both tables
 
 ROWS: tuple[PaperRow, ...] = (
-    PaperRow("main", "DGrasp-Base", None, None, (44.24, 5.82, 40.55, 16.37, 0, 13.73, 15.69),
+    PaperRow("main", "DGrasp-Base", None, "dgrasp-base", (44.24, 5.82, 40.55, 16.37, 0, 13.73, 15.69),
              (36.41, 4.56, 50.97, 18.78, 0, 7.84, 7.84)),
     PaperRow("main", "DGrasp-Tracking", None, "dgrasp-tracking", (44.45, 5.04, 37.56, 14.72, 0, 15.69, 15.69),
              (44.71, 5.57, 41.53, 16.72, 0, 0, 7.84)),

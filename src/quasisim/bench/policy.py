@@ -1,7 +1,8 @@
 """``quasisim bench policy``: learned tracking policies beside our results, clip by clip, in one table.
 
-For every clip: ``ours+residual`` (PPO residual on our result, :mod:`quasisim.policy`) and ``dgrasp-tracking``
-(PPO from scratch, the kinematic retarget observed) trained to ``steps`` env steps in
+For every clip: ``ours+residual`` (PPO residual on our result, :mod:`quasisim.policy`), ``dgrasp-tracking``
+(PPO from scratch, the kinematic retarget observed) and, where asked, ``dgrasp-base`` (PPO from scratch, the
+first grasp then only the root guided, :mod:`quasisim.policy.dgrasp`) trained to ``steps`` env steps in
 ``OUT/<clip>/<method>/train`` (resumed where a checkpoint is, skipped where finished) and judged in
 ``OUT/<clip>/<method>/eval`` (the best validated model) and ``eval-final`` (the last one); our result (``RUNS/<clip>/<run>``) open loop (its metrics.json) and closed loop
 (the tracker of :mod:`quasisim.method.track`, cached beside the run by :func:`quasisim.bench.closed_loop.add_closed_loop`).
@@ -20,7 +21,7 @@ from quasisim.errors import QuasisimError
 from quasisim.eval.robust import CLOSED_LOOP_SUFFIX, ROBUST_KEY
 from quasisim.eval.tables import header, publish
 
-POLICY_METHODS = ("ours+residual", "dgrasp-tracking")
+POLICY_METHODS = ("ours+residual", "dgrasp-tracking", "dgrasp-base")  # --methods (default: the first two)
 
 
 def _train(clip: Path, folder: Path, method: str, ours: Path, steps: int, seed: int) -> dict[str, Any]:
@@ -32,7 +33,8 @@ def _train(clip: Path, folder: Path, method: str, ours: Path, steps: int, seed: 
         return json.loads(done.read_text())
     resume = (folder / CHECKPOINT).is_file()
     if not resume:
-        prepare(clip, folder, ours if method == "ours+residual" else None, "shadow", "mujoco", seed, {}, {})
+        residual = ours if method == "ours+residual" else None
+        prepare(clip, folder, residual, "shadow", "mujoco", seed, {}, {}, "dgrasp-tracking" if residual else method)
     print(f"{clip.stem}: {method}, {'resumed' if resume else 'from the start'}, up to {steps} env steps", flush=True)
     return train(folder, steps, resume=resume, progress=False)
 
@@ -55,7 +57,7 @@ def _evaluate(train_dir: Path, eval_dir: Path, robust: int, which: str) -> dict[
 
 def run_policy_bench(
     data_dir: Path, clips: list[str], runs: Path, run: str, steps: int, robust: int, workers: int, out: Path,
-    methods: tuple[str, ...] = POLICY_METHODS, seed: int = 0,
+    methods: tuple[str, ...] = POLICY_METHODS[:2], seed: int = 0,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """Train, judge and tabulate (see the module docstring); returns the rows (also ``OUT/policy.json``)."""
     from quasisim.bench.closed_loop import add_closed_loop

@@ -225,7 +225,8 @@ def _layout(text: str) -> Layout:
 @click.option("--robust", type=click.IntRange(1, 1000), default=8, show_default=True, help="Perturbed worlds.")
 @click.option("--workers", type=click.IntRange(1), default=2, show_default=True,
               help="Processes for the closed-loop replays of ours.")  # fmt: skip
-@click.option("--methods", default="ours+residual,dgrasp-tracking", show_default=True, help="Policies to train.")
+@click.option("--methods", default="ours+residual,dgrasp-tracking", show_default=True,
+              help="Policies to train (also: dgrasp-base).")  # fmt: skip
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/policy"), show_default=True)
 @_friendly
 def bench_policy(

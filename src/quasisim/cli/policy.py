@@ -44,7 +44,14 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
     type=click.Path(path_type=Path),
     default=None,
     help="Our result (run folder or controls.npz): train a residual on its PD targets (ours+residual). "
-    "Without it: dgrasp-tracking, PPO from scratch on the measured pose, the kinematic retarget observed.",
+    "Without it: a DGrasp baseline (--method), PPO from scratch on the measured pose.",
+)
+@click.option(
+    "--method",
+    type=click.Choice(["dgrasp-tracking", "dgrasp-base"]),
+    default=None,
+    help="Without --residual: dgrasp-tracking (default; the kinematic retarget observed at every frame) or "
+    "dgrasp-base (the first grasp frame's grasp, then only the root guided along the object's path).",
 )
 @click.option("--hand", default="shadow", show_default=True, help="Robot hand without --residual.")
 @click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)
@@ -65,7 +72,7 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
 @_OVERWRITE
 @_friendly
 def policy_train(
-    clip: Path, algo: str, residual: Path | None, hand: str, target: str, steps: int, out: Path, seed: int,
+    clip: Path, algo: str, residual: Path | None, method: str | None, hand: str, target: str, steps: int, out: Path, seed: int,
     sets: tuple[str, ...], resume: bool, progress: bool, overwrite: bool,
 ) -> None:  # fmt: skip
     """Train a tracking policy for CLIP in OUT (setup.json, checkpoints, logs/, policy.zip, training.json)."""
@@ -74,6 +81,9 @@ def policy_train(
     from quasisim.files import check_out_dir, run_lock
     from quasisim.policy.train import SETUP, TrainSetup, clear, prepare, train
 
+    if method is not None and residual is not None:
+        raise QuasisimError(f"--method {method} with --residual: a residual policy is ours+residual; "
+                            "the DGrasp baselines train from scratch (no --residual)")  # fmt: skip
     if resume and sets:
         raise QuasisimError(f"--set with --resume: a resumed training continues with the stored settings "
                             f"({out / SETUP}); to change them, start again with --overwrite")  # fmt: skip
@@ -88,7 +98,7 @@ def policy_train(
                 raise QuasisimError(f"{out} holds a training already: --resume to continue it, --overwrite to restart")
             clear(out)  # everything of the previous training: its best model and validation too
             env_o, ppo_o = _split_sets(sets)
-            setup = prepare(clip, out, residual, hand, target, seed, env_o, ppo_o)
+            setup = prepare(clip, out, residual, hand, target, seed, env_o, ppo_o, method or "dgrasp-tracking")
         click.echo(f"{setup.method} on {Path(setup.clip).stem} in {setup.target}: up to {steps} env steps")
         info = train(out, steps, resume=resume, progress=progress)
     click.echo(f"wrote {out / 'policy.zip'}: {info['env_steps']} env steps in {info['wall_s']:.0f} s")

@@ -1,7 +1,8 @@
 """Judge a trained policy like every other result: replayed closed loop in the target, the same metrics, and
 robust success in the same seeded perturbed worlds (:mod:`quasisim.eval.robust`).
 
-The policy acts through :class:`~quasisim.policy.controller.LearnedPolicy` (its mean action, closed loop).
+The policy acts through :class:`~quasisim.policy.controller.LearnedPolicy` (its mean action, closed loop); it
+observes the demo it trained against (DGrasp-Base: its guide), and is judged against the clip.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "
     policy's training cost under ``policy``). Returns the :class:`~quasisim.eval.evaluate.Evaluation`."""
     import json
 
+    from quasisim.data.demo import load_demo
     from quasisim.eval.evaluate import Evaluation, mark_stability, scene_surface, write_outputs
     from quasisim.eval.metrics import evaluate_rollout
     from quasisim.eval.robust import replay, replays, robust_success
@@ -53,7 +55,7 @@ def evaluate_policy(folder: Path, out: Path | None, robust: int, ranges: str = "
     from quasisim.targets import make_target
 
     setup, task, model, reference = load_trained(folder, which)
-    demo, scene = task.demo, task.scene
+    demo, scene = load_demo(setup.clip) if setup.guide else task.demo, task.scene  # judged against the clip
     ctl = LearnedPolicy(task, model)
     with make_target(setup.target, scene) as world:
         rollout = replay(world, task.reference, ctl)

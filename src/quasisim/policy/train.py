@@ -4,7 +4,11 @@ A training folder ``OUT`` holds:
 
 * ``setup.json``: what is trained (:class:`TrainSetup`: the clip, the method, the target, the settings);
 * ``reference.npz``: the reference PD targets: our result (``ours+residual``) or the kinematic retarget
-  (``dgrasp-tracking``, which acts on the measured pose and sees the reference only in its observation);
+  (``dgrasp-tracking``, which acts on the measured pose and sees the reference only in its observation;
+  ``dgrasp-base``: the retarget of its guide);
+* ``guide.npz`` + ``guide.json`` (``dgrasp-base`` only): the demo as DGrasp sees it, its first grasp carried
+  with the object (:mod:`quasisim.policy.dgrasp`), and each hand's grasp frame: the policy trains and is
+  observed against the guide, and judged against the clip;
 * ``checkpoint.zip`` + ``checkpoint.json``: the model and the steps and seconds so far, written atomically
   every ``checkpoint_every`` env steps and at the end, with the training worlds each environment has drawn;
   ``--resume`` continues from them, each environment's sequence of worlds where it stopped (``PPO.load`` seeds
@@ -30,11 +34,27 @@ import numpy as np
 from quasisim.errors import InputError, QuasisimError
 from quasisim.files import atomic_path, save_json_atomic
 
-METHODS = {"dgrasp-tracking": False, "ours+residual": True}  # method -> residual actions
+METHODS = {"dgrasp-tracking": False, "dgrasp-base": False, "ours+residual": True}  # method -> residual actions
+FROM_SCRATCH = ("dgrasp-tracking", "dgrasp-base")  # the methods without our result (train --method)
 SETUP, REFERENCE, CHECKPOINT, POLICY = "setup.json", "reference.npz", "checkpoint.zip", "policy.zip"
+GUIDE, GUIDE_INFO = "guide.npz", "guide.json"  # dgrasp-base's demo as DGrasp sees it, and its grasp frames
+DGRASP_MU = 1.0  # the friction coefficient of DGrasp-Base's force-closure test: the targets' (PhysicsOptions)
 CHECKPOINT_META, TRAINING, LOGS = "checkpoint.json", "training.json", "logs"
 BEST, VALIDATION = "best.zip", "validation.json"  # the best validated model (Selector)
-OUTPUTS = (SETUP, REFERENCE, CHECKPOINT, CHECKPOINT_META, LOGS, BEST, VALIDATION, POLICY, TRAINING)  # all of a run
+OUTPUTS = (
+    SETUP,
+    REFERENCE,
+    GUIDE,
+    GUIDE_INFO,
+    "meshes",
+    CHECKPOINT,
+    CHECKPOINT_META,
+    LOGS,
+    BEST,
+    VALIDATION,
+    POLICY,
+    TRAINING,
+)  # all of a run
 
 
 @dataclass(frozen=True)
@@ -49,10 +69,16 @@ class TrainSetup:
     algo: str = "ppo"
     env_overrides: dict[str, Any] = field(default_factory=dict)
     ppo_overrides: dict[str, Any] = field(default_factory=dict)
+    guide: str = ""  # the demo the policy trains against, where not the clip (dgrasp-base: guide.npz)
 
     @property
     def residual(self) -> bool:
         return METHODS[self.method]
+
+    @property
+    def trained_on(self) -> str:
+        """The demo the policy trains and is observed against: the guide, else the clip."""
+        return self.guide or self.clip
 
     @classmethod
     def read(cls, out: Path) -> TrainSetup:
@@ -68,20 +94,25 @@ class TrainSetup:
 
 def prepare(
     clip: Path, out: Path, residual_run: Path | None, hand: str, target: str, seed: int,
-    env_overrides: dict[str, Any], ppo_overrides: dict[str, Any],
+    env_overrides: dict[str, Any], ppo_overrides: dict[str, Any], method: str = "dgrasp-tracking",
 ) -> TrainSetup:  # fmt: skip
     """Write ``setup.json`` and ``reference.npz`` into ``out``: our result's controls (``residual_run``, a run
-    folder or controls.npz) or, without one, the kinematic retarget of ``clip`` to ``hand``. The settings are
-    validated here, before any process starts."""
-    from quasisim.data.demo import load_demo
+    folder or controls.npz: ``ours+residual``) or, without one, the kinematic retarget to ``hand`` of ``clip``
+    (``method`` ``dgrasp-tracking``) or of its DGrasp-Base guide (``dgrasp-base``, with ``guide.npz`` and
+    ``guide.json``). The settings are validated here, before any process starts."""
+    from quasisim.data.demo import load_demo, save_demo
     from quasisim.envs.config import TrackEnvConfig
     from quasisim.envs.track import load_reference
     from quasisim.eval.evaluate import check_controls, hands_of
     from quasisim.policy.config import PPOConfig
 
-    TrackEnvConfig.from_yaml(None, env_overrides)
+    if method not in FROM_SCRATCH:
+        from quasisim.errors import choice_error
+
+        raise choice_error("method", method, FROM_SCRATCH)
+    env_cfg = TrackEnvConfig.from_yaml(None, env_overrides)
     PPOConfig.from_yaml(None, ppo_overrides)
-    demo = load_demo(clip)
+    demo, guide = load_demo(clip), ""
     if residual_run is not None:
         controls, path = load_reference(residual_run)
         check_controls(demo, controls, hands_of(controls, path), path)
@@ -90,12 +121,34 @@ def prepare(
         from quasisim.method.retarget import kinematic_controls
         from quasisim.targets.build import demo_hands
 
+        source = f"kinematic retarget to {hand}"
+        if method == "dgrasp-base":
+            from quasisim.policy.dgrasp import grasp_guide
+
+            demo, info = grasp_guide(demo, env_cfg.contact_radius, DGRASP_MU)
+            demo = _with_mesh_in(demo, out / "meshes")
+            save_demo(demo, out / GUIDE)
+            save_json_atomic(out / GUIDE_INFO, {"mu": DGRASP_MU, "radius": env_cfg.contact_radius, "hands": info})
+            guide, source = str((out / GUIDE).resolve()), f"{source}, of the DGrasp-Base guide ({GUIDE})"
         controls = kinematic_controls(demo_hands(hand, demo.sides), demo, hand)
-        method, source = "dgrasp-tracking", f"kinematic retarget to {hand}"
     controls.save(out / REFERENCE)
-    setup = TrainSetup(str(Path(clip).resolve()), method, target, source, seed, "ppo", env_overrides, ppo_overrides)
+    setup = TrainSetup(str(Path(clip).resolve()), method, target, source, seed, "ppo", env_overrides, ppo_overrides,
+                       guide)  # fmt: skip
     save_json_atomic(out / SETUP, asdict(setup))
     return setup
+
+
+def _with_mesh_in(demo: Any, folder: Path) -> Any:
+    """``demo`` with its object mesh copied into ``folder`` (a demo .npz finds its mesh in ``meshes/`` beside)."""
+    import dataclasses
+    import shutil
+
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh = folder / demo.object_mesh_path.name
+    if not mesh.is_file():
+        with atomic_path(mesh) as tmp:
+            shutil.copyfile(demo.object_mesh_path, tmp)
+    return dataclasses.replace(demo, object_mesh_path=mesh.resolve())
 
 
 def clear(out: Path) -> None:
@@ -116,21 +169,22 @@ def make_env(out: Path, setup: TrainSetup) -> Any:
 
         import quasisim.envs
 
-        return gym.make(quasisim.envs.TRACK_ID, clip=setup.clip, reference=out / REFERENCE,
+        return gym.make(quasisim.envs.TRACK_ID, clip=setup.trained_on, reference=out / REFERENCE,
                         residual=setup.residual, target=setup.target, overrides=setup.env_overrides)  # fmt: skip
 
     return thunk
 
 
 def training_task(out: Path, setup: TrainSetup) -> tuple[Any, Any]:
-    """The :class:`~quasisim.envs.task.TrackTask` of training folder ``out`` and its reference controls."""
+    """The :class:`~quasisim.envs.task.TrackTask` of training folder ``out`` (on the demo it trains against,
+    :attr:`TrainSetup.trained_on`) and its reference controls."""
     from quasisim.data.demo import load_demo
     from quasisim.envs.config import TrackEnvConfig
     from quasisim.envs.track import load_reference, task_for
 
     controls, path = load_reference(out / REFERENCE)
     cfg = TrackEnvConfig.from_yaml(None, setup.env_overrides)
-    return task_for(load_demo(setup.clip), controls, cfg, setup.residual, path), controls
+    return task_for(load_demo(setup.trained_on), controls, cfg, setup.residual, path), controls
 
 
 class Selector:
