@@ -235,3 +235,19 @@ def test_dgrasp_base_trains_on_its_guide_and_is_judged_on_the_clip(clip, tmp_pat
     assert ev.metrics["MPJPE_mm"] == judged["clip"] != judged["guide"]  # judged against the clip
     m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert m["policy"]["method"] == "dgrasp-base" and m["robust_closed_loop"]["n"] == 1
+
+
+def test_bench_policy_reads_our_metrics_from_the_batch_where_the_run_folder_has_none(tmp_path) -> None:
+    """A folder of bench transfer whose outputs stayed on another machine keeps clip.json and the plan only."""
+    from quasisim.bench.policy import _our_metrics
+    from quasisim.errors import QuasisimError
+
+    clip_dir = tmp_path / "grab_x"
+    (clip_dir / "cascade").mkdir(parents=True)
+    row = {"success": {"strict": True}, "robust": {"n": 8}}
+    (clip_dir / "clip.json").write_text(json.dumps({"clip": "grab_x", "runs": {"cascade": {"row": {"metrics": row}}}}))
+    assert _our_metrics(clip_dir, "cascade") == row
+    (clip_dir / "cascade" / "metrics.json").write_text(json.dumps({"success": {"strict": False}}))
+    assert _our_metrics(clip_dir, "cascade") == {"success": {"strict": False}}  # the run's own file first
+    with pytest.raises(QuasisimError, match="no run 'ours'"):
+        _our_metrics(clip_dir, "ours")

@@ -73,7 +73,7 @@ def run_policy_bench(
             for which, label, sub in (("best", method, "eval"), ("final", f"{method} (final model)", "eval-final")):
                 m = _evaluate(folder / "train", folder / sub, robust, which)
                 rows.append(_row(c, label, m, m[ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))
-    ours = [{"clip": c, "method": run} | json.loads((runs / c / run / "metrics.json").read_text()) for c in clips]
+    ours = [{"clip": c, "method": run} | _our_metrics(runs / c, run) for c in clips]
     ours = add_closed_loop(ours, runs, {c: data_dir / f"{c}.npz" for c in clips}, robust, ("default",), "mujoco",
                            workers)  # fmt: skip
     for m in ours:
@@ -83,6 +83,19 @@ def run_policy_bench(
         rows.append(_row(m["clip"], f"ours ({run}) closed loop", None, m[ROBUST_KEY + CLOSED_LOOP_SUFFIX], None))
     publish(out, "policy", rows, _markdown(rows, steps, robust))
     return rows
+
+
+def _our_metrics(clip_dir: Path, run: str) -> dict[str, Any]:
+    """Our result's metrics: the run's ``metrics.json``, else its row in the clip's ``clip.json`` (a folder of
+    ``quasisim bench transfer`` whose outputs stayed on another machine keeps only that and the plan)."""
+    from quasisim.batch import CLIP_FILE
+
+    m, c = clip_dir / run / "metrics.json", clip_dir / CLIP_FILE
+    if m.is_file():
+        return json.loads(m.read_text())
+    if c.is_file() and run in (runs := json.loads(c.read_text())["runs"]):
+        return runs[run]["row"]["metrics"]
+    raise QuasisimError(f"{clip_dir / run}: no metrics.json, and {c} holds no run {run!r} (--runs and --run)")
 
 
 def _row(clip: str, method: str, m: dict | None, robust: dict, info: dict | None) -> dict[str, Any]:
