@@ -251,3 +251,18 @@ def test_bench_policy_reads_our_metrics_from_the_batch_where_the_run_folder_has_
     assert _our_metrics(clip_dir, "cascade") == {"success": {"strict": False}}  # the run's own file first
     with pytest.raises(QuasisimError, match="no run 'ours'"):
         _our_metrics(clip_dir, "ours")
+
+
+def test_bench_policy_refuses_a_folder_trained_with_other_settings(tmp_path) -> None:
+    from dataclasses import asdict
+
+    from quasisim.bench.policy import _train
+    from quasisim.errors import QuasisimError
+    from quasisim.policy.train import SETUP, TrainSetup
+
+    folder = tmp_path / "train"
+    folder.mkdir()
+    setup = TrainSetup("clip.npz", "dgrasp-tracking", "mujoco", "kinematic", ppo_overrides={"log_std_init": -2.5})
+    (folder / SETUP).write_text(json.dumps(asdict(setup)))
+    with pytest.raises(QuasisimError, match="another --out"):
+        _train(tmp_path / "clip.npz", folder, "dgrasp-tracking", tmp_path, 64, 0, ({}, {}))

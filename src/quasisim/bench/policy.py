@@ -24,17 +24,26 @@ from quasisim.eval.tables import header, publish
 POLICY_METHODS = ("ours+residual", "dgrasp-tracking", "dgrasp-base")  # --methods (default: the first two)
 
 
-def _train(clip: Path, folder: Path, method: str, ours: Path, steps: int, seed: int) -> dict[str, Any]:
-    """Train (or resume, or skip where finished) one policy; its ``training.json``."""
-    from quasisim.policy.train import CHECKPOINT, prepare, train
+Overrides = tuple[dict[str, Any], dict[str, Any]]  # (env, ppo) settings of every policy (--set)
 
+
+def _train(clip: Path, folder: Path, method: str, ours: Path, steps: int, seed: int, sets: Overrides) -> dict[str, Any]:
+    """Train (or resume, or skip where finished) one policy; its ``training.json``. A folder trained with other
+    settings than ``sets`` is refused."""
+    from quasisim.policy.train import CHECKPOINT, SETUP, TrainSetup, prepare, train
+
+    if (folder / SETUP).is_file():
+        old = TrainSetup.read(folder)
+        if (old.env_overrides, old.ppo_overrides) != sets:
+            raise QuasisimError(f"{folder}: trained with --set {old.env_overrides} {old.ppo_overrides}, not "
+                                f"{sets[0]} {sets[1]}; another --out for other settings")  # fmt: skip
     done = folder / "training.json"
     if done.is_file() and json.loads(done.read_text())["env_steps"] >= steps:
         return json.loads(done.read_text())
     resume = (folder / CHECKPOINT).is_file()
     if not resume:
         residual = ours if method == "ours+residual" else None
-        prepare(clip, folder, residual, "shadow", "mujoco", seed, {}, {}, "dgrasp-tracking" if residual else method)
+        prepare(clip, folder, residual, "shadow", "mujoco", seed, *sets, "dgrasp-tracking" if residual else method)
     print(f"{clip.stem}: {method}, {'resumed' if resume else 'from the start'}, up to {steps} env steps", flush=True)
     return train(folder, steps, resume=resume, progress=False)
 
@@ -57,7 +66,7 @@ def _evaluate(train_dir: Path, eval_dir: Path, robust: int, which: str) -> dict[
 
 def run_policy_bench(
     data_dir: Path, clips: list[str], runs: Path, run: str, steps: int, robust: int, workers: int, out: Path,
-    methods: tuple[str, ...] = POLICY_METHODS[:2], seed: int = 0,
+    methods: tuple[str, ...] = POLICY_METHODS[:2], seed: int = 0, overrides: Overrides = ({}, {}),
 ) -> list[dict[str, Any]]:  # fmt: skip
     """Train, judge and tabulate (see the module docstring); returns the rows (also ``OUT/policy.json``)."""
     from quasisim.bench.closed_loop import add_closed_loop
@@ -69,7 +78,7 @@ def run_policy_bench(
     for method in methods:
         for c in clips:
             folder = out / c / method
-            info = _train(data_dir / f"{c}.npz", folder / "train", method, runs / c / run, steps, seed)
+            info = _train(data_dir / f"{c}.npz", folder / "train", method, runs / c / run, steps, seed, overrides)
             for which, label, sub in (("best", method, "eval"), ("final", f"{method} (final model)", "eval-final")):
                 m = _evaluate(folder / "train", folder / sub, robust, which)
                 rows.append(_row(c, label, m, m[ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))

@@ -227,15 +227,18 @@ def _layout(text: str) -> Layout:
               help="Processes for the closed-loop replays of ours.")  # fmt: skip
 @click.option("--methods", default="ours+residual,dgrasp-tracking", show_default=True,
               help="Policies to train (also: dgrasp-base).")  # fmt: skip
+@click.option("--set", "sets", multiple=True,
+              help="A setting of every policy trained: env.KEY=V (configs/track_env.yaml), ppo.KEY=V "
+                   "(configs/ppo.yaml); a folder trained with other settings is refused.")  # fmt: skip
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/policy"), show_default=True)
 @_friendly
 def bench_policy(
     data_dir: Path, clip_names: str, runs: Path, run: str, steps: int, robust: int, workers: int, methods: str,
-    out: Path,
+    sets: tuple[str, ...], out: Path,
 ) -> None:  # fmt: skip
     """Learned tracking policies (ours+residual, dgrasp-tracking) beside ours open and closed loop, per clip;
     resumable (finished policies are kept, unfinished ones resume from their checkpoints)."""
-    from quasisim.cli.policy import _need_rl
+    from quasisim.cli.policy import _need_rl, _split_sets
 
     _need_rl()
     _outputs_free(out)
@@ -248,7 +251,8 @@ def bench_policy(
         if m not in POLICY_METHODS:
             raise choice_error("--methods entry", m, POLICY_METHODS)
     names = [c.strip() for c in clip_names.split(",") if c.strip()]
-    run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen)
+    env_o, ppo_o = _split_sets(sets)
+    run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen, overrides=(env_o, ppo_o))
 
 
 @bench.command("paper")
