@@ -424,6 +424,59 @@ def test_a_low_observation_gain_filters_the_sensors_noise(clip, sampled) -> None
     assert err_est < 0.6 * err_obs, (err_est, err_obs)
 
 
+@pytest.mark.parametrize("ratio", [0.0, 0.1, 1.0])
+def test_a_learned_gain_finds_the_kalman_gain_of_a_random_walk(ratio) -> None:
+    """A random walk (step variance q) seen through white noise (variance r), its model "the state stays": the
+    learned gain settles at the steady-state Kalman gain, ``k^2 / (1 - k) = q / r`` (0.27 for q / r = 0.1,
+    0.62 for 1), and stays at 1 for an exact sensor (r = 0)."""
+    from quasisim.method.track import learn_innovation
+
+    rng = np.random.default_rng(1)
+    q, r = (1.0, 0.0) if ratio == 0 else (ratio, 1.0)
+    x, est, s, ks = 0.0, 0.0, None, []
+    for _ in range(3000):
+        x += np.sqrt(q) * rng.standard_normal()
+        e = x + np.sqrt(r) * rng.standard_normal() - est  # the prediction: the last estimate
+        s = learn_innovation(s, np.array([e]), 0.98)
+        est += float(s.k[0]) * e
+        ks.append(float(s.k[0]))
+    k = float(np.mean(ks[1000:]))
+    optimum = 1.0 if r == 0 else (-ratio + np.sqrt(ratio**2 + 4 * ratio)) / 2
+    assert abs(k - optimum) < 0.1, (k, optimum)
+
+
+def test_learned_gains_filter_the_noisy_sensors_and_trust_the_exact_ones(clip, sampled) -> None:
+    """obs_adapt with 4 mm noise on the object's observed position (a 20-frame clip): its learned gain falls and
+    the estimate comes closer to the world than the observations; the object's velocity, observed without
+    noise, keeps a gain near 1."""
+    from quasisim.eval.robust import finger_columns
+    from quasisim.targets.perturb import Sensor
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    cfg = RobustConfig(n=1, obs_pos=0.004)
+    opts = dataclasses.replace(FAST, every=1, obs_adapt=True)
+    seen, est, true = [], [], []
+    with make_target("mujoco", scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        sensor = Sensor(cfg, 0, finger_columns(scene))
+        world.reset(q[0], (q[1] - q[0]) * scene.fps)
+        obs, prev = world.observe(), q[0]
+        shown = sensor.see(obs)
+        tr.start(shown)
+        for t in range(len(q) - 1):
+            nxt = tr.act(t, shown)
+            if t > 8:  # once the gains are learned
+                seen.append(shown["obj_pos"]), est.append(tr._est["obj_pos"]), true.append(obs["obj_pos"])
+            world.advance(prev, nxt)
+            prev, obs = nxt, world.observe()
+            shown = sensor.see(obs)
+        cost = tr.cost()
+    err_obs = np.linalg.norm(np.array(seen) - np.array(true), axis=1).mean()
+    err_est = np.linalg.norm(np.array(est) - np.array(true), axis=1).mean()
+    assert err_est < 0.85 * err_obs, (err_est, err_obs)
+    assert tr._gains[-1]["obj_pos"] < 0.8 and cost["gain_obj_vel"] > 0.9, (tr._gains[-1], cost)
+
+
 def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(clip, sampled) -> None:
     """lead 2: the re-plan that starts at frame t plans from the state predicted at t + 2 and leaves the targets
     of frames up to t + 2 as they were committed (a planner in its own thread cannot change what the controller

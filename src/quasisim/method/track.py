@@ -41,6 +41,16 @@ previous estimate advanced in the model through the target applied since, moved 
 observation by ``obs_gain`` (positions and velocities linearly, the object's orientation by spherical
 interpolation): a fixed-gain observer. 1 (default) takes every observation as it is.
 
+**Learning the sensors** (``obs_adapt``): the same observer with a gain per observed number, learned from the
+innovations ``e_t`` (the latency-corrected observation minus the model's prediction from the last estimate;
+the object's orientation as a rotation vector in its predicted frame). An observer with the optimal (Kalman)
+gain leaves white innovations; one that trusts a noisy sensor too much leaves them negatively correlated from
+frame to frame (the noise it took into its estimate returns with the opposite sign), one that trusts its model
+too much positively (its estimate lags). So each gain starts at 1 and moves by the innovations' correlation at
+lag 1, ``k <- k exp(ADAPT_RATE rho)`` in [:data:`MIN_GAIN`, 1], the averages decaying by ``obs_adapt_decay`` per
+frame, after :data:`WARMUP` frames (Mehra's whiteness test of an adaptive Kalman filter, used as a gradient).
+An exact sensor keeps its gain near 1; a noisy one's falls as far as its noise exceeds the model's error.
+
 **Learning the world** (``adapt``): the paper's stage 3, fitting the model to the target, done inside the loop.
 Beside the nominal model the tracker holds six more, each with one hidden parameter at an end of the training
 ranges (``configs/robust.yaml``: object mass, friction, PD gains, each times ``1 -+ range``). After every frame
@@ -61,7 +71,7 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -73,6 +83,8 @@ from quasisim.targets import Observation, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
 
 TRACK_PATH = Path(__file__).resolve().parent.parent / "configs" / "track.yaml"
+MIN_GAIN, WARMUP, ADAPT_RATE = 0.05, 5, 0.5  # obs_adapt: the lowest gain; frames before it learns; its rate
+LINEAR = ("qpos", "qvel", "obj_pos", "obj_vel", "obj_angvel")  # the observer's channels besides the orientation
 
 
 @dataclass(frozen=True)
@@ -97,7 +109,8 @@ class TrackOptions:
         adapt: choose the model among 7 by how well each predicted the observed transitions.  adapt_decay: the
             weight of the older errors in that score, in [0, 1).
         obs_gain: how far each observation moves the tracker's state estimate from its model's prediction, in
-            (0, 1] (1: the observation as it is).
+            (0, 1] (1: the observation as it is).  obs_adapt: a gain per observed number learned from the
+            innovations instead ("Learning the sensors").  obs_adapt_decay: the weight of older innovations.
         lead: frames a re-plan takes to act (0: within its control step; see "Planning beside the controller").
         keep: a candidate replaces the current plan's window only where its cost is below ``1 - keep`` times the
             current window's (0: the cheapest always), so that differences the model cannot resolve do not move
@@ -123,6 +136,8 @@ class TrackOptions:
     adapt: bool = False
     adapt_decay: float = 0.8
     obs_gain: float = 1.0
+    obs_adapt: bool = False
+    obs_adapt_decay: float = 0.9
     lead: int = 0
     keep: float = 0.0
     path: str = ""
@@ -145,15 +160,21 @@ class TrackOptions:
             raise InputError(where, "follow", "a list of fractions in [-2, 2]", repr(self.follow))
         if self.samples < 2 + len(self.follow):
             raise InputError(where, "samples", f"at least 2 + len(follow) = {2 + len(self.follow)}", repr(self.samples))
-        for name in ("shift", "adapt"):
+        for name in ("shift", "adapt", "obs_adapt"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(where, name, "true or false", repr(getattr(self, name)))
         if isinstance(self.obs_gain, bool) or not isinstance(self.obs_gain, int | float) or not 0 < self.obs_gain <= 1:
             raise InputError(where, "obs_gain", "a gain in (0, 1]", repr(self.obs_gain))
         if isinstance(self.keep, bool) or not isinstance(self.keep, int | float) or not 0 <= self.keep < 1:
             raise InputError(where, "keep", "a fraction in [0, 1)", repr(self.keep))
-        if not 0 <= self.adapt_decay < 1:
-            raise InputError(where, "adapt_decay", "a weight in [0, 1)", repr(self.adapt_decay))
+        for name in ("adapt_decay", "obs_adapt_decay"):
+            if not 0 <= getattr(self, name) < 1:
+                raise InputError(where, name, "a weight in [0, 1)", repr(getattr(self, name)))
+
+    @property
+    def filters(self) -> bool:
+        """Whether the tracker re-plans from its own state estimate (an observer) rather than the observation."""
+        return self.obs_gain < 1 or self.obs_adapt
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> TrackOptions:
@@ -200,6 +221,36 @@ def shift_weights(object_pos: np.ndarray, fade: float) -> np.ndarray:
         return np.ones(len(object_pos))
     travel = np.linalg.norm(object_pos - object_pos[0], axis=-1)
     return np.minimum.accumulate(np.clip(1 - travel / fade, 0, 1))
+
+
+class Innovations(NamedTuple):
+    """One observed quantity's innovations, per component (``obs_adapt``): the last one, the exponential
+    averages ``lag0`` ~ ``E[e_t^2]`` and ``lag1`` ~ ``E[e_t e_(t-1)]``, the gain ``k`` in use, ``n`` seen."""
+
+    last: np.ndarray
+    lag0: np.ndarray
+    lag1: np.ndarray
+    k: np.ndarray
+    n: int
+
+
+def learn_innovation(s: Innovations | None, e: np.ndarray, decay: float) -> Innovations:
+    """``s`` after innovation ``e`` (a new channel, gain 1, where ``s`` is None), its gain moved by the
+    innovations' correlation at lag 1, ``k <- k exp(ADAPT_RATE rho)``: a filter with the optimal gain leaves
+    white innovations (rho = 0); one trusting a noisy sensor too much leaves them negatively correlated (each
+    frame's noise, taken into the estimate, returns with the opposite sign in the next innovation), one
+    trusting its model too much positively (the estimate lags)."""
+    e = np.asarray(e, np.float64)
+    if s is None:
+        return Innovations(e, np.square(e), np.zeros_like(e), np.ones_like(e), 1)
+    mix = lambda old, new: decay * old + (1 - decay) * new  # noqa: E731
+    lag0, lag1 = mix(s.lag0, np.square(e)), mix(s.lag1, e * s.last)
+    k = s.k
+    if s.n >= WARMUP:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = np.where(lag0 > 0, lag1 / lag0, 0.0)
+        k = np.clip(k * np.exp(ADAPT_RATE * rho), MIN_GAIN, 1.0)
+    return Innovations(e, lag0, lag1, k, s.n + 1)
 
 
 def candidate_scenes(scene: Scene) -> list[Scene]:
@@ -255,6 +306,7 @@ class Tracker:
         self.step_seconds: list[float] = []  # wall time of every act() (s)
         self.replan_seconds: list[float] = []  # wall time of every re-plan (s)
         self.offset = np.zeros(3)  # the start shift of step 1 (m), set by start()
+        self._gains: list[dict[str, float]] = []  # obs_adapt: each frame's mean gain per channel
         self._work: np.ndarray | None = None
 
     def start(self, obs: Observation) -> None:
@@ -275,7 +327,9 @@ class Tracker:
         self._applied = self.plan[0].copy()
         self._history = [self._applied]  # the targets at the end of frames 0, 1, ... (as applied)
         self._last = obs  # the observation the models' next prediction starts from (adapt)
-        self._est = obs  # the state estimate (obs_gain < 1)
+        self._est = obs  # the state estimate (obs_gain < 1, obs_adapt)
+        self._innov: dict[str, Innovations] = {}  # obs_adapt: per channel
+        self._gains: list[dict[str, float]] = []  # obs_adapt: each frame's mean gain per channel
         for m in self.models:
             m.reset(self.plan[0])
 
@@ -286,11 +340,11 @@ class Tracker:
         every, t0 = self.opts.every, time.perf_counter()
         if self.opts.adapt and t > 0:
             self._learn(t, obs)
-        if self.opts.obs_gain < 1:
+        if self.opts.filters:
             self._est = self._filtered(t, self._now(t, obs))
         lead = self.opts.lead
         if every and t % every == 0 and t + lead < len(self.plan) - 1:
-            state = self._est if self.opts.obs_gain < 1 else self._now(t, obs)
+            state = self._est if self.opts.filters else self._now(t, obs)
             if lead:  # the state when the re-plan will act, through the targets committed until then
                 state = self._predicted(self.model, state, t, t + lead, self._work)
             t1 = time.perf_counter()
@@ -319,19 +373,28 @@ class Tracker:
         self.model = self.models[int(np.argmin(self.scores))]
 
     def _filtered(self, t: int, now: Observation) -> Observation:
-        """``obs_gain`` < 1: the estimate at frame ``t``: the last one advanced in the model through the target
-        applied since, moved toward the (latency-corrected) observation ``now`` by ``obs_gain``."""
+        """The estimate at frame ``t``: the last one advanced in the model through the target applied since, moved
+        toward the (latency-corrected) observation ``now`` by ``obs_gain``, or by the gains learned from the
+        innovations (``obs_adapt``); the orientation turned by the gain times its innovation's rotation vector
+        (``obs_gain``: the spherical interpolation)."""
         if t == 0:
             return now
-        from scipy.spatial.transform import Rotation, Slerp
+        from scipy.spatial.transform import Rotation
 
-        pred, k = self._predicted(self.model, self._est, t - 1, t), self.opts.obs_gain
-        est = {
-            key: pred[key] + k * (np.asarray(now[key]) - pred[key])
-            for key in ("qpos", "qvel", "obj_pos", "obj_vel", "obj_angvel")
-        }
-        xyzw = Rotation.from_quat([np.roll(pred["obj_quat"], -1), np.roll(np.asarray(now["obj_quat"]), -1)])
-        est["obj_quat"] = np.roll(Slerp([0.0, 1.0], xyzw)(k).as_quat(), 1)
+        xyzw = lambda q: Rotation.from_quat(np.roll(np.asarray(q, np.float64), -1))  # noqa: E731
+        pred = self._predicted(self.model, self._est, t - 1, t)
+        e = {key: np.asarray(now[key], np.float64) - pred[key] for key in LINEAR}
+        e["obj_rot"] = (xyzw(pred["obj_quat"]).inv() * xyzw(now["obj_quat"])).as_rotvec()
+        if self.opts.obs_adapt:
+            decay = self.opts.obs_adapt_decay
+            self._innov = {c: learn_innovation(self._innov.get(c), v, decay) for c, v in e.items()}
+            k = {c: s.k for c, s in self._innov.items()}
+            self._gains.append({c: float(np.mean(v)) for c, v in k.items()})
+        else:
+            k = dict.fromkeys(e, self.opts.obs_gain)
+        est = {key: pred[key] + k[key] * e[key] for key in LINEAR}
+        turn = xyzw(pred["obj_quat"]) * Rotation.from_rotvec(k["obj_rot"] * e["obj_rot"])
+        est["obj_quat"] = np.roll(turn.as_quat(), 1)
         return {**pred, **est}
 
     def _now(self, t: int, obs: Observation) -> Observation:
@@ -394,10 +457,12 @@ class Tracker:
     def cost(self) -> dict[str, float]:
         """What tracking cost so far: seconds re-planning, re-plans, the share of the clip's steps that
         re-planned, physics steps in the model, and the median and 95th percentile of the time per control
-        step (ms, :meth:`act`'s wall time) and of the time per re-plan (ms)."""
+        step (ms, :meth:`act`'s wall time) and of the time per re-plan (ms); with ``obs_adapt``, each channel's
+        learned gain (``gain_<channel>``, its components' mean over the frames)."""
         ms = 1e3 * np.asarray(self.step_seconds or [0.0])
         rp = 1e3 * np.asarray(self.replan_seconds or [0.0])
-        return {
+        learned = {f"gain_{c}": float(np.mean([g[c] for g in self._gains])) for c in (self._gains or [{}])[0]}
+        return learned | {
             "replan_seconds": self.seconds, "replans": float(self.replans),
             "replan_share": self.replans / max(len(self.plan) - 1, 1), "physics_steps": float(self.physics_steps),
             "step_ms_p50": float(np.median(ms)), "step_ms_p95": float(np.percentile(ms, 95)),
