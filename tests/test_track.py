@@ -513,19 +513,25 @@ def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(c
 
 
 def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() -> None:
-    """Settings added to the tracker later (``lead``, ``keep``, ``shift_fade``) stay out of the cache key at their defaults, so
-    the 25-clip caches of BENCHMARKS.md, made before they existed, still match; set, they make caches of their
-    own."""
+    """Settings added to the tracker later (``lead``, ``keep``, ``shift_fade``, ``obs_adapt``) stay out of the cache
+    key at their defaults, so the caches of BENCHMARKS.md, made before they existed, still match (the default
+    tracker's in the 8 default worlds: ``af3385856ff8``, tracked in benchmarks/runs/grab25-cascade-b); set, they
+    make caches of their own."""
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
+    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay")
     assert cl._track_dict(TrackOptions()) == {
-        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", "lead", "keep", "shift_fade")
+        k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", *later)
     }
-    variants = [TrackOptions(), TrackOptions(lead=2), TrackOptions(keep=0.1), TrackOptions(shift_fade=0.03)]
-    for o, (k, v) in zip(variants[1:], (("lead", 2), ("keep", 0.1), ("shift_fade", 0.03)), strict=True):
+    default = cl.settings(8, "default", cl._track_dict(TrackOptions.from_yaml()), "mujoco")
+    assert cl.cache_name(default) == "robust_closed_loop-af3385856ff8.json"
+    variants = [TrackOptions(), TrackOptions(lead=2), TrackOptions(keep=0.1), TrackOptions(shift_fade=0.03),
+                TrackOptions(obs_adapt=True)]  # fmt: skip
+    changed = (("lead", 2), ("keep", 0.1), ("shift_fade", 0.03), ("obs_adapt", True))
+    for o, (k, v) in zip(variants[1:], changed, strict=True):
         assert cl._track_dict(o)[k] == v
-    assert len({cl.cache_name({**old, "track": cl._track_dict(o)}) for o in variants}) == 4
+    assert len({cl.cache_name({**old, "track": cl._track_dict(o)}) for o in variants}) == 5
 
 
 @pytest.mark.parametrize("keep", [0.0, 0.999999])
