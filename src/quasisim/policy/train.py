@@ -41,20 +41,8 @@ GUIDE, GUIDE_INFO = "guide.npz", "guide.json"  # dgrasp-base's demo as DGrasp se
 DGRASP_MU = 1.0  # the friction coefficient of DGrasp-Base's force-closure test: the targets' (PhysicsOptions)
 CHECKPOINT_META, TRAINING, LOGS = "checkpoint.json", "training.json", "logs"
 BEST, VALIDATION = "best.zip", "validation.json"  # the best validated model (Selector)
-OUTPUTS = (
-    SETUP,
-    REFERENCE,
-    GUIDE,
-    GUIDE_INFO,
-    "meshes",
-    CHECKPOINT,
-    CHECKPOINT_META,
-    LOGS,
-    BEST,
-    VALIDATION,
-    POLICY,
-    TRAINING,
-)  # all of a run
+OUTPUTS = (SETUP, REFERENCE, GUIDE, GUIDE_INFO, "meshes", CHECKPOINT, CHECKPOINT_META, LOGS, BEST, VALIDATION, POLICY,
+           TRAINING)  # all of a run  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -127,7 +115,7 @@ def prepare(
 
             demo, info = grasp_guide(demo, env_cfg.contact_radius, DGRASP_MU)
             demo = _with_mesh_in(demo, out / "meshes")
-            save_demo(demo, out / GUIDE)
+            demo = load_demo(save_demo(demo, out / GUIDE))  # as the training reads it (float32 on disk)
             save_json_atomic(out / GUIDE_INFO, {"mu": DGRASP_MU, "radius": env_cfg.contact_radius, "hands": info})
             guide, source = str((out / GUIDE).resolve()), f"{source}, of the DGrasp-Base guide ({GUIDE})"
         controls = kinematic_controls(demo_hands(hand, demo.sides), demo, hand)
