@@ -395,16 +395,14 @@ def test_the_tracker_learns_the_gains_of_the_world_from_observed_transitions(cli
         assert chosen == 0
 
 
-def test_a_low_observation_gain_filters_the_sensors_noise(clip, sampled) -> None:
-    """obs_gain 0.3: the state the tracker re-plans from (its estimate: the model's prediction moved 30 % toward
-    each observation) is closer to the world's state than the noisy observations it was given."""
+def _sensed_replay(clip, sampled, opts: TrackOptions, cfg: RobustConfig, after: int) -> tuple[Tracker, float, float]:
+    """The plan tracked in the nominal world seen through ``cfg``'s sensor: the tracker, and the mean distance
+    (m) to the world's object position of its estimate and of the observations, over the frames after ``after``."""
     from quasisim.eval.robust import finger_columns
     from quasisim.targets.perturb import Sensor
 
     _, demo, _, scene = clip
     q, weights = sampled, TransferConfig.from_yaml().weights
-    cfg = RobustConfig(n=1, obs_pos=0.004)
-    opts = dataclasses.replace(FAST, every=1, obs_gain=0.3)
     seen, est, true = [], [], []
     with make_target("mujoco", scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
         sensor = Sensor(cfg, 0, finger_columns(scene))
@@ -414,13 +412,20 @@ def test_a_low_observation_gain_filters_the_sensors_noise(clip, sampled) -> None
         tr.start(shown)
         for t in range(len(q) - 1):
             nxt = tr.act(t, shown)
-            if t > 0:
+            if t > after:
                 seen.append(shown["obj_pos"]), est.append(tr._est["obj_pos"]), true.append(obs["obj_pos"])
             world.advance(prev, nxt)
             prev, obs = nxt, world.observe()
             shown = sensor.see(obs)
-    err_obs = np.linalg.norm(np.array(seen) - np.array(true), axis=1).mean()
-    err_est = np.linalg.norm(np.array(est) - np.array(true), axis=1).mean()
+    err = lambda x: float(np.linalg.norm(np.array(x) - np.array(true), axis=1).mean())  # noqa: E731
+    return tr, err(est), err(seen)
+
+
+def test_a_low_observation_gain_filters_the_sensors_noise(clip, sampled) -> None:
+    """obs_gain 0.3: the state the tracker re-plans from (its estimate: the model's prediction moved 30 % toward
+    each observation) is closer to the world's state than the noisy observations it was given."""
+    opts = dataclasses.replace(FAST, every=1, obs_gain=0.3)
+    _, err_est, err_obs = _sensed_replay(clip, sampled, opts, RobustConfig(n=1, obs_pos=0.004), after=0)
     assert err_est < 0.6 * err_obs, (err_est, err_obs)
 
 
@@ -449,30 +454,9 @@ def test_learned_gains_filter_the_noisy_sensors_and_trust_the_exact_ones(clip, s
     """obs_adapt with 4 mm noise on the object's observed position (a 20-frame clip): its learned gain falls and
     the estimate comes closer to the world than the observations; the object's velocity, observed without
     noise, keeps a gain near 1."""
-    from quasisim.eval.robust import finger_columns
-    from quasisim.targets.perturb import Sensor
-
-    _, demo, _, scene = clip
-    q, weights = sampled, TransferConfig.from_yaml().weights
-    cfg = RobustConfig(n=1, obs_pos=0.004)
     opts = dataclasses.replace(FAST, every=1, obs_adapt=True)
-    seen, est, true = [], [], []
-    with make_target("mujoco", scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
-        sensor = Sensor(cfg, 0, finger_columns(scene))
-        world.reset(q[0], (q[1] - q[0]) * scene.fps)
-        obs, prev = world.observe(), q[0]
-        shown = sensor.see(obs)
-        tr.start(shown)
-        for t in range(len(q) - 1):
-            nxt = tr.act(t, shown)
-            if t > 8:  # once the gains are learned
-                seen.append(shown["obj_pos"]), est.append(tr._est["obj_pos"]), true.append(obs["obj_pos"])
-            world.advance(prev, nxt)
-            prev, obs = nxt, world.observe()
-            shown = sensor.see(obs)
-        cost = tr.cost()
-    err_obs = np.linalg.norm(np.array(seen) - np.array(true), axis=1).mean()
-    err_est = np.linalg.norm(np.array(est) - np.array(true), axis=1).mean()
+    tr, err_est, err_obs = _sensed_replay(clip, sampled, opts, RobustConfig(n=1, obs_pos=0.004), after=8)
+    cost = tr.cost()
     assert err_est < 0.85 * err_obs, (err_est, err_obs)
     assert tr._gains[-1]["obj_pos"] < 0.8 and cost["gain_obj_vel"] > 0.9, (tr._gains[-1], cost)
 

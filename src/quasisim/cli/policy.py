@@ -72,8 +72,8 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
 @_OVERWRITE
 @_friendly
 def policy_train(
-    clip: Path, algo: str, residual: Path | None, method: str | None, hand: str, target: str, steps: int, out: Path, seed: int,
-    sets: tuple[str, ...], resume: bool, progress: bool, overwrite: bool,
+    clip: Path, algo: str, residual: Path | None, method: str | None, hand: str, target: str, steps: int, out: Path,
+    seed: int, sets: tuple[str, ...], resume: bool, progress: bool, overwrite: bool,
 ) -> None:  # fmt: skip
     """Train a tracking policy for CLIP in OUT (setup.json, checkpoints, logs/, policy.zip, training.json)."""
     _need_rl()

@@ -82,7 +82,7 @@ import numpy as np
 
 from quasisim.data import mano
 from quasisim.data.convert import UP_AXES, rigid_transforms
-from quasisim.data.convert_raw import RawOptions, _demo, _load_mesh, _write_mesh, save_clip, timeline
+from quasisim.data.convert_raw import RawOptions, _demo, _load_mesh, _support, _write_mesh, save_clip, timeline
 from quasisim.errors import InputError, QuasisimError, choice_error
 
 OAKINK2_FPS = 120.0  # mocap rate (oakink2_toolkit/meta.py FPS_MOCAP)
@@ -515,8 +515,7 @@ def convert_oakink2(
     R = tl.slerp(W @ rot @ M, used)  # mesh vertices M v: W (R v + p) = (W R M)(M v) + W p
     p = tl.lerp(pos, used) @ W.T
     v = np.asarray(m.vertices)
-    lowest = float((v @ R[0].T + p[0])[:, 2].min())
-    lift = np.array([0.0, 0.0, opts.table_height - lowest])
+    lift = np.array([0.0, 0.0, opts.table_height - _support(v, R[0], p[0])])
     hands = {side: tl.lerp(k, used) @ W.T + lift for side, k in kp.items()}
     right = hands["left" if mirrored else "right"]
     left = hands.get("left") if not mirrored else None
