@@ -175,6 +175,10 @@ def test_bad_tracker_settings_name_the_field(tmp_path) -> None:
         TrackOptions.from_yaml(None, {"noise_joints": -1.0})
     with pytest.raises(InputError, match="push"):
         RobustConfig(push=5.0)
+    with pytest.raises(InputError, match="grip"):
+        TrackOptions.from_yaml(None, {"grip": [-0.1]})
+    with pytest.raises(InputError, match="len\\(grip\\)"):
+        TrackOptions.from_yaml(None, {"grip": [0.05, 0.1], "samples": 3})
 
 
 def test_the_shipped_trackers_load_and_the_real_time_one_plans_beside_the_controller() -> None:
@@ -497,14 +501,14 @@ def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(c
 
 
 def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() -> None:
-    """Settings added to the tracker later (``lead``, ``keep``, ``shift_fade``, ``obs_adapt``) stay out of the cache
+    """Settings added to the tracker later (``lead``, ``keep``, ``shift_fade``, ``obs_adapt``, ``grip``) stay out of the cache
     key at their defaults, so the caches of BENCHMARKS.md, made before they existed, still match (the default
     tracker's in the 8 default worlds: ``af3385856ff8``, tracked in benchmarks/runs/grab25-cascade-b); set, they
     make caches of their own."""
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
-    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay")
+    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay", "grip", "grip_gap")
     assert cl._track_dict(TrackOptions()) == {
         k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", *later)
     }
@@ -565,3 +569,37 @@ def test_a_fading_shift_moves_the_hands_by_the_offset_at_rest_and_by_none_once_t
     shifted = tr._work[1:T, base : base + 3] - q[1:, base : base + 3]
     np.testing.assert_allclose(shifted, w[1:, None] * tr.offset, atol=1e-9)
     np.testing.assert_allclose(tr._ref[0][:T] - tr.nominal.object_pos, w[:, None] * tr.offset, atol=1e-9)
+
+
+def test_grip_candidates_press_only_the_fingers_the_object_holds_back_harder(clip, sampled) -> None:
+    """grip (0.1,): at every re-plan one candidate is the current window with ``0.1 sign(q* - q)`` added on the
+    frames after the first to exactly the finger joints more than ``grip_gap`` from their targets (never to the
+    bases); holding the cube, some fingers are held back, so the bias is not empty."""
+    from quasisim.targets.perturb import finger_columns, scaled_scene
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    opts = dataclasses.replace(FAST, grip=(0.1,))
+    fingers, seen = finger_columns(scene), []
+    with make_target("mujoco", scaled_scene(scene, friction=0.6)) as world, Tracker(demo, scene, q, opts, weights) as tr:
+        plan, rollout = tr._replan, tr.model.rollout_windows
+
+        def watched(t: int, obs: dict) -> None:
+            seen.append([obs["qpos"]])
+            plan(t, obs)
+
+        def windows(wins: np.ndarray):
+            seen[-1].append(wins.copy())
+            return rollout(wins)
+
+        tr._replan, tr.model.rollout_windows = watched, windows
+        replay(world, q, tr)
+    held = 0
+    for qpos, wins in seen:
+        current, gripped = wins[0], wins[-2]
+        gap = np.where(fingers, current[0] - qpos, 0.0)
+        want = np.where(np.abs(gap) > opts.grip_gap, 0.1 * np.sign(gap), 0.0)
+        np.testing.assert_allclose(gripped[1:] - current[1:], np.broadcast_to(want, current[1:].shape), atol=1e-12)
+        np.testing.assert_array_equal(gripped[0], current[0])
+        held += int(np.any(want != 0))
+    assert len(seen) > 3 and held > 0

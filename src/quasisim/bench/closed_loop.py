@@ -89,7 +89,9 @@ def judge_run(
 
 # tracker settings added after caches were written: left out of the settings at their default, so that the
 # older caches (made when the setting did not exist, i.e. at that default) still match
-ADDED_LATER = {"lead": 0, "keep": 0.0, "shift_fade": 0.0, "obs_adapt": False, "obs_adapt_decay": 0.9}
+ADDED_LATER = {
+    "lead": 0, "keep": 0.0, "shift_fade": 0.0, "obs_adapt": False, "obs_adapt_decay": 0.9, "grip": (), "grip_gap": 0.02,
+}  # fmt: skip
 
 
 def _track_dict(track: Any) -> dict[str, Any]:

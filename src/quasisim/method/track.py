@@ -17,7 +17,8 @@ and acts on it with PD targets, frame by frame:
    a target of the nominal scene (:meth:`~quasisim.targets.base.Target.sync`; the world's hidden parameters are
    never read), roll ``samples`` windows of the next ``horizon`` frames out in it (the current plan's window,
    the untouched plan's window, and Gaussian perturbations of the current one on ``knots`` knots, the sampling
-   stage's noise, :func:`quasisim.method.stages.sampling.sample_windows`) and keep the cheapest as the plan
+   stage's noise, :func:`quasisim.method.stages.sampling.sample_windows`; with ``grip``, also the current one
+   pressing harder where the object holds fingers back) and keep the cheapest as the plan
    (receding horizon, warm-started). The cost (:func:`quasisim.method.stages.sampling.window_costs`) measures
    the distance to the plan's own **nominal rollout** (object pose, metric keypoints; shifted by ``d``), not to
    the demo, so in the nominal world the tracker reproduces the plan; ``strict_weight`` > 0 adds the hinge on
@@ -80,6 +81,7 @@ from quasisim.data.demo import Demo
 from quasisim.errors import InputError
 from quasisim.optim.objective import Weights, padded
 from quasisim.targets import Observation, Target, TargetRollout, make_target
+from quasisim.targets.perturb import finger_columns
 from quasisim.targets.scene import Scene
 
 TRACK_PATH = Path(__file__).resolve().parent.parent / "configs" / "track.yaml"
@@ -102,6 +104,10 @@ class TrackOptions:
         follow: fractions ``f``: at each re-plan, candidates with the hands' bases moved by ``f`` x the object's
             offset from the plan's nominal rollout (``f > 0`` follows the object, ``f < 0`` pushes it back); when
             one is kept, the rest of the plan moves with it.
+        grip: closures ``g`` (rad, or m for slide joints): at each re-plan, candidates that are the current
+            window pressed harder where the object holds fingers back (``g sign(q* - q)`` added to every finger
+            joint more than ``grip_gap`` from its target, as the sampling stage's ``grip``), so that a grasp
+            slipping in the world can be tightened in one step, not only by chance in the random windows.
         strict_weight, strict_margin: the hinge on the demo's strict limits in the cost (0: none).
         seed: noise seed.  threads: the model's rollout threads.
         model_dt: the model's physics step (s; 0: the scene's own): a coarser step re-plans faster and predicts
@@ -128,6 +134,8 @@ class TrackOptions:
     shift: bool = True
     shift_fade: float = 0.0
     follow: tuple[float, ...] = ()
+    grip: tuple[float, ...] = ()
+    grip_gap: float = 0.02
     strict_weight: float = 0.0
     strict_margin: float = 0.75
     seed: int = 0
@@ -150,7 +158,7 @@ class TrackOptions:
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise InputError(where, name, f"an integer >= {lo}", repr(v))
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "model_dt",
-                     "shift_fade"):  # fmt: skip
+                     "shift_fade", "grip_gap"):  # fmt: skip
             v = getattr(self, name)
             if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < float("inf"):
                 raise InputError(where, name, "a finite number >= 0", repr(v))
@@ -158,8 +166,11 @@ class TrackOptions:
             raise InputError(where, "noise_scales", "a non-empty list of numbers >= 0", repr(self.noise_scales))
         if not all(isinstance(f, int | float) and abs(f) <= 2 for f in self.follow):
             raise InputError(where, "follow", "a list of fractions in [-2, 2]", repr(self.follow))
-        if self.samples < 2 + len(self.follow):
-            raise InputError(where, "samples", f"at least 2 + len(follow) = {2 + len(self.follow)}", repr(self.samples))
+        if not all(isinstance(g, int | float) and not isinstance(g, bool) and 0 < g <= 0.5 for g in self.grip):
+            raise InputError(where, "grip", "a list of closures in (0, 0.5]", repr(self.grip))
+        if self.samples < 2 + len(self.follow) + len(self.grip):
+            want = f"at least 2 + len(follow) + len(grip) = {2 + len(self.follow) + len(self.grip)}"
+            raise InputError(where, "samples", want, repr(self.samples))
         for name in ("shift", "adapt", "obs_adapt"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(where, name, "true or false", repr(getattr(self, name)))
@@ -181,7 +192,7 @@ class TrackOptions:
         """The settings in ``path`` (default ``configs/track.yaml``) with ``overrides`` (name -> value)."""
         path = Path(path or TRACK_PATH)
         data = apply_overrides(read_yaml(path), overrides)
-        for key in ("noise_scales", "follow"):
+        for key in ("noise_scales", "follow", "grip"):
             if isinstance(data.get(key), list):
                 data[key] = tuple(data[key])
         return build(cls, {**data, "path": str(path)}, path)
@@ -302,6 +313,7 @@ class Tracker:
         self._sample = scene_sampler(opts.sampling(), scene)
         base = np.concatenate([np.arange(s.start, s.start + 6) for s in scene.dof_slices])
         self._base_cols = base if len(scene.hands) > 1 else None  # window_costs' smoothness split (one hand: None)
+        self._fingers = finger_columns(scene)  # grip: the hands' finger joints
         self.replans, self.physics_steps, self.seconds = 0, 0, 0.0
         self.step_seconds: list[float] = []  # wall time of every act() (s)
         self.replan_seconds: list[float] = []  # wall time of every re-plan (s)
@@ -418,7 +430,7 @@ class Tracker:
 
     def _replan(self, t: int, obs: Observation) -> None:
         """Step 3: windows from the observed state rolled out in the model, the cheapest kept as the plan."""
-        from quasisim.method.stages.sampling import window_costs
+        from quasisim.method.stages.sampling import grip_bias, window_costs
 
         o, H, T = self.opts, self.opts.horizon, len(self.plan)
         current = self._work[t : t + H + 1].copy()  # its first row: the target at the end of frame t, committed
@@ -430,6 +442,9 @@ class Tracker:
         shifts = [f * offset for f in o.follow]
         for k, d in enumerate(shifts):  # the window with the hands moved with (f > 0) or against (f < 0) it
             wins[-2 - k, 1:] = shift_bases(self.scene, current[1:], d)
+        for k, g in enumerate(o.grip):  # the window pressing harder where the object holds fingers back
+            bias = grip_bias(current[0], np.asarray(obs["qpos"]), self._fingers, g, o.grip_gap)
+            wins[-2 - len(shifts) - k, 1:] = current[1:] + bias
         self.model.sync(obs)
         pred = self.model.rollout_windows(wins)
         w = slice(t + 1, t + H + 1)
