@@ -581,7 +581,10 @@ def test_grip_candidates_press_only_the_fingers_the_object_holds_back_harder(cli
     q, weights = sampled, TransferConfig.from_yaml().weights
     opts = dataclasses.replace(FAST, grip=(0.1,))
     fingers, seen = finger_columns(scene), []
-    with make_target("mujoco", scaled_scene(scene, friction=0.6)) as world, Tracker(demo, scene, q, opts, weights) as tr:
+    with (
+        make_target("mujoco", scaled_scene(scene, friction=0.6)) as world,
+        Tracker(demo, scene, q, opts, weights) as tr,
+    ):
         plan, rollout = tr._replan, tr.model.rollout_windows
 
         def watched(t: int, obs: dict) -> None:
