@@ -508,7 +508,7 @@ def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() 
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
-    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay", "grip", "grip_gap")
+    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay", "grip", "grip_gap", "object_weight")
     assert cl._track_dict(TrackOptions()) == {
         k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", *later)
     }
@@ -606,3 +606,14 @@ def test_grip_candidates_press_only_the_fingers_the_object_holds_back_harder(cli
         np.testing.assert_array_equal(gripped[0], current[0])
         held += int(np.any(want != 0))
     assert len(seen) > 3 and held > 0
+
+
+def test_object_weight_scales_only_the_object_terms_of_the_window_cost(clip, sampled) -> None:
+    """object_weight 3: the tracker's window cost weighs the object's translation and rotation 3x, the hand's
+    keypoints and the smoothness as the objective does."""
+    _, demo, _, scene = clip
+    w = TransferConfig.from_yaml().weights
+    with Tracker(demo, scene, sampled, dataclasses.replace(FAST, object_weight=3.0), w) as tr:
+        got = tr.weights
+    assert (got.obj_pos, got.obj_rot) == (3 * w.obj_pos, 3 * w.obj_rot)
+    assert (got.hand, got.smooth) == (w.hand, w.smooth)

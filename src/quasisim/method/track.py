@@ -109,6 +109,8 @@ class TrackOptions:
             joint more than ``grip_gap`` from its target, as the sampling stage's ``grip``), so that a grasp
             slipping in the world can be tightened in one step, not only by chance in the random windows.
         strict_weight, strict_margin: the hinge on the demo's strict limits in the cost (0: none).
+        object_weight: the window cost's object terms (translation, rotation) times this against the hand's
+            keypoints (1: the objective's own weights).
         seed: noise seed.  threads: the model's rollout threads.
         model_dt: the model's physics step (s; 0: the scene's own): a coarser step re-plans faster and predicts
             less exactly.
@@ -138,6 +140,7 @@ class TrackOptions:
     grip_gap: float = 0.02
     strict_weight: float = 0.0
     strict_margin: float = 0.75
+    object_weight: float = 1.0
     seed: int = 0
     threads: int = 1
     model_dt: float = 0.0
@@ -158,7 +161,7 @@ class TrackOptions:
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise InputError(where, name, f"an integer >= {lo}", repr(v))
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "model_dt",
-                     "shift_fade", "grip_gap"):  # fmt: skip
+                     "shift_fade", "grip_gap", "object_weight"):  # fmt: skip
             v = getattr(self, name)
             if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < float("inf"):
                 raise InputError(where, name, "a finite number >= 0", repr(v))
@@ -301,6 +304,8 @@ class Tracker:
     ) -> None:  # fmt: skip
         from quasisim.method.stages.sampling import scene_sampler
 
+        ow = opts.object_weight
+        weights = dataclasses.replace(weights, obj_pos=weights.obj_pos * ow, obj_rot=weights.obj_rot * ow)
         self.demo, self.scene, self.opts, self.weights = demo, scene, opts, weights
         self.plan = np.asarray(plan, np.float64)
         self.models: list[Target] = [
