@@ -181,3 +181,33 @@ def test_robust_select_at_its_defaults_leaves_a_runs_identity_as_it_was() -> Non
     on = TransferConfig.from_yaml(overrides={"robust_select.worlds": 8}).identity("fast", stages)
     assert "robust_select" not in off and on["robust_select"] == {"worlds": 8}
     assert {k: v for k, v in on.items() if k != "robust_select"} == off
+
+
+@pytest.mark.slow
+def test_the_margin_stage_samples_a_plan_riding_the_limits_again_after_the_quick_step_ended_the_run(
+    tmp_path: Path,
+) -> None:
+    """robust_select.margin m: the quick step ends the run with a plan passing strict at largest error e; the
+    margin stage still runs and, for m < e, samples that plan again from itself and keeps the result only where
+    its largest error is smaller (the controls' plan is the kept one, its error the one recorded, never above
+    e); for m above e it samples nothing and the plan stays as it was."""
+    from types import SimpleNamespace
+
+    from quasisim.method.stages.selection import largest_error
+
+    path, demo, _, scene = cube_example(tmp_path)
+    prob = SimpleNamespace(demo=demo, scene=scene)
+    _, _, ck = _run(path, tmp_path / "base", {})
+    q0 = np.load(tmp_path / "base" / "controls.npz")["q_targets"]
+    e0 = largest_error(prob, "mujoco", q0)
+    assert ck == ["kinematic", "quick"] and 0 < e0 <= 1
+    _, summary, ck = _run(path, tmp_path / "tight", {"robust_select.margin": 0.5 * e0})
+    d, q = np.load(tmp_path / "tight" / "checkpoints" / "margin.npz"), np.load(tmp_path / "tight" / "controls.npz")
+    assert "margin" in ck and bool(d["sampled"]) and float(d["before"]) == pytest.approx(e0)
+    assert float(d["after"]) <= e0 and "margin" in summary["seconds"]
+    assert largest_error(prob, "mujoco", q["q_targets"]) == pytest.approx(float(d["after"]))
+    assert (float(d["after"]) < e0) == ("extra_before_margin_q" in q.files)
+    assert any(n.startswith("margin: sampled again") for n in summary["notes"]), summary["notes"]
+    _, summary, _ = _run(path, tmp_path / "loose", {"robust_select.margin": min(0.99, e0 + 0.01)})
+    assert not bool(np.load(tmp_path / "loose" / "checkpoints" / "margin.npz")["sampled"])
+    np.testing.assert_array_equal(np.load(tmp_path / "loose" / "controls.npz")["q_targets"], q0)

@@ -100,8 +100,8 @@ def run_transfer(
         outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
         ran: list[Stage] = []
         for stage in stages:
-            if outcome.done:  # a stage ended the run: the cascade's first step passed strict success
-                break
+            if outcome.done and not stage.after_done:  # a stage ended the run: the cascade's quick step passed
+                continue
             outcome = stage.run(ctx, outcome)
             ran.append(stage)
 

@@ -171,6 +171,8 @@ def _check_ranges(cfg: TransferConfig, path: Path) -> None:
         )
     if not 0 <= ro.gate <= 1:
         raise InputError(path, "robust_select.gate", "a fraction in [0, 1]", repr(ro.gate))
+    if isinstance(ro.margin, bool) or not isinstance(ro.margin, int | float) or not 0 <= ro.margin < 1:
+        raise InputError(path, "robust_select.margin", "a fraction of the strict limits in [0, 1)", repr(ro.margin))
     try:
         tracker_file(ro.tracker)  # the tracker's settings exist
     except InputError as e:

@@ -242,16 +242,23 @@ class RobustSelectOptions:
     result ends the run only where at least ``gate`` of them pass strict success; the selection keeps, among the
     candidates that pass strict nominally, the one passing strict in most worlds (then the objective). ``worlds`` 0: both judge in the nominal target alone, as before.
 
+    ``margin`` > 0 (stage ``margin``, :mod:`quasisim.method.stages.margin`): a plan that passes strict success with
+    its largest error above ``margin`` x the limits is sampled again from itself, backing up at ``margin`` x the
+    limits, and the result kept where it passes with a smaller largest error.
+
     Attributes:
         worlds: training worlds per plan (0: off).  seed: their seed (>= 1; robust success uses 0).
         gate: the fraction of worlds the quick result must pass strict in, in [0, 1].
         tracker: the tracker's settings: a file of ``configs/`` (``track_fast.yaml``) or a path.
+        margin: the fraction of the strict limits a plan's largest error may reach before stage ``margin``
+            samples it again (0: never).
     """
 
     worlds: int = 0
     seed: int = 1
     gate: float = 0.75
     tracker: str = "track_fast.yaml"
+    margin: float = 0.0
 
 
 def tracker_file(name: str) -> Path:

@@ -31,6 +31,7 @@ STAGES: dict[str, Any] = {
     "mpc": "quasisim.method.stages.mpc",
     "sample": "quasisim.method.stages.sampling",
     "select": "quasisim.method.stages.selection",
+    "margin": "quasisim.method.stages.margin",
 }
 
 
@@ -67,7 +68,7 @@ class Method:
         return cfg if self.configure is None else self.configure(cfg)
 
 
-CASCADE = ("quick", "1", "2", "sample", "select")
+CASCADE = ("quick", "1", "2", "sample", "select", "margin")
 PAPER = ("1", "2", "3", "mpc")  # the paper's method: curriculum, fit to the target, MPC in the fitted simulator
 
 METHODS: dict[str, Method] = {

@@ -6,8 +6,8 @@ A transfer runs a sequence of stages (named in :mod:`quasisim.method.registry`, 
 
     outcome = Outcome.start(context)
     for stage in declared_stages(spec.stages):
-        if outcome.done:  # a stage ended the run (the cascade's first step passed)
-            break
+        if outcome.done and not stage.after_done:  # a stage ended the run (the cascade's first step passed)
+            continue
         outcome = stage.run(context, outcome)
 
 Each stage is a module of :mod:`quasisim.method.stages` that declares one :class:`Stage`: its name (as in
@@ -152,6 +152,8 @@ class Stage:
         run: ``run(context, outcome) -> outcome``.
         scope: narrows the settings that determine one of its checkpoints (``scope(info, checkpoint, own)``
             -> own): stage 2 computes its simulators before the first touching hand-off as without it.
+        after_done: it runs also after a stage ended the run (``Outcome.done``: the cascade's ``quick``), on the
+            plan that ended it (stage ``margin``).
     """
 
     name: str
@@ -164,6 +166,7 @@ class Stage:
     uses_simulator: bool = False
     uses_target: bool = False
     scope: Callable[[dict[str, Any], str, dict[str, Any]], dict[str, Any]] | None = None
+    after_done: bool = False
 
     def owns(self, checkpoint: str) -> bool:
         """Whether ``checkpoint`` (a file name without ``.npz``) is one of this stage's."""

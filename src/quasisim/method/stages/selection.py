@@ -20,6 +20,7 @@ the lower J). Where no candidate passes strict nominally, J decides.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
@@ -50,6 +51,21 @@ def passes_strict(prob: Problem, target: str, q: np.ndarray) -> bool:
     (every frame within the strict limits, the object moved as in the demo, a stable rollout)."""
     with make_target(target, prob.scene) as tgt:
         return passes(prob.demo, tgt.rollout(q))
+
+
+def largest_error(prob: Problem, target: str, q: np.ndarray) -> float:
+    """The largest of the object's translation and rotation errors over the clip, as a fraction of the strict
+    limits (2 cm, 30 deg), of PD targets ``q`` (T, D) replayed open loop in ``target``; inf where the replay
+    fails strict success (:func:`passes`)."""
+    from quasisim.method.stages.sampling import strict_fractions
+
+    with make_target(target, prob.scene) as tgt:
+        roll = tgt.rollout(q)
+    if not passes(prob.demo, roll):
+        return math.inf
+    demo = prob.demo
+    trans, rot = strict_fractions(roll.object_pos, roll.object_quat, demo.object_pos, demo.object_quat)
+    return float(max(np.max(trans), np.max(rot)))
 
 
 def passes(demo: Demo, roll: Any) -> bool:
