@@ -183,6 +183,20 @@ def test_robust_select_at_its_defaults_leaves_a_runs_identity_as_it_was() -> Non
     assert {k: v for k, v in on.items() if k != "robust_select"} == off
 
 
+
+def test_the_margin_stage_at_its_default_leaves_a_cascade_runs_identity_as_it_was() -> None:
+    """Stage margin, idle at robust_select.margin 0, is left out of a run's recorded stages, so the cascade
+    runs made before it existed (benchmarks/runs: stages quick, 1, 2, sample, select) stay finished runs;
+    with a margin it is recorded, and its setting changes the config hash."""
+    from quasisim.batch import Run, Settings, identity
+    from quasisim.method.spec import TransferSpec
+
+    run = Run(name="cascade", spec=TransferSpec().checked())
+    off, on = identity(run, Settings()), identity(run, Settings(overrides={"robust_select.margin": 0.8}))
+    assert off["stages"] == ["quick", "1", "2", "sample", "select"]
+    assert on["stages"] == [*off["stages"], "margin"] and on["config_sha256"] != off["config_sha256"]
+
+
 @pytest.mark.slow
 def test_the_margin_stage_samples_a_plan_riding_the_limits_again_after_the_quick_step_ended_the_run(
     tmp_path: Path,

@@ -128,7 +128,8 @@ def identity(run: Run, s: Settings) -> dict[str, Any]:
     run with a stage in the quasi-physical simulator, the simulator's revision."""
     from quasisim.method.stage import simulator_identity
 
-    d = {"name": run.name, **run.spec.identity(), "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
+    spec = run.spec.identity() | {"stages": _identity_stages(s, run.spec)}
+    d = {"name": run.name, **spec, "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
     return json.loads(json.dumps(d | simulator_identity(run.spec.stages)))
 
 
@@ -142,6 +143,21 @@ def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[st
     content = cfg.identity(budget, declared_stages(stages))
     content.get("sampling", {}).pop("threads", None)
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+@functools.cache
+def _stages_of(path: str | None, overrides: str, stages: tuple[str, ...], method: str) -> list[str]:
+    from quasisim.method.config import CONFIG_PATH, TransferConfig
+    from quasisim.method.registry import METHODS
+    from quasisim.method.stage import identity_stages
+
+    cfg = METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
+    return identity_stages(stages, cfg)
+
+
+def _identity_stages(s: Settings, spec: TransferSpec) -> list[str]:
+    """``spec``'s stages as its identity records them (those idle with the run's config left out)."""
+    return list(_stages_of(s.config_path, json.dumps(s.overrides, sort_keys=True), tuple(spec.stages), spec.method))
 
 
 def config_hash(s: Settings, spec: TransferSpec) -> str:

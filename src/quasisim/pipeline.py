@@ -38,7 +38,16 @@ from quasisim.method.curriculum import Curriculum, load_curriculum
 from quasisim.method.problem import Problem, make_problem
 from quasisim.method.retarget import RETARGET_S_PER_FRAME, retarget_hands
 from quasisim.method.spec import TransferSpec
-from quasisim.method.stage import Context, Outcome, Plan, RunRecord, Stage, declared_stages, simulator_identity
+from quasisim.method.stage import (
+    Context,
+    Outcome,
+    Plan,
+    RunRecord,
+    Stage,
+    declared_stages,
+    identity_stages,
+    simulator_identity,
+)
 from quasisim.method.stages._common import timed
 from quasisim.optim.adam import Progress
 from quasisim.optim.sysid import SysID
@@ -230,7 +239,7 @@ def identity(
         hand_files.update(f.read_bytes())
     info = {
         "demo": demo.name, "demo_sha256": hashlib.sha256(Path(demo_path).read_bytes()).hexdigest()[:16],
-        "hand": spec.hand, "curriculum": cur.name, "stages": list(spec.stages), "budget": spec.budget,
+        "hand": spec.hand, "curriculum": cur.name, "stages": identity_stages(spec.stages, cfg), "budget": spec.budget,
         "method": spec.method, **cfg.identity(spec.budget, declared_stages(spec.stages), spec),
         "demo_content": content_hash(demo), "hand_sha256": hand_files.hexdigest()[:16],
         "curriculum_settings": cur_settings, **simulator_identity(spec.stages),

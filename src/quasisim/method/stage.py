@@ -154,6 +154,9 @@ class Stage:
             -> own): stage 2 computes its simulators before the first touching hand-off as without it.
         after_done: it runs also after a stage ended the run (``Outcome.done``: the cascade's ``quick``), on the
             plan that ended it (stage ``margin``).
+        idle: ``idle(cfg)``: whether it does nothing with the transfer config ``cfg`` (stage ``margin`` at
+            ``robust_select.margin`` 0); an idle stage is left out of a run's identity, so that runs made before
+            it existed keep theirs (:func:`identity_stages`).
     """
 
     name: str
@@ -167,6 +170,7 @@ class Stage:
     uses_target: bool = False
     scope: Callable[[dict[str, Any], str, dict[str, Any]], dict[str, Any]] | None = None
     after_done: bool = False
+    idle: Callable[[Any], bool] | None = None
 
     def owns(self, checkpoint: str) -> bool:
         """Whether ``checkpoint`` (a file name without ``.npz``) is one of this stage's."""
@@ -185,6 +189,12 @@ def declared_stage(name: str) -> Stage:
 def declared_stages(names: tuple[str, ...] | list[str] | None = None) -> tuple[Stage, ...]:
     """The stages ``names`` (default: all) in run order."""
     return tuple(declared_stage(n) for n in registry.STAGES if names is None or n in names)
+
+
+def identity_stages(names: tuple[str, ...] | list[str], cfg: Any) -> list[str]:
+    """The stages ``names`` as a run's identity records them: those idle with the transfer config ``cfg``
+    (:attr:`Stage.idle`) left out."""
+    return [st.name for st in declared_stages(names) if not (st.idle is not None and st.idle(cfg))]
 
 
 def simulator_identity(names: tuple[str, ...] | list[str]) -> dict[str, int]:

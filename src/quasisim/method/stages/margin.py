@@ -87,4 +87,5 @@ STAGE = Stage(
     plans=True,
     uses_target=True,
     after_done=True,
+    idle=lambda cfg: cfg.robust_select.margin == 0,
 )
