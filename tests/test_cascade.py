@@ -183,7 +183,6 @@ def test_robust_select_at_its_defaults_leaves_a_runs_identity_as_it_was() -> Non
     assert {k: v for k, v in on.items() if k != "robust_select"} == off
 
 
-
 def test_the_margin_stage_at_its_default_leaves_a_cascade_runs_identity_as_it_was() -> None:
     """Stage margin, idle at robust_select.margin 0, is left out of a run's recorded stages, so the cascade
     runs made before it existed (benchmarks/runs: stages quick, 1, 2, sample, select) stay finished runs;
