@@ -134,30 +134,30 @@ def identity(run: Run, s: Settings) -> dict[str, Any]:
 
 
 @functools.cache
-def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[str, ...], method: str) -> str:
+def _run_config(path: str | None, overrides: str, method: str) -> Any:
+    """The transfer config of a run: the YAML at ``path`` (default the shipped one) with ``overrides`` (JSON) and
+    its method's settings."""
     from quasisim.method.config import CONFIG_PATH, TransferConfig
     from quasisim.method.registry import METHODS
+
+    return METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
+
+
+@functools.cache
+def _config_hash(path: str | None, overrides: str, budget: str, stages: tuple[str, ...], method: str) -> str:
     from quasisim.method.stage import declared_stages
 
-    cfg = METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
-    content = cfg.identity(budget, declared_stages(stages))
+    content = _run_config(path, overrides, method).identity(budget, declared_stages(stages))
     content.get("sampling", {}).pop("threads", None)
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-@functools.cache
-def _stages_of(path: str | None, overrides: str, stages: tuple[str, ...], method: str) -> list[str]:
-    from quasisim.method.config import CONFIG_PATH, TransferConfig
-    from quasisim.method.registry import METHODS
-    from quasisim.method.stage import identity_stages
-
-    cfg = METHODS[method].config(TransferConfig.from_yaml(path or CONFIG_PATH, json.loads(overrides)))
-    return identity_stages(stages, cfg)
-
-
 def _identity_stages(s: Settings, spec: TransferSpec) -> list[str]:
     """``spec``'s stages as its identity records them (those idle with the run's config left out)."""
-    return list(_stages_of(s.config_path, json.dumps(s.overrides, sort_keys=True), tuple(spec.stages), spec.method))
+    from quasisim.method.stage import identity_stages
+
+    cfg = _run_config(s.config_path, json.dumps(s.overrides, sort_keys=True), spec.method)
+    return identity_stages(spec.stages, cfg)
 
 
 def config_hash(s: Settings, spec: TransferSpec) -> str:

@@ -39,21 +39,15 @@ def polish(ctx: Context, q: np.ndarray, margin: float) -> dict[str, Any]:
     out = {"q_targets": q, "before": np.array(before), "after": np.array(before), "sampled": np.array(False)}
     if not margin < before <= 1:
         return out
+    from quasisim.method.stages.sampling import run_sampling
+
     opts = dataclasses.replace(cfg.sampling, backtrack_limit=margin, stop_when_lost=True)
-    r = run_sampling_from(ctx, q, opts)
+    r = run_sampling(prob.demo, prob.scene, q, opts, cfg.weights, spec.target, spec.progress)
     after = largest_error(prob, spec.target, r.q_targets) if r.stopped_at is None else math.inf
     out["sampled"] = np.array(True)
     if after < before:
         out.update(q_targets=np.asarray(r.q_targets, np.float64), after=np.array(after))
     return out
-
-
-def run_sampling_from(ctx: Context, q: np.ndarray, opts: Any) -> Any:
-    """The sampling stage in the run's target from the PD targets ``q``."""
-    from quasisim.method.stages.sampling import run_sampling
-
-    prob, spec = ctx.prob, ctx.spec
-    return run_sampling(prob.demo, prob.scene, q, opts, ctx.cfg.weights, spec.target, spec.progress)
 
 
 def run(ctx: Context, out: Outcome) -> Outcome:
