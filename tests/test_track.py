@@ -502,9 +502,9 @@ def test_a_replan_beside_the_controller_changes_only_the_frames_after_its_lead(c
 
 def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() -> None:
     """Settings added to the tracker later (``lead``, ``keep``, ``shift_fade``, ``obs_adapt``, ``grip``) stay out of the cache
-    key at their defaults, so the caches of BENCHMARKS.md, made before they existed, still match (the default
-    tracker's in the 8 default worlds: ``af3385856ff8``, tracked in benchmarks/runs/grab25-cascade-b); set, they
-    make caches of their own."""
+    key at their dataclass defaults, so caches made before they existed still match (the tracker without grip in
+    the 8 default worlds: ``af3385856ff8``, tracked in benchmarks/runs/grab25-cascade-b); set, they make caches
+    of their own (the shipped tracker, ``grip: [0.1]``: ``12ac6fe8e9f1``, tracked beside it)."""
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
@@ -512,8 +512,10 @@ def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() 
     assert cl._track_dict(TrackOptions()) == {
         k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", *later)
     }
+    no_grip = cl.settings(8, "default", cl._track_dict(TrackOptions.from_yaml(None, {"grip": []})), "mujoco")
+    assert cl.cache_name(no_grip) == "robust_closed_loop-af3385856ff8.json"
     default = cl.settings(8, "default", cl._track_dict(TrackOptions.from_yaml()), "mujoco")
-    assert cl.cache_name(default) == "robust_closed_loop-af3385856ff8.json"
+    assert cl.cache_name(default) == "robust_closed_loop-12ac6fe8e9f1.json"
     variants = [TrackOptions(), TrackOptions(lead=2), TrackOptions(keep=0.1), TrackOptions(shift_fade=0.03),
                 TrackOptions(obs_adapt=True)]  # fmt: skip
     changed = (("lead", 2), ("keep", 0.1), ("shift_fade", 0.03), ("obs_adapt", True))
