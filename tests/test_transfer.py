@@ -244,6 +244,49 @@ def test_sample_target_method_end_to_end(short_demo: Path, tmp_path: Path) -> No
         run_transfer(short_demo, tmp_path / "st", spec, other, resume=True)
 
 
+NEURAL_TINY = {"neural.widths": [16, 16], "neural.horizon": 3, "neural.variants": 2, "neural.steps": 20,
+               "neural.batch": 8, "neural.rounds": 1, "neural.plan_steps": 3, "neural.mpc_horizon": 2,
+               "neural.mpc_steps": 1}  # fmt: skip
+
+
+def test_neural_method_end_to_end(short_demo: Path, tmp_path: Path, monkeypatch) -> None:
+    """``--method paper-no-analytical`` (the paper's ablation "w/o analytical sim"): the model fitted, the
+    controls optimised through it and MPC run with it in MuJoCo, checkpointed; its controls replayed open loop
+    give the run's metrics; a resume reuses the checkpoint (nothing fitted again) and one with other settings is
+    refused; a config without the stage's settings is refused naming them."""
+    import quasisim.method.stages.neural as neural
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.evaluate import evaluate_controls
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
+
+    cfg = TransferConfig.from_yaml(overrides=NEURAL_TINY)
+    spec = TransferSpec(method="paper-no-analytical", render=False, progress=False)
+    out = tmp_path / "nn"
+    res = run_transfer(short_demo, out, spec, cfg)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stages"] == ["neural"] and set(summary["seconds"]) == {"retarget", "neural"}
+    with np.load(out / "checkpoints" / "neural.npz") as ck:
+        assert ck["round_costs"].shape == (2,) and ck["losses"].shape == (40,) and int(ck["buffer_rollouts"]) == 6
+        plan_q = ck["plan_q"]
+    c = load_controls(out / "controls.npz")
+    assert np.abs(c.q_targets - plan_q).max() > 0  # MPC moved the plan
+    assert evaluate_controls(load_demo(short_demo), c, "mujoco", None, render=False).metrics == res.metrics
+
+    def refit(*a, **k):
+        raise AssertionError("the checkpoint was not reused")
+
+    monkeypatch.setattr(neural, "neural_method", refit)
+    assert run_transfer(short_demo, out, spec, cfg, resume=True).metrics == res.metrics
+    with pytest.raises(InputError, match="neural"):
+        other = TransferConfig.from_yaml(overrides={**NEURAL_TINY, "neural.trust": 1.0})
+        run_transfer(short_demo, out, spec, other, resume=True)
+    with pytest.raises(InputError, match="neural"):
+        run_transfer(short_demo, tmp_path / "none", spec, dataclasses.replace(cfg, neural=None))
+
+
 @pytest.mark.parametrize("target", ["mujoco", pytest.param("pybullet", marks=pytest.mark.slow)])
 def test_recorded_transitions_are_what_the_target_did(short_demo: Path, tmp_path: Path, target: str) -> None:
     """``--record-transitions``: the same result as without it; per sampling step the state the windows started

@@ -68,7 +68,7 @@ ROWS: tuple[PaperRow, ...] = (
     PaperRow("main", "MPC (w/ base sim. w/ soften)", "mpc-soften", None, (31.89, 3.63, 28.26, 11.31, 0, 21.57, 37.25),
              (36.40, 4.46, 23.27, 10.34, 0, 9.80, 23.53)),
     PaperRow("main", "Ours", "paper", None, OURS_BULLET, (25.97, 2.08, 25.33, 10.31, 21.57, 43.14, 56.86)),
-    PaperRow("ablation", "Ours w/o Analytical Sim.", None, None, (44.27, 4.39, 29.84, 12.91, 0, 13.73, 25.49)),
+    PaperRow("ablation", "Ours w/o Analytical Sim.", "paper-no-analytical", None, (44.27, 4.39, 29.84, 12.91, 0, 13.73, 25.49)),
     PaperRow("ablation", "Ours w/o Residual Physics", "paper-no-residual", None,
              (33.69, 3.81, 26.57, 10.34, 5.88, 23.53, 41.18)),
     PaperRow("ablation", "Ours w/o Local Force NN", "paper-no-local-force", None,

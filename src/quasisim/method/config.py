@@ -21,6 +21,7 @@ from quasisim.method.options import (
     FitOptions,
     HandoffOptions,
     MPCOptions,
+    NeuralOptions,
     RobustSelectOptions,
     SamplingOptions,
     Stage1Options,
@@ -73,6 +74,7 @@ class TransferConfig:
     sampling: SamplingOptions
     stage3: FitOptions
     robust_select: RobustSelectOptions = dataclasses.field(default_factory=RobustSelectOptions)
+    neural: NeuralOptions | None = None  # stage neural's settings (a YAML without them cannot run that stage)
     path: str = ""
 
     @classmethod
@@ -120,6 +122,9 @@ class TransferConfig:
         for st in stages:
             for key in st.config:
                 if hasattr(self, key):
+                    if getattr(self, key) is None:  # an optional section (e.g. neural) the user's YAML left out
+                        raise InputError(self.path or None, key, f"the settings of stage {st.name} (see "
+                                         "configs/transfer.yaml)", "missing")  # fmt: skip
                     settings = _settings(getattr(self, key))
                     if settings:  # a section added later, at its defaults, leaves the identity as it was
                         out[key] = settings
@@ -137,7 +142,14 @@ def _settings(obj: Any) -> dict[str, Any]:
 
 
 # settings that must be at least 1 (every other number of the config must be >= 0)
-_AT_LEAST_ONE = ("stage3.horizon", "stage3.capacity", "stage3.batch")
+_AT_LEAST_ONE = (
+    "stage3.horizon",
+    "stage3.capacity",
+    "stage3.batch",
+    "neural.horizon",
+    "neural.batch",
+    "neural.mpc_horizon",
+)
 
 
 def _check_ranges(cfg: TransferConfig, path: Path) -> None:

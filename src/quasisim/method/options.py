@@ -1,5 +1,5 @@
 """The settings of each stage of the method: the sections of ``configs/transfer.yaml`` that belong to one stage
-(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``, ``robust_select``), fields of
+(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``, ``neural``, ``robust_select``), fields of
 :class:`~quasisim.method.config.TransferConfig` (light: no JAX or MuJoCo; the stage modules, the config and
 the closed-loop tracker read them from here)."""
 
@@ -230,6 +230,41 @@ class FitOptions:
     residual_steps: int
     residual_lr: float
     rounds: int
+    seed: int
+
+
+@dataclass(frozen=True)
+class NeuralOptions:
+    """Settings of stage ``neural`` (``configs/transfer.yaml``, ``neural``): a neural model of the target alone
+    (:mod:`quasisim.method.world_model`), the paper's ablation "w/o analytical sim".
+
+    Attributes:
+        widths: the hidden layers' widths (the paper's world model: 256, six of 512, 256).
+        horizon: frames per training window (the model is rolled out that far on its own predictions).
+        variants: noisy rollouts added to the buffer beside the current controls each round.
+        steps, lr, batch: training steps, step size and windows per step of each round's fit.
+        rounds: fit, optimise the controls through the model, roll them out in the target; the best judged there
+            is kept.  plan_steps, plan_lr: Adam on the controls through the model per round.
+        mpc_horizon, mpc_steps, mpc_lr: closed-loop MPC in the target with the model (0 steps: none).
+        trust: the trust region of every optimisation through the model: controls move at most ``trust`` times
+            the sampling stage's noise std per column from where it started (``q0 + r tanh(z)``, Adam on ``z``;
+            ``plan_lr`` and ``mpc_lr`` are steps in ``z``), so that they stay where the model has data.
+        seed: initial weights, window sampling and variant noise.
+    """
+
+    widths: tuple[int, ...]
+    horizon: int
+    variants: int
+    steps: int
+    lr: float
+    batch: int
+    rounds: int
+    plan_steps: int
+    plan_lr: float
+    mpc_horizon: int
+    mpc_steps: int
+    mpc_lr: float
+    trust: float
     seed: int
 
 

@@ -28,6 +28,7 @@ STAGES: dict[str, Any] = {
     "1": "quasisim.method.stages.point_dynamics",
     "2": "quasisim.method.stages.contact_curriculum",
     "3": "quasisim.method.stages.fit_to_target",
+    "neural": "quasisim.method.stages.neural",
     "mpc": "quasisim.method.stages.mpc",
     "sample": "quasisim.method.stages.sampling",
     "select": "quasisim.method.stages.selection",
@@ -96,6 +97,11 @@ METHODS: dict[str, Method] = {
     ),
     "paper-no-curriculum": Method(
         PAPER, "paper without the curriculum: stages 1 and 2 in the stiffest simulator only", curriculum="none"
+    ),
+    "paper-no-analytical": Method(
+        ("neural",), "paper without the analytical simulator: an MLP of the target alone, fitted to its rollouts, "
+        "the controls optimised through it (no curriculum: there is no analytical simulator to relax), then MPC "
+        "with it as the model",
     ),
     "paper-curriculum2": Method(PAPER, "paper with the paper's curriculum II (stages left out)",
                                 curriculum="curriculum2"),

@@ -9,7 +9,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 from tqdm import tqdm
@@ -62,7 +64,7 @@ def adam_steps(
     returned point is one whose loss was measured) and the loss history. ``mask`` zeroes gradient
     leaves that must stay fixed. Stops early after ``patience`` steps without a relative improvement."""
     tx = optax.adam(lr)
-    x, st = x0, tx.init(x0)
+    x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
     log = StepLog()
     best_x, since = x0, 0
     t0 = time.perf_counter()
@@ -125,3 +127,44 @@ def minimise(
     """:func:`adam_steps` with ``budget``'s early termination and a progress bar named ``desc``."""
     with progress.steps(desc, steps) as on_step:
         return adam_steps(value_and_grad, x0, steps, lr, budget.patience, budget.min_rel_improvement, on_step=on_step)
+
+
+def minibatch_adam(
+    vg: Any, x0: Any, train: Any, steps: int, lr: float, batch: int, seed: int, check_every: int = 10,
+    progress: Progress | None = None, desc: str = "stage 3 fit",
+) -> tuple[Any, list[float]]:  # fmt: skip
+    """Minibatch Adam (``batch`` random training windows per step; ``vg(x, windows)``; ``train`` has ``len`` and
+    ``take(indices)``, e.g. :class:`~quasisim.method.replay.Windows`). Every ``check_every``
+    steps the loss on a fixed subset of ``2 batch`` training windows is measured and the best iterate by it
+    is returned, so a fit never ends worse on that subset than it started. Returns the iterate and the
+    minibatch losses. Batches are taken here, so ``vg`` is compiled for the batch's size alone, whatever
+    the number of training windows."""
+    rng, n = np.random.default_rng(seed), len(train)
+    b = min(batch, n)
+    check = rng.choice(n, size=min(2 * batch, n), replace=False)
+    # the check subset in batches of the step's own size: one compiled program serves both
+    chunks = [train.take(jnp.asarray(check[i : i + b])) for i in range(0, len(check) - b + 1, b)]
+
+    def check_loss(x: Any) -> float:
+        return float(np.mean([float(vg(x, c)[0]) for c in chunks]))
+
+    tx = optax.adam(lr)
+    x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
+    with (progress or Progress(False)).steps(desc, steps) as on_step:
+        best, best_x = check_loss(x), x
+        losses: list[float] = []
+        for k in range(1, steps + 1):
+            idx = jnp.asarray(rng.choice(n, size=b, replace=False))
+            loss, g = vg(x, train.take(idx))
+            if not np.isfinite(float(loss)):
+                break
+            losses.append(float(loss))
+            if on_step is not None:
+                on_step(k, float(loss))
+            upd, st = tx.update(g, st, x)
+            x = optax.apply_updates(x, upd)
+            if k % check_every == 0 or k == steps:
+                c = check_loss(x)
+                if c < best:
+                    best, best_x = c, x
+    return best_x, losses

@@ -35,11 +35,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from quasisim.errors import QuasisimError
 from quasisim.method import spec
@@ -48,7 +46,7 @@ from quasisim.method.replay import ReplayBuffer, Windows, collect, predict, pred
 from quasisim.method.stage import Context, Outcome, Plan, Stage
 from quasisim.method.stages.contact_curriculum import one_simulator
 from quasisim.method.stages.sampling import scene_sampler
-from quasisim.optim.adam import Progress
+from quasisim.optim.adam import Progress, minibatch_adam
 from quasisim.optim.objective import tracking_errors, weighted_sum
 from quasisim.optim.sysid import SysID
 from quasisim.optim.trajectory import Trajectory
@@ -152,7 +150,7 @@ def fit(
     const = (model, params, jnp.asarray(mass0, jnp.float32), jnp.asarray(inertia0, jnp.float32))
     vg = functools.partial(_fit_vg, const, jnp.asarray(base_quat, jnp.float32), weights, fps=fps)
     desc = "stage 3 fit S and constants"
-    return _adam(
+    return minibatch_adam(
         vg, start or SimFit.nominal(), train, opts.steps, opts.lr, opts.batch, opts.seed, progress=progress, desc=desc
     )
 
@@ -198,7 +196,7 @@ def fit_networks(
 
     vg = functools.partial(_networks_vg, (m, p0), jnp.asarray(base_quat, jnp.float32), weights, fps=fps)
     desc = f"stage 3 fit networks ({', '.join(networks)})"
-    nets, losses = _adam(vg, trained, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1,
+    nets, losses = minibatch_adam(vg, trained, train, opts.residual_steps, opts.residual_lr, opts.batch, opts.seed + 1,
                          progress=progress, desc=desc)  # fmt: skip
     return m, p0.replace(**nets), losses
 
@@ -213,46 +211,6 @@ def _networks_vg(
     arguments, so every round of a clip, and every clip of a hand, reuses one compiled program."""
     model, params = const
     return jax.value_and_grad(lambda n: window_loss(model, params.replace(**n), batch, fps, base_quat, weights))(nets)
-
-
-def _adam(
-    vg: Any, x0: Any, train: Windows, steps: int, lr: float, batch: int, seed: int, check_every: int = 10,
-    progress: Progress | None = None, desc: str = "stage 3 fit",
-) -> tuple[Any, list[float]]:  # fmt: skip
-    """Minibatch Adam (``batch`` random training windows per step; ``vg(x, windows)``). Every ``check_every``
-    steps the loss on a fixed subset of ``2 batch`` training windows is measured and the best iterate by it
-    is returned, so a fit never ends worse on that subset than it started. Returns the iterate and the
-    minibatch losses. Batches are taken here, so ``vg`` is compiled for the batch's size alone, whatever
-    the number of training windows."""
-    rng, n = np.random.default_rng(seed), len(train)
-    b = min(batch, n)
-    check = rng.choice(n, size=min(2 * batch, n), replace=False)
-    # the check subset in batches of the step's own size: one compiled program serves both
-    chunks = [train.take(jnp.asarray(check[i : i + b])) for i in range(0, len(check) - b + 1, b)]
-
-    def check_loss(x: Any) -> float:
-        return float(np.mean([float(vg(x, c)[0]) for c in chunks]))
-
-    tx = optax.adam(lr)
-    x, st = x0, tx.init(eqx.filter(x0, eqx.is_array))
-    with (progress or Progress(False)).steps(desc, steps) as on_step:
-        best, best_x = check_loss(x), x
-        losses: list[float] = []
-        for k in range(1, steps + 1):
-            idx = jnp.asarray(rng.choice(n, size=b, replace=False))
-            loss, g = vg(x, train.take(idx))
-            if not np.isfinite(float(loss)):
-                break
-            losses.append(float(loss))
-            if on_step is not None:
-                on_step(k, float(loss))
-            upd, st = tx.update(g, st, x)
-            x = optax.apply_updates(x, upd)
-            if k % check_every == 0 or k == steps:
-                c = check_loss(x)
-                if c < best:
-                    best, best_x = c, x
-    return best_x, losses
 
 
 def fit_windows(
