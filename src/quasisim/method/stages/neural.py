@@ -12,7 +12,10 @@ approximate physics in Bullet directly"; here MuJoCo).
 3. **MPC**: closed loop in the target from the best controls, the model as MPC's model (at every frame the
    observed state, ``mpc_steps`` Adam steps on the next ``mpc_horizon`` frames, the first applied).
 
-There is no curriculum: the curriculum relaxes the analytical simulator, which this ablation leaves out.
+Every optimisation through the model stays in a trust region, ``q0 + r tanh(z)`` with ``r`` = ``trust`` x the
+sampling stage's noise std per column around where it starts (the model is right only near its data; the
+paper does not say how it kept its optimisation there). There is no curriculum: the curriculum relaxes the
+analytical simulator, which this ablation leaves out.
 """
 
 from __future__ import annotations
