@@ -144,7 +144,7 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
     assert tuple(choices) == METHODS
 
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "1,4"])
-    assert r.exit_code == 2 and "valid stages: quick, 1, 2, 3, mpc, sample" in r.output
+    assert r.exit_code == 2 and "valid stages: quick, 1, 2, 3, neural, mpc, sample" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--budget", "huge"])
     assert r.exit_code == 2 and "valid options: fast, paper" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--curriculum", "soft"])
