@@ -63,7 +63,7 @@ def options(ctx: Context) -> NeuralOptions:
     return o
 
 
-def _first_frame_fixed(g: np.ndarray) -> np.ndarray:
+def _first_frame_fixed(g: jax.Array) -> jax.Array:
     """Frame 0 of the controls is where the hand starts: not optimised."""
     return g.at[0].set(0.0)
 
@@ -146,7 +146,8 @@ def neural_method(ctx: Context, q0: np.ndarray, o: NeuralOptions, target: Target
     prob, cfg, progress, radius = ctx.prob, ctx.cfg, ctx.progress, trust_radius(ctx, o)
     demo, scene, model, bq = prob.demo, prob.scene, prob.model, prob.base_quat
     w, T = cfg.weights.arrays(), demo.n_frames
-    ref = (*(r[1:] for r in clip_reference(demo, model)[:3]), clip_reference(demo, model)[3], jnp.ones(T - 1, F32))
+    pos, quat, kp, kp_index = clip_reference(demo, model)
+    ref = (pos[1:], quat[1:], kp[1:], kp_index, jnp.ones(T - 1, F32))
 
     def rollouts(q: np.ndarray, seed: int) -> ReplayBuffer:
         return collect(scene, [q, *noisy_variants(q, o.variants, cfg.sampling, seed, scene)], demo.fps, target.name)
