@@ -8,7 +8,7 @@ export QUASISIM_ROBOT_PATH ?= $(SHARED)/robots
 export QUASISIM_DATA ?= $(SHARED)/data
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo demo-ours test test-all test-fast lint clean
+.PHONY: setup setup-lerobot demo demo-ours test test-all test-fast lint clean
 
 setup: $(VENV)/.installed
 
@@ -19,6 +19,18 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q 'torch==2.13.0'  # the CPU build where pip finds it (PyPI's default is a CUDA build of GBs)
 	$(PY) -m pip install -q -e '.[dev,cluster,viewer,rl]'
+	@touch $@
+
+# `quasisim export --format lerobot` in an environment of its own (lerobot pins torch < 2.11: pip takes a CUDA
+# build of torch 2.10, about 8 GB, ~2.5 min; docs/dataset.md): run .venv-lerobot/bin/quasisim export ...
+LEROBOT_VENV := .venv-lerobot
+setup-lerobot: $(LEROBOT_VENV)/.installed
+
+$(LEROBOT_VENV)/.installed: pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (quasisim needs Python 3.11)"; exit 1; }
+	$(PYTHON) -m venv $(LEROBOT_VENV)
+	$(LEROBOT_VENV)/bin/python -m pip install -q --upgrade pip
+	$(LEROBOT_VENV)/bin/python -m pip install -q -e '.[dev,lerobot]'
 	@touch $@
 
 # The default method (the cascade: sampling MPC in MuJoCo first, the physics curriculum only where that fails
@@ -45,16 +57,19 @@ demo-ours: setup
 TEST_XLA := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false
 # `test` (CI) leaves out the extended tests (research paths outside the default method, ~25 min more on 2 cores);
 # `test-all` runs every test.
-test: setup
+# The LeRobot export's tests (marker `lerobot`) run in .venv-lerobot after the rest.
+test: setup setup-lerobot
 	@sh scripts/test_deps.sh
-	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25 -m "not extended"
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25 -m "not extended and not lerobot"
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(LEROBOT_VENV)/bin/pytest -q -m lerobot tests/test_lerobot_export.py
 
-test-all: setup
+test-all: setup setup-lerobot
 	@sh scripts/test_deps.sh
-	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=25 -m "not lerobot"
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(LEROBOT_VENV)/bin/pytest -q -m lerobot tests/test_lerobot_export.py
 
 test-fast: setup
-	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow and not extended"
+	XLA_FLAGS="$$XLA_FLAGS $(TEST_XLA)" $(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow and not extended and not lerobot"
 
 lint: setup
 	$(VENV)/bin/ruff check src tests examples scripts

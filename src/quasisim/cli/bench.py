@@ -1,5 +1,5 @@
 """`quasisim bench`: the benchmarks behind the tables of BENCHMARKS.md (transfer, compare, batch, policy, env,
-paper) and the strict-failure analysis of finished runs (failures)."""
+paper, export) and the strict-failure analysis of finished runs (failures)."""
 
 from __future__ import annotations
 
@@ -306,3 +306,24 @@ def bench_failures(runs: Path, data_dir: Path | None, out: Path | None) -> None:
 
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     click.echo(write(runs, analyse(runs, data), out or runs))
+
+
+@bench.command("export")
+@click.argument("runs", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option(
+    "--data", "data_dirs", multiple=True, type=click.Path(path_type=Path, exists=True, file_okay=False),
+    help="Folder of the runs' demos (repeatable; default: as quasisim export finds them).",
+)  # fmt: skip
+@click.option("--closed-loop", "closed_loop", type=click.IntRange(0, 1000), default=0, show_default=True,
+              help="Per run, also N closed-loop episodes (as quasisim export --closed-loop).")  # fmt: skip
+@click.option("--image-size", "image_size", type=(click.IntRange(16, 2048), click.IntRange(16, 2048)),
+              default=(240, 320), show_default=True, help="The LeRobot camera's height and width.")  # fmt: skip
+@_friendly
+def bench_export(runs: Path, data_dirs: tuple[Path, ...], closed_loop: int, image_size: tuple[int, int]) -> None:
+    """Time and size of `quasisim export` per finished run under RUNS, robomimic (HDF5) beside lerobot (each run
+    exported alone, in both formats, into a temporary folder); a markdown table. Needs lerobot
+    (.venv-lerobot/bin/quasisim: make setup-lerobot)."""
+    _setup_runtime()
+    from quasisim.bench.export import run_export_bench
+
+    click.echo(run_export_bench(runs, data_dirs, closed_loop, image_size)[1])

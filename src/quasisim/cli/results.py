@@ -40,7 +40,19 @@ def view(run_dir: Path, web: bool, port: int, host: str, demo: Path | None) -> N
 
 @main.command("export")
 @click.argument("batch_dir", type=click.Path(path_type=Path))
-@click.option("--out", "out", type=click.Path(path_type=Path), required=True, help="The dataset file (.hdf5).")
+@click.option(
+    "--out", "out", type=click.Path(path_type=Path), required=True,
+    help="The dataset: a file ending in .hdf5 (robomimic), a new folder (lerobot).",
+)  # fmt: skip
+@click.option(
+    "--format", "fmt", type=click.Choice(["robomimic", "lerobot"]), default="robomimic", show_default=True,
+    help="robomimic: one HDF5 file with MuJoCo states; lerobot: a LeRobot dataset (v3: parquet, MP4 video) "
+    "written with lerobot's API (make setup-lerobot; docs/dataset.md).",
+)  # fmt: skip
+@click.option(
+    "--image-size", "image_size", type=(click.IntRange(16, 2048), click.IntRange(16, 2048)), default=(240, 320),
+    show_default=True, help="--format lerobot: the camera's height and width (pixels).",
+)  # fmt: skip
 @click.option(
     "--only", type=click.Choice(["strict", "20", "any"]), default="any", show_default=True,
     help="Runs to keep: strict success, success at 20 deg / 20 cm, or any finished run (unstable ones never).",
@@ -58,18 +70,28 @@ def view(run_dir: Path, web: bool, port: int, host: str, demo: Path | None) -> N
     help="Per run, also N closed-loop episodes: the tracker driving the perturbed worlds of robust success "
     "(configs/robust.yaml, replays 0..N-1), each marked with its world's parameters (docs/dataset.md).",
 )  # fmt: skip
-@click.option("--check", is_flag=True, help="Then replay every episode in MuJoCo; exit 1 if one deviates > 1e-9.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@click.option(
+    "--check", is_flag=True,
+    help="robomimic: then replay every episode in MuJoCo; exit 1 if one deviates > 1e-9 (a lerobot export is "
+    "always read back through LeRobotDataset and compared before it is kept).",
+)  # fmt: skip
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out.")
 @_friendly
 def export_cmd(
-    batch_dir: Path, out: Path, only: str, min_robust: float | None, data_dirs: tuple[Path, ...], closed_loop: int,
-    check: bool, overwrite: bool,
+    batch_dir: Path, out: Path, fmt: str, image_size: tuple[int, int], only: str, min_robust: float | None,
+    data_dirs: tuple[Path, ...], closed_loop: int, check: bool, overwrite: bool,
 ) -> None:  # fmt: skip
-    """Finished runs under BATCH_DIR (batch, transfer or bench transfer outputs) as one HDF5 training set in
-    robomimic's layout: observations, PD-target actions, MuJoCo states, the scene (docs/dataset.md)."""
+    """Finished runs under BATCH_DIR (batch, transfer or bench transfer outputs, or one run) as one training
+    set: robomimic's HDF5 layout (observations, PD-target actions, MuJoCo states, the scene) or a LeRobot
+    dataset (state, action, camera video, task text; docs/dataset.md)."""
     from quasisim.errors import InputError
     from quasisim.files import check_out_dir
 
+    if fmt == "lerobot":
+        _export_lerobot(batch_dir, out, image_size, only, min_robust, data_dirs, closed_loop, check, overwrite)
+        return
+    if image_size != (240, 320):
+        raise click.UsageError("--image-size only with --format lerobot")
     if out.suffix not in (".hdf5", ".h5"):
         raise InputError(out, "--out", "a file name ending in .hdf5 or .h5", repr(out.name))
     check_out_dir(out.parent)
@@ -85,6 +107,32 @@ def export_cmd(
         click.echo(f"skipped {len(res.skipped)}: " + "; ".join(f"{r} ({why})" for r, why in res.skipped))
     if check:
         _export_check(out, {name: run for name, run, _ in res.episodes})
+
+
+def _export_lerobot(
+    batch_dir: Path, out: Path, image_size: tuple[int, int], only: str, min_robust: float | None,
+    data_dirs: tuple[Path, ...], closed_loop: int, check: bool, overwrite: bool,
+) -> None:  # fmt: skip
+    from quasisim.errors import InputError
+    from quasisim.files import check_out_dir
+
+    if check:
+        raise click.UsageError("--check is robomimic's: a lerobot export is always read back and compared")
+    if out.suffix in (".hdf5", ".h5"):
+        raise InputError(out, "--out", "a folder for --format lerobot (a .hdf5 file is --format robomimic's)", out.name)
+    check_out_dir(out.parent)
+    if out.exists() and not overwrite:
+        raise InputError(out, "--out", "a new folder (pass --overwrite to replace it)", "an existing path")
+    _setup_runtime()
+    from quasisim.eval.lerobot_export import export_lerobot, require_lerobot
+
+    require_lerobot()
+    res = export_lerobot(batch_dir, out, only, min_robust, data_dirs, closed_loop, image_size, overwrite=overwrite)
+    mb = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 1e6
+    click.echo(f"wrote {out}: {len(res.episodes)} episodes, {res.total} frames, {mb:.1f} MB in {res.seconds:.1f} s; "
+               f"read back through LeRobotDataset: vectors equal, frames' PSNR >= {res.check['min_frame_psnr_db']:.1f} dB")  # fmt: skip
+    if res.skipped:
+        click.echo(f"skipped {len(res.skipped)}: " + "; ".join(f"{r} ({why})" for r, why in res.skipped))
 
 
 def _export_check(out: Path, runs: dict[str, str]) -> None:

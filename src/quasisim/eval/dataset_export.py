@@ -157,6 +157,33 @@ def check_robust(run: RunInput) -> None:
         )  # fmt: skip
 
 
+def select_runs(root: Path, only: str, min_robust: float | None) -> tuple[list[RunInput], list[tuple[str, str]]]:
+    """The finished runs at or below ``root`` that pass the filters (``only``: a key of :data:`ONLY`;
+    ``min_robust``: a minimum robust success), read and checked, and ``(label, why)`` of those left out;
+    :class:`InputError` when none passes."""
+    if only not in ONLY:
+        raise InputError(None, "--only", f"one of {', '.join(ONLY)}", repr(only))
+    paths = find_runs(root)
+    if not paths:
+        raise InputError(
+            root, None, "finished runs below it (folders with manifest.json: batch, transfer or bench transfer outputs)",
+            "none",
+        )  # fmt: skip
+    runs = [read_run(p, root) for p in paths]
+    if min_robust is not None:
+        for r in runs:
+            check_robust(r)
+    keep, skipped = [], []
+    for r in runs:
+        why = skip_reason(r, only, min_robust)
+        (skipped.append((r.label, why)) if why else keep.append(r))
+    if not keep:
+        want = f"--only {only}" + ("" if min_robust is None else f" --min-robust {min_robust:g}")
+        raise InputError(root, None, f"at least one run that passes {want}",
+                         f"none of {len(runs)} ({'; '.join(f'{a}: {b}' for a, b in skipped[:5])})")  # fmt: skip
+    return keep, skipped
+
+
 # ---- one episode ----------------------------------------------------------------------------------------
 
 
@@ -323,9 +350,10 @@ def _episode(
     }  # fmt: skip
 
 
-def _run_episodes(run: RunInput, demo: Demo, closed_loop: int) -> Any:
-    """``run``'s episode, then its ``closed_loop`` closed-loop episodes (a generator: one in memory at a time)."""
-    scene = run_scene(run, demo)
+def run_episodes(run: RunInput, demo: Demo, closed_loop: int, scene: Scene | None = None) -> Any:
+    """``run``'s episode, then its ``closed_loop`` closed-loop episodes (a generator: one in memory at a time);
+    ``scene``: the run's nominal scene (:func:`run_scene`) where the caller has it."""
+    scene = scene or run_scene(run, demo)
     yield record_episode(run, demo, scene)
     if closed_loop:
         from quasisim.eval.robust import replays
@@ -436,31 +464,10 @@ def export_dataset(
     import h5py
     from tqdm import tqdm
 
-    if only not in ONLY:
-        raise InputError(None, "--only", f"one of {', '.join(ONLY)}", repr(only))
     t0 = time.perf_counter()
     root = Path(root)
-    paths = find_runs(root)
-    if not paths:
-        raise InputError(
-            root,
-            None,
-            "finished runs below it (folders with manifest.json: batch, transfer or bench transfer outputs)",
-            "none",
-        )
-    runs = [read_run(p, root) for p in paths]
-    if min_robust is not None:
-        for r in runs:
-            check_robust(r)
-    res = ExportResult(Path(out))
-    keep = []
-    for r in runs:
-        why = skip_reason(r, only, min_robust)
-        (res.skipped.append((r.label, why)) if why else keep.append(r))
-    if not keep:
-        want = f"--only {only}" + ("" if min_robust is None else f" --min-robust {min_robust:g}")
-        raise InputError(root, None, f"at least one run that passes {want}",
-                         f"none of {len(runs)} ({'; '.join(f'{a}: {b}' for a, b in res.skipped[:5])})")  # fmt: skip
+    keep, skipped = select_runs(root, only, min_robust)
+    res = ExportResult(Path(out), skipped=skipped)
     demos = RunDemos(tuple(data_dirs), root)
     fps, dts = [], []
     bar = tqdm(total=len(keep), desc="export", unit="run", disable=None if progress else True, leave=False)
@@ -468,7 +475,7 @@ def export_dataset(
         data, mask = f.create_group("data"), {k: [] for k in (*SUCCESS_FLAGS, "closed_loop")}
         for r in keep:
             bar.set_postfix_str(r.label)
-            for ep in _run_episodes(r, demos.find(r.path), closed_loop):
+            for ep in run_episodes(r, demos.find(r.path), closed_loop):
                 name = f"demo_{len(res.episodes)}"
                 _write_episode(data.create_group(name), ep)
                 res.episodes.append((name, r.label, ep["attrs"]["num_samples"]))
