@@ -22,15 +22,19 @@ $(VENV)/.installed: pyproject.toml
 	@touch $@
 
 # `quasisim export --format lerobot` in an environment of its own (lerobot pins torch < 2.11: pip takes a CUDA
-# build of torch 2.10, about 8 GB, ~2.5 min; docs/dataset.md): run .venv-lerobot/bin/quasisim export ...
+# build of torch 2.10, about 8 GB, ~3 min; docs/dataset.md): run .venv-lerobot/bin/quasisim export ...
+# It gets the main environment's numpy: the export replays each run and must reproduce it bit for bit, and
+# another numpy's LAPACK may choose other principal axes for a symmetric object (a cube's inertia), which a
+# contact-rich replay amplifies. pip then reports that opencv-python-headless (lerobot's) declares numpy < 2.3;
+# the export does not use OpenCV (tests/test_lerobot_export.py runs there).
 LEROBOT_VENV := .venv-lerobot
 setup-lerobot: $(LEROBOT_VENV)/.installed
 
-$(LEROBOT_VENV)/.installed: pyproject.toml
-	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (quasisim needs Python 3.11)"; exit 1; }
+$(LEROBOT_VENV)/.installed: pyproject.toml $(VENV)/.installed
 	$(PYTHON) -m venv $(LEROBOT_VENV)
 	$(LEROBOT_VENV)/bin/python -m pip install -q --upgrade pip
 	$(LEROBOT_VENV)/bin/python -m pip install -q -e '.[dev,lerobot]'
+	$(LEROBOT_VENV)/bin/python -m pip install -q --no-deps "numpy==$$($(PY) -c 'import numpy; print(numpy.__version__)')"
 	@touch $@
 
 # The default method (the cascade: sampling MPC in MuJoCo first, the physics curriculum only where that fails

@@ -232,7 +232,7 @@ def _reproduced(run: RunInput, rollout: Any, scene_matches: bool) -> None:
             hint = (
                 ""
                 if scene_matches
-                else "; its scene.xml differs from the scene rebuilt here (another quasisim version?)"
+                else "; its scene.xml differs from the scene rebuilt here (another quasisim, MuJoCo or numpy version?)"
             )
             raise InputError(
                 run.path, None,
