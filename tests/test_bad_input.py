@@ -469,7 +469,7 @@ OPTION_CASES = [
     Case("retarget-no-demo", _nothing, "retarget --out {d}/out", ("DEMO",)),
     Case("evaluate-target", _nothing, EVAL + " --target gazebo", ("--target", "mujoco")),
     Case("evaluate-unknown-option", _nothing, EVAL + " --fast", ("--fast",)),
-    Case("transfer-stages", _nothing, TR + "--stages 1,4", ("stage", "1, 2, 3, neural, mpc, sample")),
+    Case("transfer-stages", _nothing, TR + "--stages 1,4", ("stage", "1, 2, 3, neural, control_vae, mpc, sample")),
     Case("transfer-stages-empty", _nothing, TR + "--stages ,", ("stage",)),
     Case("transfer-budget", _nothing, TR + "--budget huge", ("budget", "fast, paper")),
     Case("transfer-curriculum", _nothing, TR + "--curriculum soft", ("curriculum", "default")),

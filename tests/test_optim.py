@@ -163,7 +163,7 @@ def test_transfer_config_validation(tmp_path) -> None:
     with pytest.raises(InputError, match="foo"):
         TransferConfig.from_yaml(bad)
     assert parse_stages("2,1") == ("1", "2")
-    with pytest.raises(QuasisimError, match="valid stages: quick, 1, 2, 3, neural, mpc, sample"):
+    with pytest.raises(QuasisimError, match="valid stages: quick, 1, 2, 3, neural, control_vae, mpc, sample"):
         parse_stages("1,4")
 
 

@@ -144,7 +144,7 @@ def test_transfer_cli_rejects_bad_options(short_demo: Path, tmp_path: Path) -> N
     assert tuple(choices) == METHODS
 
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--stages", "1,4"])
-    assert r.exit_code == 2 and "valid stages: quick, 1, 2, 3, neural, mpc, sample" in r.output
+    assert r.exit_code == 2 and "valid stages: quick, 1, 2, 3, neural, control_vae, mpc, sample" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--budget", "huge"])
     assert r.exit_code == 2 and "valid options: fast, paper" in r.output
     r = CliRunner().invoke(main, ["transfer", str(short_demo), "--out", str(tmp_path), "--curriculum", "soft"])
@@ -285,6 +285,55 @@ def test_neural_method_end_to_end(short_demo: Path, tmp_path: Path, monkeypatch)
         run_transfer(short_demo, out, spec, other, resume=True)
     with pytest.raises(InputError, match="neural"):
         run_transfer(short_demo, tmp_path / "none", spec, dataclasses.replace(cfg, neural=None))
+
+
+CVAE_TINY = {**NEURAL_TINY, "control_vae.widths": [16, 16], "control_vae.latent": 4, "control_vae.horizon": 3,
+             "control_vae.steps": 150, "control_vae.batch": 8, "control_vae.rounds": 2}  # fmt: skip
+
+
+def test_control_vae_method_end_to_end(short_demo: Path, tmp_path: Path, monkeypatch) -> None:
+    """``--method control-vae`` (the paper's Control-VAE baseline): the world model fitted, the controller
+    trained through it (its minibatch loss falls) and driving MuJoCo each round, checkpointed; the run's controls
+    are the best round's, and replayed open loop they give the run's metrics and that round's objective; a resume
+    reuses the checkpoint and one with other settings is refused; a config without the stage's settings is
+    refused naming them."""
+    import quasisim.method.stages.control_vae as cvae
+    from quasisim.data.controls import load_controls
+    from quasisim.data.demo import load_demo
+    from quasisim.eval.evaluate import evaluate_controls, hands_of
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
+    from quasisim.targets import make_target
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    cfg = TransferConfig.from_yaml(overrides=CVAE_TINY)
+    spec = TransferSpec(method="control-vae", render=False, progress=False)
+    out = tmp_path / "cv"
+    res = run_transfer(short_demo, out, spec, cfg)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stages"] == ["control_vae"] and set(summary["seconds"]) == {"retarget", "control_vae"}
+    with np.load(out / "checkpoints" / "control_vae.npz") as ck:
+        costs, best, losses = ck["round_costs"], int(ck["best_round"]), ck["losses"]
+        assert costs.shape == (3,) and losses.shape == (300,) and int(ck["buffer_rollouts"]) == 9
+    assert best == int(np.argmin(costs)) and np.mean(losses[-30:]) < np.mean(losses[:30])
+    demo, c = load_demo(short_demo), load_controls(out / "controls.npz")
+    assert evaluate_controls(demo, c, "mujoco", None, render=False).metrics == res.metrics
+    scene = scene_for(demo, place_hands(hands_of(c, out / "controls.npz"), c.base_rots))
+    with make_target("mujoco", scene) as target:
+        assert target.judge(demo, c.q_targets, cfg.weights) == pytest.approx(costs[best], rel=1e-9)
+
+    def refit(*a, **k):
+        raise AssertionError("the checkpoint was not reused")
+
+    monkeypatch.setattr(cvae, "control_vae_method", refit)
+    assert run_transfer(short_demo, out, spec, cfg, resume=True).metrics == res.metrics
+    with pytest.raises(InputError, match="control_vae"):
+        other = TransferConfig.from_yaml(overrides={**CVAE_TINY, "control_vae.beta": 0.5})
+        run_transfer(short_demo, out, spec, other, resume=True)
+    with pytest.raises(InputError, match="control_vae"):
+        run_transfer(short_demo, tmp_path / "none", spec, dataclasses.replace(cfg, control_vae=None))
 
 
 @pytest.mark.parametrize("target", ["mujoco", pytest.param("pybullet", marks=pytest.mark.slow)])

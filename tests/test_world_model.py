@@ -117,3 +117,71 @@ def test_buffer_states_pack_the_recorded_frames() -> None:
     x = buffer_states(buf)
     assert x.shape == (2, 5, 2 * D + 13)
     np.testing.assert_allclose(x[..., 2 * D + 3 : 2 * D + 7], buf.obj_quat, atol=1e-6)
+
+
+# ---- Control-VAE (stage control_vae): a generative controller trained through the model ----------------------
+
+
+def _controller_setup(short_scene, seed: int = 0):
+    from quasisim.method.control_vae import init_controller
+    from quasisim.method.stages.neural import clip_reference
+
+    prob, plan = short_scene
+    H = 3
+    ref = tuple(np.asarray(a) for a in clip_reference(prob.demo, prob.model, H))
+    k = np.concatenate([plan, np.repeat(plan[-1:], H, 0)])
+    ctrl = init_controller(prob.scene.n_dof, (8,), 4, seed)
+    return prob, plan, ref, k, ctrl
+
+
+def test_untrained_controller_drives_the_retarget_exactly(short_scene) -> None:
+    """The controller's output layers start at zero: it applies the kinematic retarget as it is (no KL), so
+    driving the target with it ends where an open-loop replay of the retarget ends."""
+    from quasisim.method.stages.control_vae import drive
+    from quasisim.targets import make_target
+
+    prob, plan, ref, k, ctrl = _controller_setup(short_scene)
+    radius = np.full(prob.scene.n_dof, 0.1)
+    with make_target("mujoco", prob.scene) as target:
+        want = target.rollout(plan)
+        applied = drive(ctrl, _norm_of(prob.scene.n_dof), prob.demo, k, ref, radius, 0.1, target)
+        np.testing.assert_allclose(applied, plan, atol=1e-6)
+        np.testing.assert_allclose(target.observe()["obj_pos"], want.object_pos[-1], atol=1e-6)
+
+
+def test_controller_gradient_matches_central_differences(short_scene) -> None:
+    """The gradient of the controller's window loss through the model (tracking terms and KL) against central
+    finite differences, along a random direction of every network's weights at a random point."""
+    import jax
+
+    from quasisim.method.control_vae import goal_size, window_loss
+
+    prob, plan, ref, k, ctrl = _controller_setup(short_scene)
+    D, H = prob.scene.n_dof, 3
+    rng = np.random.default_rng(1)
+    rand = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(rng.normal(0, 0.3, a.shape), jnp.float32), t)  # noqa: E731
+    nets, wm = rand(ctrl.tree()), rand(init_layers(D, (8,), 0))
+    norm = _norm_of(D)
+    x0 = jnp.asarray(np.concatenate([plan[0], np.zeros(D), prob.demo.object_pos[0], prob.demo.object_quat[0],
+                                     np.zeros(6)]), jnp.float32)  # fmt: skip
+    pos, quat, kp, kp_index = ref
+    win = (jnp.asarray(pos[1 : H + 1]), jnp.asarray(quat[1 : H + 1]), jnp.asarray(kp[1 : H + 1]),
+           jnp.asarray(kp_index), jnp.ones(H))  # fmt: skip
+    eps = jnp.asarray(rng.normal(size=(H, 4)), jnp.float32)
+    w = {n: jnp.float32(1.0) for n in ("obj_pos", "obj_rot", "hand")}
+    assert goal_size(D) == 7 + D
+
+    def f(n):
+        return window_loss(n, wm, norm, prob.model, jnp.asarray(prob.base_quat, jnp.float32), x0,
+                           jnp.asarray(plan[0], jnp.float32), jnp.asarray(k[1 : H + 1], jnp.float32), win,
+                           jnp.full(D, 0.1, jnp.float32), eps, 0.1, 0.01, w)  # fmt: skip
+
+    g = jax.grad(f)(nets)
+    v = rand(nets)
+    along = sum(
+        float(jnp.sum(a * b)) for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(v), strict=True)
+    )
+    h = 1e-3
+    shift = lambda s: jax.tree_util.tree_map(lambda a, b: a + s * b, nets, v)  # noqa: E731
+    fd = (float(f(shift(h))) - float(f(shift(-h)))) / (2 * h)
+    assert abs(along) > 1e-3 and abs(fd - along) <= 0.02 * abs(along), (fd, along)

@@ -18,6 +18,7 @@ from quasisim.config import apply_overrides, build, read_yaml
 from quasisim.errors import InputError, choice_error
 from quasisim.method.options import (
     HANDOFF_MODES,
+    ControlVAEOptions,
     FitOptions,
     HandoffOptions,
     MPCOptions,
@@ -75,6 +76,7 @@ class TransferConfig:
     stage3: FitOptions
     robust_select: RobustSelectOptions = dataclasses.field(default_factory=RobustSelectOptions)
     neural: NeuralOptions | None = None  # stage neural's settings (a YAML without them cannot run that stage)
+    control_vae: ControlVAEOptions | None = None  # stage control_vae's (the same)
     path: str = ""
 
     @classmethod
@@ -149,6 +151,9 @@ _AT_LEAST_ONE = (
     "neural.horizon",
     "neural.batch",
     "neural.mpc_horizon",
+    "control_vae.latent",
+    "control_vae.horizon",
+    "control_vae.batch",
 )
 
 

@@ -1,5 +1,5 @@
 """The settings of each stage of the method: the sections of ``configs/transfer.yaml`` that belong to one stage
-(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``, ``neural``, ``robust_select``), fields of
+(``stage1``, ``stage2``, ``mpc``, ``sampling``, ``stage3``, ``neural``, ``control_vae``, ``robust_select``), fields of
 :class:`~quasisim.method.config.TransferConfig` (light: no JAX or MuJoCo; the stage modules, the config and
 the closed-loop tracker read them from here)."""
 
@@ -264,6 +264,36 @@ class NeuralOptions:
     mpc_horizon: int
     mpc_steps: int
     mpc_lr: float
+    trust: float
+    seed: int
+
+
+@dataclass(frozen=True)
+class ControlVAEOptions:
+    """Settings of stage ``control_vae`` (``configs/transfer.yaml``, ``control_vae``): the paper's Control-VAE
+    baseline adapted to tracking (:mod:`quasisim.method.control_vae`); its world model is stage ``neural``'s
+    (the ``neural`` section's widths, horizon, variants and fit).
+
+    Attributes:
+        widths: the hidden layers of the prior, the encoder and the decoder.  latent: the latent size Z.
+        sigma: the latent's standard deviation (prior and posterior).  beta: the KL term's weight.
+        horizon: frames per training window, acted through the world model.
+        steps, lr, batch: the controller's minibatch Adam steps per round, step size and windows per step.
+        rounds: train the controller, drive the target with it, refit the model on what it did.
+        trust: the controller's PD targets stay within ``trust`` x the sampling noise std of the kinematic
+            retarget per column (as stage ``neural``'s trust region).
+        seed: initial weights, window noise and variant noise.
+    """
+
+    widths: tuple[int, ...]
+    latent: int
+    sigma: float
+    beta: float
+    horizon: int
+    steps: int
+    lr: float
+    batch: int
+    rounds: int
     trust: float
     seed: int
 

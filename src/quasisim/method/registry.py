@@ -29,6 +29,7 @@ STAGES: dict[str, Any] = {
     "2": "quasisim.method.stages.contact_curriculum",
     "3": "quasisim.method.stages.fit_to_target",
     "neural": "quasisim.method.stages.neural",
+    "control_vae": "quasisim.method.stages.control_vae",
     "mpc": "quasisim.method.stages.mpc",
     "sample": "quasisim.method.stages.sampling",
     "select": "quasisim.method.stages.selection",
@@ -105,4 +106,8 @@ METHODS: dict[str, Method] = {
     ),
     "paper-curriculum2": Method(PAPER, "paper with the paper's curriculum II (stages left out)",
                                 curriculum="curriculum2"),
+    "control-vae": Method(
+        ("control_vae",), "the paper's Control-VAE baseline for tracking: a generative controller trained through "
+        "an MLP of the target (stage neural's world model), driving the target from the clip's start",
+    ),
 }  # fmt: skip

@@ -87,11 +87,11 @@ def plan_through(wm: WorldModel, model: Model, base_quat: np.ndarray, x0: np.nda
     return np.asarray(q0 + r * jnp.tanh(best), np.float64)
 
 
-def trust_radius(ctx: Context, o: NeuralOptions) -> np.ndarray:
+def trust_radius(ctx: Context, trust: float) -> np.ndarray:
     """(D,) how far an optimisation through the model may move each column: ``trust`` x the sampling noise
     std (m for base positions, rad otherwise)."""
     counts = tuple(h.n_joints for h in ctx.prob.scene.hands)
-    return o.trust * noise_std(ctx.cfg.sampling, counts)
+    return trust * noise_std(ctx.cfg.sampling, counts)
 
 
 def clip_reference(demo: Demo, model: Model, horizon: int = 0) -> tuple[Any, ...]:
@@ -143,7 +143,7 @@ def model_mpc(demo: Demo, wm: WorldModel, model: Model, base_quat: np.ndarray, p
 
 def neural_method(ctx: Context, q0: np.ndarray, o: NeuralOptions, target: Target) -> dict[str, Any]:
     """Steps 1-3 of the module docstring from controls ``q0`` (T, D); the checkpoint's arrays."""
-    prob, cfg, progress, radius = ctx.prob, ctx.cfg, ctx.progress, trust_radius(ctx, o)
+    prob, cfg, progress, radius = ctx.prob, ctx.cfg, ctx.progress, trust_radius(ctx, o.trust)
     demo, scene, model, bq = prob.demo, prob.scene, prob.model, prob.base_quat
     w, T = cfg.weights.arrays(), demo.n_frames
     pos, quat, kp, kp_index = clip_reference(demo, model)
