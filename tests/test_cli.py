@@ -81,6 +81,7 @@ def test_help_names_the_examples_and_commands() -> None:
         "batch",
         "compare",
         "env",
+        "export",
         "failures",
         "paper",
         "policy",
