@@ -298,6 +298,7 @@ def test_control_vae_method_end_to_end(short_demo: Path, tmp_path: Path, monkeyp
     reuses the checkpoint and one with other settings is refused; a config without the stage's settings is
     refused naming them."""
     import quasisim.method.stages.control_vae as cvae
+    from quasisim.batch import method_seconds
     from quasisim.data.controls import load_controls
     from quasisim.data.demo import load_demo
     from quasisim.eval.evaluate import evaluate_controls, hands_of
@@ -314,6 +315,7 @@ def test_control_vae_method_end_to_end(short_demo: Path, tmp_path: Path, monkeyp
     res = run_transfer(short_demo, out, spec, cfg)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stages"] == ["control_vae"] and set(summary["seconds"]) == {"retarget", "control_vae"}
+    assert method_seconds(summary["seconds"]) == sum(summary["seconds"].values())  # counted in the tables
     with np.load(out / "checkpoints" / "control_vae.npz") as ck:
         costs, best, losses = ck["round_costs"], int(ck["best_round"]), ck["losses"]
         assert costs.shape == (3,) and losses.shape == (300,) and int(ck["buffer_rollouts"]) == 9

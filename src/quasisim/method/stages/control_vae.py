@@ -156,7 +156,7 @@ def run(ctx: Context, out: Outcome) -> Outcome:
 
 STAGE = Stage(
     name="control_vae",
-    word="control-vae",
+    word="control_vae",
     config=("neural", "control_vae"),
     s_per_frame=2.0,
     run=run,
