@@ -112,6 +112,15 @@ class TransferConfig:
             raise choice_error("budget", name, list(self.budgets))
         return self.budgets[name]
 
+    def section(self, key: str, stage: str) -> Any:
+        """The settings section ``key`` that stage ``stage`` needs; :class:`InputError` naming it where the
+        user's YAML left an optional section (e.g. ``neural``) out."""
+        value = getattr(self, key)
+        if value is None:
+            raise InputError(self.path or None, key, f"the settings of stage {stage} (see configs/transfer.yaml)",
+                             "missing")  # fmt: skip
+        return value
+
     def identity(self, budget: str, stages: Sequence[Any], spec: Any = None) -> dict[str, Any]:
         """The settings that determine the results of a run of ``stages`` (their declarations in run order,
         :func:`quasisim.method.stage.declared_stages`): the budget, the weights, and each stage's own (its
@@ -124,10 +133,7 @@ class TransferConfig:
         for st in stages:
             for key in st.config:
                 if hasattr(self, key):
-                    if getattr(self, key) is None:  # an optional section (e.g. neural) the user's YAML left out
-                        raise InputError(self.path or None, key, f"the settings of stage {st.name} (see "
-                                         "configs/transfer.yaml)", "missing")  # fmt: skip
-                    settings = _settings(getattr(self, key))
+                    settings = _settings(self.section(key, st.name))
                     if settings:  # a section added later, at its defaults, leaves the identity as it was
                         out[key] = settings
                 elif spec is not None:

@@ -17,7 +17,6 @@ kinematic retarget (as stage ``neural``'s trust region), which it starts from.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import jax
@@ -35,10 +34,10 @@ from quasisim.method.control_vae import (
     starts,
 )
 from quasisim.method.options import ControlVAEOptions
-from quasisim.method.replay import ReplayBuffer, collect
+from quasisim.method.replay import ReplayBuffer
 from quasisim.method.stage import Context, Outcome, Stage
-from quasisim.method.stages.fit_to_target import noisy_variants
-from quasisim.method.stages.neural import clip_reference, trust_radius
+from quasisim.method.stages._common import timed
+from quasisim.method.stages.neural import clip_reference, drive_target, model_rollouts, trust_radius
 from quasisim.method.stages.neural import options as neural_options
 from quasisim.method.world_model import Norm, WorldModel, buffer_states, fit, init_layers, observation_state
 from quasisim.optim.adam import minibatch_adam
@@ -49,10 +48,7 @@ F32 = jnp.float32
 
 def options(ctx: Context) -> ControlVAEOptions:
     """The stage's settings; a config without them is refused."""
-    o = ctx.cfg.control_vae
-    if o is None:
-        raise InputError(ctx.cfg.path or None, "control_vae", "the settings of stage control_vae (see "
-                         "configs/transfer.yaml)", "missing")  # fmt: skip
+    o = ctx.cfg.section("control_vae", "control_vae")
     if not o.widths or min(o.widths) < 1 or o.sigma <= 0:
         raise InputError(ctx.cfg.path or None, "control_vae", "layer widths >= 1 and sigma > 0", str(o))
     return o
@@ -77,19 +73,15 @@ def drive(ctrl: Controller, norm: Norm, demo: Demo, k: np.ndarray, ref: tuple[An
           sigma: float, target: Target) -> np.ndarray:  # fmt: skip
     """The PD targets (T, D) the controller applies in ``target`` from the clip's start, acting on each
     observed state with the posterior's mean."""
-    T, fps = demo.n_frames, demo.fps
     pos, quat = np.asarray(ref[0]), np.asarray(ref[1])
     zeros, r = jnp.zeros(len(ctrl.prior[-1][1]), F32), jnp.asarray(radius, F32)
     policy = jax.jit(lambda x, p, q, kn: act(ctrl.tree(), norm, x, goal(x, p, q, kn, norm), kn, r, zeros, sigma)[0])
-    applied = np.array(k[:T], np.float64)
-    target.reset(applied[0], (k[1] - k[0]) * fps)
-    for t in range(T - 1):
-        x = jnp.asarray(observation_state(target.observe()))
-        applied[t + 1] = np.asarray(policy(x, pos[t + 1], quat[t + 1], jnp.asarray(k[t + 1], F32)), np.float64)
-        if t == 0:  # start over with the hand velocity of the applied targets, as a replay of them does
-            target.reset(applied[0], (applied[1] - applied[0]) * fps)
-        target.advance(applied[t], applied[t + 1])
-    return applied
+
+    def choose(t: int, obs: dict[str, np.ndarray]) -> np.ndarray:
+        x = jnp.asarray(observation_state(obs))
+        return np.asarray(policy(x, pos[t + 1], quat[t + 1], jnp.asarray(k[t + 1], F32)), np.float64)
+
+    return drive_target(target, np.array(k[: demo.n_frames], np.float64), demo.fps, choose)
 
 
 def control_vae_method(ctx: Context, q0: np.ndarray, o: ControlVAEOptions, target: Target) -> dict[str, Any]:
@@ -101,7 +93,7 @@ def control_vae_method(ctx: Context, q0: np.ndarray, o: ControlVAEOptions, targe
     k = np.concatenate([q0, np.repeat(q0[-1:], o.horizon, 0)])
 
     def rollouts(q: np.ndarray, seed: int) -> ReplayBuffer:
-        return collect(scene, [q, *noisy_variants(q, nn.variants, cfg.sampling, seed, scene)], demo.fps, target.name)
+        return model_rollouts(ctx, q, nn, seed, target)
 
     buf = rollouts(q0, o.seed)
     wm = WorldModel(init_layers(scene.n_dof, nn.widths, nn.seed), Norm.of(buf))
@@ -135,14 +127,12 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     T, D = prob.demo.n_frames, prob.scene.n_dof
 
     def compute() -> dict[str, Any]:
-        t0 = time.perf_counter()
         with make_target(ctx.spec.target, prob.scene) as target:
-            d = control_vae_method(ctx, np.asarray(out.q, np.float64), o, target)
-        return {**d, "wall_s": np.array(time.perf_counter() - t0)}
+            return control_vae_method(ctx, np.asarray(out.q, np.float64), o, target)
 
     expect = {"q_targets": (T, D), "round_costs": (o.rounds + 1,), "best_round": (), "losses": (None,),
-              "model_losses": (None,), "buffer_rollouts": (), "wall_s": ()}  # fmt: skip
-    d = ctx.ck.get("control_vae", compute, expect)
+              "model_losses": (None,), "buffer_rollouts": ()}  # fmt: skip
+    d = timed(ctx.ck, "control_vae", compute, expect)
     rec = ctx.record
     rec.seconds["control_vae"] = float(d["wall_s"])
     rec.curves["stage control_vae controller fit (minibatch loss)"] = [float(x) for x in d["losses"]]

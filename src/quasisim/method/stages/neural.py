@@ -20,7 +20,6 @@ analytical simulator, which this ablation leaves out.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import jax
@@ -32,6 +31,7 @@ from quasisim.errors import InputError, QuasisimError
 from quasisim.method.options import NeuralOptions
 from quasisim.method.replay import ReplayBuffer, collect
 from quasisim.method.stage import Context, Outcome, Stage
+from quasisim.method.stages._common import timed
 from quasisim.method.stages.fit_to_target import noisy_variants
 from quasisim.method.stages.sampling import noise_std
 from quasisim.method.world_model import (
@@ -54,10 +54,7 @@ F32 = jnp.float32
 
 def options(ctx: Context) -> NeuralOptions:
     """The stage's settings; a config without them (or with an empty layer) is refused."""
-    o = ctx.cfg.neural
-    if o is None:
-        raise InputError(ctx.cfg.path or None, "neural", "the settings of stage neural (see configs/transfer.yaml)",
-                         "missing")  # fmt: skip
+    o = ctx.cfg.section("neural", "neural")
     if not o.widths or min(o.widths) < 1:
         raise InputError(ctx.cfg.path or None, "neural.widths", "one or more layer widths >= 1", repr(o.widths))
     return o
@@ -125,20 +122,39 @@ def model_mpc(demo: Demo, wm: WorldModel, model: Model, base_quat: np.ndarray, p
     ref = clip_reference(demo, model, H)
     w = weights.arrays()
     plan = np.concatenate([plan, np.repeat(plan[-1:], H, 0)])
-    anchor, applied = plan.copy(), plan.copy()
-    target.reset(plan[0], (plan[1] - plan[0]) * demo.fps)
-    for t in range(T - 1):
-        x = observation_state(target.observe())
+    anchor = plan.copy()
+
+    def choose(t: int, obs: dict[str, np.ndarray]) -> np.ndarray:
         fw = jnp.asarray((np.arange(t + 1, t + H + 1) < T).astype(np.float32))
         win_ref = (*(r[t + 1 : t + H + 1] for r in ref[:3]), ref[3], fw)
         win = slice(t, t + H + 1)
-        plan[win] = plan_through(wm, model, base_quat, x, anchor[win], win_ref, w, o.mpc_steps, o.mpc_lr, radius,
-                                 plan[win])  # fmt: skip
-        applied[t + 1] = plan[t + 1]
-        if t == 0:  # start over with the hand velocity of the applied targets, as a replay of them does
-            target.reset(applied[0], (applied[1] - applied[0]) * demo.fps)
+        plan[win] = plan_through(wm, model, base_quat, observation_state(obs), anchor[win], win_ref, w, o.mpc_steps,
+                                 o.mpc_lr, radius, plan[win])  # fmt: skip
+        return plan[t + 1]
+
+    return drive_target(target, plan[:T].copy(), demo.fps, choose)
+
+
+def drive_target(target: Target, applied: np.ndarray, fps: float, choose: Any) -> np.ndarray:
+    """Closed loop in ``target`` from ``applied`` (T, D; its frames 0 and 1 set the start and its velocity):
+    at every frame ``t`` the PD target of frame ``t + 1`` is ``choose(t, observation)``; returns the PD targets
+    applied. After frame 0's choice the target starts over with the hand velocity of the applied targets, as an
+    open-loop replay of them does, so that the replay reproduces the run."""
+    fps = float(fps)
+    target.reset(applied[0], (applied[1] - applied[0]) * fps)
+    for t in range(len(applied) - 1):
+        applied[t + 1] = choose(t, target.observe())
+        if t == 0:
+            target.reset(applied[0], (applied[1] - applied[0]) * fps)
         target.advance(applied[t], applied[t + 1])
-    return applied[:T]
+    return applied
+
+
+def model_rollouts(ctx: Context, q: np.ndarray, o: NeuralOptions, seed: int, target: Target) -> ReplayBuffer:
+    """Controls ``q`` (T, D) and ``o.variants`` noisy variants of them (``seed``) rolled out in ``target``."""
+    scene, cfg = ctx.prob.scene, ctx.cfg
+    return collect(scene, [q, *noisy_variants(q, o.variants, cfg.sampling, seed, scene)], ctx.prob.demo.fps,
+                   target.name)  # fmt: skip
 
 
 def neural_method(ctx: Context, q0: np.ndarray, o: NeuralOptions, target: Target) -> dict[str, Any]:
@@ -150,7 +166,7 @@ def neural_method(ctx: Context, q0: np.ndarray, o: NeuralOptions, target: Target
     ref = (pos[1:], quat[1:], kp[1:], kp_index, jnp.ones(T - 1, F32))
 
     def rollouts(q: np.ndarray, seed: int) -> ReplayBuffer:
-        return collect(scene, [q, *noisy_variants(q, o.variants, cfg.sampling, seed, scene)], demo.fps, target.name)
+        return model_rollouts(ctx, q, o, seed, target)
 
     def refit(wm: WorldModel, buf: ReplayBuffer, seed: int) -> tuple[WorldModel, list[float]]:
         return fit(wm, buf, o.horizon, o.steps, o.lr, o.batch, seed)
@@ -192,14 +208,12 @@ def run(ctx: Context, out: Outcome) -> Outcome:
     T, D = prob.demo.n_frames, prob.scene.n_dof
 
     def compute() -> dict[str, Any]:
-        t0 = time.perf_counter()
         with make_target(ctx.spec.target, prob.scene) as target:
-            d = neural_method(ctx, np.asarray(out.q, np.float64), o, target)
-        return {**d, "wall_s": np.array(time.perf_counter() - t0)}
+            return neural_method(ctx, np.asarray(out.q, np.float64), o, target)
 
     expect = {"q_targets": (T, D), "plan_q": (T, D), "round_costs": (o.rounds + 1,), "best_round": (),
-              "round_errors": (o.rounds, 2), "losses": (None,), "buffer_rollouts": (), "wall_s": ()}  # fmt: skip
-    d = ctx.ck.get("neural", compute, expect)
+              "round_errors": (o.rounds, 2), "losses": (None,), "buffer_rollouts": ()}  # fmt: skip
+    d = timed(ctx.ck, "neural", compute, expect)
     rec = ctx.record
     rec.seconds["neural"] = float(d["wall_s"])
     rec.curves["stage neural model fit (minibatch loss)"] = [float(x) for x in d["losses"]]
