@@ -231,6 +231,12 @@ def remove_orphans(folder: Path) -> list[Path]:
     return gone
 
 
+def size_mb(path: Path) -> float:
+    """The size of file ``path``, or of every file below folder ``path``, in MB (10^6 bytes)."""
+    files = [path] if path.is_file() else [f for f in path.rglob("*") if f.is_file()]
+    return sum(f.stat().st_size for f in files) / 1e6
+
+
 def file_sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

@@ -33,11 +33,6 @@ class ExportCost:
         )
 
 
-def _mb(path: Path) -> float:
-    files = [path] if path.is_file() else [f for f in path.rglob("*") if f.is_file()]
-    return sum(f.stat().st_size for f in files) / 1e6
-
-
 def run_export_bench(
     root: Path, data_dirs: tuple[Path, ...], closed_loop: int, image_size: tuple[int, int]
 ) -> tuple[list[ExportCost], str]:
@@ -45,6 +40,7 @@ def run_export_bench(
     then the totals)."""
     from quasisim.eval.dataset_export import export_dataset, find_runs
     from quasisim.eval.lerobot_export import export_lerobot, require_lerobot
+    from quasisim.files import size_mb
 
     require_lerobot()
     rows = []
@@ -58,7 +54,7 @@ def run_export_bench(
             t1 = time.perf_counter()
             export_lerobot(run, lr, data_dirs=dirs, closed_loop=closed_loop, size=image_size, progress=False)
             t2 = time.perf_counter()
-            rows.append(ExportCost(label, res.total, t1 - t0, _mb(h5), t2 - t1, _mb(lr)))
+            rows.append(ExportCost(label, res.total, t1 - t0, size_mb(h5), t2 - t1, size_mb(lr)))
     total = ExportCost(
         f"**all {len(rows)}**", sum(r.frames for r in rows), sum(r.robomimic_s for r in rows),
         sum(r.robomimic_mb for r in rows), sum(r.lerobot_s for r in rows), sum(r.lerobot_mb for r in rows),

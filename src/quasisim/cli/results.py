@@ -124,11 +124,11 @@ def _export_lerobot(
     if out.exists() and not overwrite:
         raise InputError(out, "--out", "a new folder (pass --overwrite to replace it)", "an existing path")
     _setup_runtime()
-    from quasisim.eval.lerobot_export import export_lerobot, require_lerobot
+    from quasisim.eval.lerobot_export import export_lerobot
+    from quasisim.files import size_mb
 
-    require_lerobot()
     res = export_lerobot(batch_dir, out, only, min_robust, data_dirs, closed_loop, image_size, overwrite=overwrite)
-    mb = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 1e6
+    mb = size_mb(out)
     click.echo(f"wrote {out}: {len(res.episodes)} episodes, {res.total} frames, {mb:.1f} MB in {res.seconds:.1f} s; "
                f"read back through LeRobotDataset: vectors equal, frames' PSNR >= {res.check['min_frame_psnr_db']:.1f} dB")  # fmt: skip
     if res.skipped:

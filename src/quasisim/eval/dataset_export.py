@@ -59,12 +59,14 @@ class RunInput:
 
 @dataclass
 class ExportResult:
-    """What :func:`export_dataset` wrote: one ``(demo group, run, samples)`` per episode, skipped runs and why."""
+    """What an export wrote: one ``(episode, run, samples)`` per episode (the HDF5 demo group, or LeRobot's
+    ``episode_<index>``), skipped runs and why, and for a LeRobot export its read-back ``check``."""
 
     out: Path
     episodes: list[tuple[str, str, int]] = field(default_factory=list)
     skipped: list[tuple[str, str]] = field(default_factory=list)
     seconds: float = 0.0
+    check: dict[str, float] = field(default_factory=dict)
 
     @property
     def total(self) -> int:

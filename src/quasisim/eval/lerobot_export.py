@@ -27,7 +27,6 @@ import re
 import shutil
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,28 +35,13 @@ import numpy as np
 from quasisim.data.demo import Demo
 from quasisim.data.run_demo import RunDemos
 from quasisim.errors import InputError, QuasisimError
-from quasisim.eval.dataset_export import run_episodes, run_scene, select_runs
+from quasisim.eval.dataset_export import ExportResult, run_episodes, run_scene, select_runs
 
 CAMERA = "scene"
 SIDECAR = "meta/quasisim_episodes.jsonl"
 VIDEO_PSNR = 30.0  # dB: a decoded frame against the one rendered (lossy video; a wrong frame is far below)
 STATE_TOL = 0.0  # the vectors read back against those written (both float32: equal)
 INSTALL = "make setup-lerobot (a separate environment, .venv-lerobot: lerobot pins torch < 2.11; docs/dataset.md)"
-
-
-@dataclass
-class LeRobotExport:
-    """What :func:`export_lerobot` wrote: per episode ``(index, run, frames)``, skipped runs and why."""
-
-    out: Path
-    episodes: list[tuple[int, str, int]] = field(default_factory=list)
-    skipped: list[tuple[str, str]] = field(default_factory=list)
-    check: dict[str, float] = field(default_factory=dict)
-    seconds: float = 0.0
-
-    @property
-    def total(self) -> int:
-        return sum(n for _, _, n in self.episodes)
 
 
 def require_lerobot() -> Any:
@@ -144,7 +128,7 @@ def export_lerobot(
     root: Path, out: Path, only: str = "any", min_robust: float | None = None, data_dirs: tuple[Path, ...] = (),
     closed_loop: int = 0, size: tuple[int, int] = (240, 320), repo_id: str | None = None, overwrite: bool = False,
     progress: bool = True,
-) -> LeRobotExport:  # fmt: skip
+) -> ExportResult:  # fmt: skip
     """Write the finished runs at or below ``root`` that pass the filters (as :func:`~quasisim.eval.dataset_export.
     export_dataset`) to the LeRobot dataset folder ``out``, atomically (a failure leaves no folder): one episode
     per run, then ``closed_loop`` closed-loop episodes per run; images ``size`` (H, W) pixels; ``repo_id``: the
@@ -159,7 +143,7 @@ def export_lerobot(
     t0 = time.perf_counter()
     root, out = Path(root), Path(out)
     keep, skipped = select_runs(root, only, min_robust)
-    res = LeRobotExport(out, skipped=skipped)
+    res = ExportResult(out, skipped=skipped)
     demos, meta, ds, spec, expected = RunDemos(tuple(data_dirs), root), [], None, None, []
     bar = tqdm(total=len(keep), desc="export", unit="run", disable=None if progress else True, leave=False)
     with bar, _atomic_dir(out, overwrite) as tmp:
@@ -186,7 +170,7 @@ def export_lerobot(
                     meta.append(_meta(ep, len(res.episodes), task))
                     n = len(images)
                     expected.append((arrays, {t: images[t] for t in sorted({0, n // 2, n - 1})}))
-                    res.episodes.append((len(res.episodes), r.label, len(images)))
+                    res.episodes.append((f"episode_{len(res.episodes)}", r.label, n))
             finally:
                 renderer.close()
             bar.update(1)
