@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from helpers import cube_example
+from quasisim.method.curriculum import load_curriculum
 
 pytest.importorskip("stable_baselines3", reason="the optional extra rl is not installed (pip install -e '.[rl]')")
 
@@ -235,6 +236,51 @@ def test_dgrasp_base_trains_on_its_guide_and_is_judged_on_the_clip(clip, tmp_pat
     assert ev.metrics["MPJPE_mm"] == judged["clip"] != judged["guide"]  # judged against the clip
     m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert m["policy"]["method"] == "dgrasp-base" and m["robust_closed_loop"]["n"] == 1
+
+
+def test_dgrasp_tracking_curriculum_trains_through_the_curriculum_then_in_the_target(
+    clip, tmp_path, monkeypatch
+) -> None:
+    """dgrasp-tracking-curriculum with the short curriculum, 64 env steps per simulator: the environments step its
+    five analytical simulators in order, soft to stiff, then MuJoCo; a training stopped inside the curriculum
+    resumes in the simulator where it stopped; the policy is judged in MuJoCo. One process; an unknown
+    curriculum is refused before training."""
+    from quasisim.envs.track import TrackEnv
+    from quasisim.policy.evaluate import evaluate_policy
+    from quasisim.policy.train import prepare, train
+    from quasisim.targets.quasi_target import QuasiTarget
+
+    path = clip[0]
+    refused = _cli("train", path, "--method", "dgrasp-tracking-curriculum", "--steps", 64, "--out", tmp_path / "no",
+                   "--set", "ppo.curriculum=nope", ok=False)  # fmt: skip
+    assert refused.returncode == 2 and "default" in refused.stderr and "Traceback" not in refused.stderr
+    stepped: list = []
+    make = TrackEnv._make_world
+
+    def recording(self, scene):  # which simulator each new environment steps: a stage's settings, or None (MuJoCo)
+        world = make(self, scene)
+        stepped.append(world.stage if isinstance(world, QuasiTarget) else None)
+        return world
+
+    monkeypatch.setattr(TrackEnv, "_make_world", recording)
+    out = tmp_path / "curric"
+    out.mkdir()
+    ppo = {"n_envs": 1, "n_steps": 64, "batch_size": 64, "checkpoint_every": 64, "validate_worlds": 0,
+           "curriculum": "short", "curriculum_stage_steps": 64}  # fmt: skip
+    prepare(path, out, None, "shadow", "mujoco", 0, {}, ppo, "dgrasp-tracking-curriculum")
+    cur = load_curriculum("short")
+    stages = [cur.contact(i) for i, st in enumerate(cur.stages) if not st.residual]
+    assert len(stages) == 5
+    train(out, 192, progress=False)  # three of the five simulators
+    assert stepped == stages[:3]
+    assert json.loads((out / "checkpoint.json").read_text())["span"] == 2
+    stepped.clear()
+    train(out, 448, resume=True, progress=False)  # the other two, then MuJoCo for 128 steps
+    assert stepped == [*stages[3:], None]
+    info = json.loads((out / "training.json").read_text())
+    assert info["env_steps"] == 448 and info["method"] == "dgrasp-tracking-curriculum"
+    ev = evaluate_policy(out, tmp_path / "ev", 1)
+    assert ev.rollout.target == "mujoco" and ev.metrics["policy"]["method"] == "dgrasp-tracking-curriculum"
 
 
 def test_bench_policy_reads_our_metrics_from_the_batch_where_the_run_folder_has_none(tmp_path) -> None:

@@ -8,7 +8,6 @@ Each row of the paper (:data:`ROWS`) is one of:
   into ``OUT`` (one Ray batch, resumable; the ablations reuse the stage 1/2 checkpoints of ``paper``);
 * a learned policy (``policy``): read from a folder of ``quasisim bench policy`` (``--policy``:
   ``POLICY/<clip>/<method>/eval/metrics.json``, the best validated model), trained there;
-* not built yet (neither): the row says so, with the paper's figures only.
 
 The paper's figures were measured in Bullet and Isaac Gym on its own clips (GRAB, TACO, ARCTIC sequences with
 the Shadow hand); ours in MuJoCo on the clips given. They orient, they do not compare: the table says so.
@@ -59,7 +58,7 @@ ROWS: tuple[PaperRow, ...] = (
              (36.41, 4.56, 50.97, 18.78, 0, 7.84, 7.84)),
     PaperRow("main", "DGrasp-Tracking", None, "dgrasp-tracking", (44.45, 5.04, 37.56, 14.72, 0, 15.69, 15.69),
              (44.71, 5.57, 41.53, 16.72, 0, 0, 7.84)),
-    PaperRow("main", "DGrasp-Tracking (w/ curric.)", None, None, (33.86, 4.60, 30.47, 13.53, 7.84, 23.53, 37.25),
+    PaperRow("main", "DGrasp-Tracking (w/ curric.)", None, "dgrasp-tracking-curriculum", (33.86, 4.60, 30.47, 13.53, 7.84, 23.53, 37.25),
              (38.75, 5.13, 40.09, 16.26, 0, 23.53, 31.37)),
     PaperRow("main", "Control-VAE", "control-vae", None, (42.45, 2.73, 25.21, 10.94, 0, 15.68, 23.53),
              (35.40, 4.61, 27.63, 13.17, 0, 13.73, 29.41)),

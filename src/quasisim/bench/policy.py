@@ -2,7 +2,8 @@
 
 For every clip: ``ours+residual`` (PPO residual on our result, :mod:`quasisim.policy`), ``dgrasp-tracking``
 (PPO from scratch, the kinematic retarget observed) and, where asked, ``dgrasp-base`` (PPO from scratch, the
-first grasp then only the root guided, :mod:`quasisim.policy.dgrasp`) trained to ``steps`` env steps in
+first grasp then only the root guided, :mod:`quasisim.policy.dgrasp`) and ``dgrasp-tracking-curriculum``
+(``dgrasp-tracking`` trained through the physics curriculum's simulators first) trained to ``steps`` env steps in
 ``OUT/<clip>/<method>/train`` (resumed where a checkpoint is, skipped where finished) and judged in
 ``OUT/<clip>/<method>/eval`` (the best validated model) and ``eval-final`` (the last one); our result (``RUNS/<clip>/<run>``) open loop (its metrics.json) and closed loop
 (the tracker of :mod:`quasisim.method.track`, cached beside the run by :func:`quasisim.bench.closed_loop.add_closed_loop`).
@@ -21,7 +22,8 @@ from quasisim.errors import QuasisimError
 from quasisim.eval.robust import CLOSED_LOOP_SUFFIX, ROBUST_KEY
 from quasisim.eval.tables import header, publish
 
-POLICY_METHODS = ("ours+residual", "dgrasp-tracking", "dgrasp-base")  # --methods (default: the first two)
+POLICY_METHODS = ("ours+residual", "dgrasp-tracking", "dgrasp-base", "dgrasp-tracking-curriculum")  # --methods
+# (default: the first two)
 
 
 Overrides = tuple[dict[str, Any], dict[str, Any]]  # (env, ppo) settings of every policy (--set)

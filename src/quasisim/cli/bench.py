@@ -226,7 +226,7 @@ def _layout(text: str) -> Layout:
 @click.option("--workers", type=click.IntRange(1), default=2, show_default=True,
               help="Processes for the closed-loop replays of ours.")  # fmt: skip
 @click.option("--methods", default="ours+residual,dgrasp-tracking", show_default=True,
-              help="Policies to train (also: dgrasp-base).")  # fmt: skip
+              help="Policies to train (also: dgrasp-base, dgrasp-tracking-curriculum).")  # fmt: skip
 @click.option("--set", "sets", multiple=True,
               help="A setting of every policy trained: env.KEY=V (configs/track_env.yaml), ppo.KEY=V "
                    "(configs/ppo.yaml); a folder trained with other settings is refused.")  # fmt: skip

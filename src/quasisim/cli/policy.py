@@ -48,10 +48,12 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
 )
 @click.option(
     "--method",
-    type=click.Choice(["dgrasp-tracking", "dgrasp-base"]),
+    type=click.Choice(["dgrasp-tracking", "dgrasp-base", "dgrasp-tracking-curriculum"]),
     default=None,
-    help="Without --residual: dgrasp-tracking (default; the kinematic retarget observed at every frame) or "
-    "dgrasp-base (the first grasp frame's grasp, then only the root guided along the object's path).",
+    help="Without --residual: dgrasp-tracking (default; the kinematic retarget observed at every frame), "
+    "dgrasp-base (the first grasp frame's grasp, then only the root guided along the object's path) or "
+    "dgrasp-tracking-curriculum (dgrasp-tracking trained first in each analytical simulator of the physics "
+    "curriculum, ppo.curriculum_stage_steps each, then in the target).",
 )
 @click.option("--hand", default="shadow", show_default=True, help="Robot hand without --residual.")
 @click.option("--target", type=TARGET_CHOICE, default="mujoco", show_default=True)

@@ -84,6 +84,10 @@ class TrackEnv(gym.Env):
         residual: actions add to the reference's PD targets (else they move the measured pose, DGrasp's form).
         target: the simulator (``mujoco`` or ``pybullet``).
         config: a :class:`TrackEnvConfig` (default ``configs/track_env.yaml`` with ``overrides``).
+        physics: a simulator of the physics curriculum to step instead of ``target`` (its contact settings,
+            :data:`~quasisim.targets.quasi_target.STAGE_KEYS`; :class:`~quasisim.targets.quasi_target.QuasiTarget`):
+            for training through the curriculum (DGrasp-Tracking w/ curriculum); success is only judged in
+            ``target``.
 
     ``reset(options={"world": i})`` uses training world ``i``; ``options={"world": None}`` the nominal scene;
     ``options={"skip_worlds": n}`` skips the generator's next ``n`` worlds first (with ``seed``: goes on after
@@ -99,6 +103,7 @@ class TrackEnv(gym.Env):
     def __init__(
         self, clip: str | Path, reference: str | Path, residual: bool = False, target: str = "mujoco",
         config: TrackEnvConfig | None = None, overrides: dict[str, Any] | None = None,
+        physics: dict[str, float] | None = None,
     ) -> None:  # fmt: skip
         if target not in TARGETS:
             from quasisim.errors import choice_error
@@ -107,7 +112,7 @@ class TrackEnv(gym.Env):
         cfg = config or TrackEnvConfig.from_yaml(None, overrides)
         controls, path = load_reference(reference)
         self.task = task_for(load_demo(clip), controls, cfg, residual, path)
-        self.target = target
+        self.target, self.physics = target, physics
         self._worlds = world_config(cfg)
         D = self.task.scene.n_dof
         self.action_space = gym.spaces.Box(-1.0, 1.0, (D,), np.float32)
@@ -138,13 +143,21 @@ class TrackEnv(gym.Env):
         if self._world is None or not self._world.set_world(scene):  # MuJoCo: the parameters, not a new model
             if self._world is not None:
                 self._world.close()
-            self._world = make_target(self.target, scene)
+            self._world = self._make_world(scene)
         q = self.task.reference
         self._world.reset(q[0], (q[1] - q[0]) * self.task.scene.fps)
         self._t, self._prev = 0, q[0]
         self._obs = self._world.observe()
         self._poses = [(self._obs["obj_pos"], self._obs["obj_quat"])]
         return self.task.observation(0, self._obs), {"world": -1 if i is None else i}
+
+    def _make_world(self, scene: Scene) -> Target:
+        """The simulator of ``scene``: the target, or the curriculum's simulator :attr:`physics`."""
+        if self.physics is None:
+            return make_target(self.target, scene)
+        from quasisim.targets.quasi_target import QuasiTarget
+
+        return QuasiTarget(scene, self.physics)
 
     def _draw_world(self) -> int:
         """The generator's next training world."""

@@ -16,7 +16,8 @@ PPO_PATH = Path(__file__).resolve().parent.parent / "configs" / "ppo.yaml"
 class PPOConfig:
     """stable-baselines3 PPO's settings (their names) and ours: ``n_envs`` processes, ``checkpoint_every``
     env steps (each checkpoint validated in the nominal world and ``validate_worlds`` training worlds), ``net_arch`` and the initial exploration noise ``log_std_init`` (``log_std_init_residual`` for
-    a residual policy) of the policy."""
+    a residual policy) of the policy; ``dgrasp-tracking-curriculum`` trains ``curriculum_stage_steps`` env steps in
+    each analytical simulator of ``curriculum`` (``configs/curricula``), then the rest in the target."""
 
     n_envs: int = 2
     n_steps: int = 512
@@ -33,13 +34,15 @@ class PPOConfig:
     net_arch: tuple[int, ...] = (256, 256)
     checkpoint_every: int = 10000
     validate_worlds: int = 8
+    curriculum: str = "default"
+    curriculum_stage_steps: int = 24576
     path: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         where = self.path or None
         if self.validate_worlds < 0:
             raise InputError(where, "validate_worlds", "a count >= 0", str(self.validate_worlds))
-        for name in ("n_envs", "n_steps", "batch_size", "n_epochs", "checkpoint_every"):
+        for name in ("n_envs", "n_steps", "batch_size", "n_epochs", "checkpoint_every", "curriculum_stage_steps"):
             if getattr(self, name) < 1:
                 raise InputError(where, name, "an integer >= 1", str(getattr(self, name)))
         if (self.n_envs * self.n_steps) % self.batch_size:
@@ -63,6 +66,8 @@ class PPOConfig:
             "net_arch",
             "checkpoint_every",
             "validate_worlds",
+            "curriculum",
+            "curriculum_stage_steps",
             "path",
         )
         d = {k: v for k, v in asdict(self).items() if k not in ours}

@@ -5,7 +5,9 @@ A training folder ``OUT`` holds:
 * ``setup.json``: what is trained (:class:`TrainSetup`: the clip, the method, the target, the settings);
 * ``reference.npz``: the reference PD targets: our result (``ours+residual``) or the kinematic retarget
   (``dgrasp-tracking``, which acts on the measured pose and sees the reference only in its observation;
-  ``dgrasp-base``: the retarget of its guide);
+  ``dgrasp-base``: the retarget of its guide; ``dgrasp-tracking-curriculum``: as ``dgrasp-tracking``, trained
+  first in each analytical simulator of the physics curriculum, soft to stiff, then in the target:
+  :func:`segments`);
 * ``guide.npz`` + ``guide.json`` (``dgrasp-base`` only): the demo as DGrasp sees it, its first grasp carried
   with the object (:mod:`quasisim.policy.dgrasp`), and each hand's grasp frame: the policy trains and is
   observed against the guide, and judged against the clip;
@@ -34,8 +36,10 @@ import numpy as np
 from quasisim.errors import InputError, QuasisimError
 from quasisim.files import atomic_path, save_json_atomic
 
-METHODS = {"dgrasp-tracking": False, "dgrasp-base": False, "ours+residual": True}  # method -> residual actions
-FROM_SCRATCH = ("dgrasp-tracking", "dgrasp-base")  # the methods without our result (train --method)
+METHODS = {"dgrasp-tracking": False, "dgrasp-base": False, "dgrasp-tracking-curriculum": False,
+           "ours+residual": True}  # method -> residual actions  # fmt: skip
+FROM_SCRATCH = ("dgrasp-tracking", "dgrasp-base", "dgrasp-tracking-curriculum")  # without our result (--method)
+CURRICULUM = "dgrasp-tracking-curriculum"  # trained through the physics curriculum, then in the target
 SETUP, REFERENCE, CHECKPOINT, POLICY = "setup.json", "reference.npz", "checkpoint.zip", "policy.zip"
 GUIDE, GUIDE_INFO = "guide.npz", "guide.json"  # dgrasp-base's demo as DGrasp sees it, and its grasp frames
 DGRASP_MU = 1.0  # the friction coefficient of DGrasp-Base's force-closure test: the targets' (PhysicsOptions)
@@ -99,7 +103,11 @@ def prepare(
 
         raise choice_error("method", method, FROM_SCRATCH)
     env_cfg = TrackEnvConfig.from_yaml(None, env_overrides)
-    PPOConfig.from_yaml(None, ppo_overrides)
+    ppo = PPOConfig.from_yaml(None, ppo_overrides)
+    if method == CURRICULUM:
+        from quasisim.method.curriculum import load_curriculum
+
+        load_curriculum(ppo.curriculum)  # refused here (naming the valid ones), before any process starts
     demo, guide = load_demo(clip), ""
     if residual_run is not None:
         controls, path = load_reference(residual_run)
@@ -149,8 +157,9 @@ def clear(out: Path) -> None:
         shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
 
 
-def make_env(out: Path, setup: TrainSetup) -> Any:
-    """A function making one environment of the training (for stable-baselines3's vectorised envs)."""
+def make_env(out: Path, setup: TrainSetup, physics: dict[str, float] | None = None) -> Any:
+    """A function making one environment of the training (for stable-baselines3's vectorised envs), stepping
+    the target or the curriculum's simulator ``physics``."""
 
     def thunk() -> Any:
         import gymnasium as gym
@@ -158,9 +167,28 @@ def make_env(out: Path, setup: TrainSetup) -> Any:
         import quasisim.envs
 
         return gym.make(quasisim.envs.TRACK_ID, clip=setup.trained_on, reference=out / REFERENCE,
-                        residual=setup.residual, target=setup.target, overrides=setup.env_overrides)  # fmt: skip
+                        residual=setup.residual, target=setup.target, overrides=setup.env_overrides,
+                        physics=physics)  # fmt: skip
 
     return thunk
+
+
+Segment = tuple[dict[str, float] | None, int]  # (the simulator's contact settings, None: the target; end step)
+
+
+def segments(setup: TrainSetup, cfg: Any, steps: int) -> list[Segment]:
+    """What a training of ``steps`` env steps trains in, span by span: the target throughout, or (``CURRICULUM``)
+    ``cfg.curriculum_stage_steps`` in each analytical simulator of ``cfg.curriculum`` from soft to stiff (its
+    residual simulators left out: the target takes their place), then the target up to ``steps``. A span ends at
+    the first whole rollout past its end step."""
+    if setup.method != CURRICULUM:
+        return [(None, steps)]
+    from quasisim.method.curriculum import load_curriculum
+
+    cur = load_curriculum(cfg.curriculum)
+    analytical = [i for i, st in enumerate(cur.stages) if not st.residual]
+    ends = [min(steps, (k + 1) * cfg.curriculum_stage_steps) for k in range(len(analytical))]
+    return [(cur.contact(i), end) for i, end in zip(analytical, ends, strict=True)] + [(None, steps)]
 
 
 def training_task(out: Path, setup: TrainSetup) -> tuple[Any, Any]:
@@ -209,7 +237,7 @@ class Selector:
         return score
 
 
-def _callbacks(out: Path, every: int, wall0: float, select: Selector) -> list[Any]:
+def _callbacks(out: Path, every: int, wall0: float, select: Selector, span: int = 0) -> list[Any]:
     """Checkpoints with validation every ``every`` env steps (atomic) and the tracked fraction of the episodes
     (strict success) in the logs."""
     from stable_baselines3.common.callbacks import BaseCallback
@@ -244,19 +272,19 @@ def _callbacks(out: Path, every: int, wall0: float, select: Selector) -> list[An
                 score = select(self.model)
                 for k, v in score._asdict().items():
                     self.logger.record(f"validation/{k}", float(v))
-                save_checkpoint(self.model, out, wall0)
+                save_checkpoint(self.model, out, wall0, span)
             return True
 
     return [Tracked(), Checkpoint()]
 
 
-def save_checkpoint(model: Any, out: Path, wall0: float) -> None:
-    """``checkpoint.zip`` and ``checkpoint.json`` (steps, wall seconds so far, the training worlds each
-    environment has drawn since it was seeded), each replaced atomically."""
+def save_checkpoint(model: Any, out: Path, wall0: float, span: int = 0) -> None:
+    """``checkpoint.zip`` and ``checkpoint.json`` (steps, wall seconds so far, the span of :func:`segments` and the
+    training worlds each of its environments has drawn since it was seeded), each replaced atomically."""
     with atomic_path(out / CHECKPOINT) as tmp:
         model.save(tmp)
     drawn = [int(n) for n in model.get_env().get_attr("worlds_drawn")]
-    meta = {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0, "worlds_drawn": drawn}
+    meta = {"steps": int(model.num_timesteps), "wall_s": time.time() - wall0, "span": span, "worlds_drawn": drawn}
     save_json_atomic(out / CHECKPOINT_META, meta)
 
 
@@ -271,10 +299,10 @@ def _continue_worlds(venv: Any, meta: dict[str, Any]) -> None:
     venv.set_options([{"skip_worlds": int(n)} for n in drawn])
 
 
-def _vec_env(out: Path, setup: TrainSetup, n: int) -> Any:
+def _vec_env(out: Path, setup: TrainSetup, n: int, physics: dict[str, float] | None = None) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
-    fns = [make_env(out, setup) for _ in range(n)]
+    fns = [make_env(out, setup, physics) for _ in range(n)]
     return VecMonitor(SubprocVecEnv(fns, start_method="forkserver") if n > 1 else DummyVecEnv(fns))
 
 
@@ -297,11 +325,16 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
         meta = json.loads(p.read_text()) if p.is_file() else {}
     elif resume:
         raise QuasisimError(f"{out}: nothing to resume (no {CHECKPOINT}); run without --resume")
-    venv = _vec_env(out, setup, cfg.n_envs)
+    spans = segments(setup, cfg, steps)
+    todo = [k for k, (_, end) in enumerate(spans) if end > int(meta.get("steps", 0))] or [len(spans) - 1]
+    venv = _vec_env(out, setup, cfg.n_envs, spans[todo[0]][0])
     try:
         if resume:
             model = PPO.load(ckpt, env=venv, device="cpu")
-            _continue_worlds(venv, meta)
+            if todo[0]:
+                venv.seed(setup.seed + todo[0])  # span k's worlds: seed + k (as when it started)
+            if meta.get("span", 0) == todo[0]:  # else the checkpoint closed the span before: its worlds start
+                _continue_worlds(venv, meta)
         else:
             model = PPO("MlpPolicy", venv, seed=setup.seed, device="cpu", verbose=0, **cfg.ppo_kwargs(setup.residual))
         logs = out / LOGS
@@ -309,12 +342,19 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
         model.set_logger(configure(str(segment), ["csv", "tensorboard"]))
         wall0 = time.time() - float(meta.get("wall_s", 0.0))
         select = Selector(out, setup, cfg.validate_worlds)
-        remaining = steps - model.num_timesteps
-        if remaining > 0:
-            model.learn(remaining, callback=_callbacks(out, cfg.checkpoint_every, wall0, select),
+        for k in todo:
+            if spans[k][1] <= model.num_timesteps:  # a span the last rollout already went past
+                continue
+            if k != todo[0]:  # the next simulator of the curriculum (or the target): new environments
+                venv.close()
+                venv = _vec_env(out, setup, cfg.n_envs, spans[k][0])
+                model.set_env(venv)
+                venv.seed(setup.seed + k)
+            model.learn(spans[k][1] - model.num_timesteps,
+                        callback=_callbacks(out, cfg.checkpoint_every, wall0, select, k),
                         reset_num_timesteps=False, progress_bar=progress)  # fmt: skip
+            save_checkpoint(model, out, wall0, k)
         select(model)
-        save_checkpoint(model, out, wall0)
         with atomic_path(out / POLICY) as tmp:
             model.save(tmp)
         info = {"method": setup.method, "algo": setup.algo, "env_steps": int(model.num_timesteps),
