@@ -139,7 +139,7 @@ def _paper(f: Figures | None) -> str:
 
 
 def _source(row: PaperRow) -> str:
-    return f"`{row.run}`" if row.run else f"policy `{row.policy}`" if row.policy else "not built yet"
+    return f"`{row.run}`" if row.run else f"policy `{row.policy}`"
 
 
 def markdown(results: dict[str, dict[str, Any] | None], tables: tuple[str, ...], n: int) -> list[str]:
