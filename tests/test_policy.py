@@ -259,7 +259,7 @@ def test_dgrasp_tracking_curriculum_trains_through_the_curriculum_then_in_the_ta
 
     def recording(self, scene):  # which simulator each new environment steps: a stage's settings, or None (MuJoCo)
         world = make(self, scene)
-        stepped.append(world.stage if isinstance(world, QuasiTarget) else None)
+        stepped.append((world.stage, world.substeps) if isinstance(world, QuasiTarget) else None)
         return world
 
     monkeypatch.setattr(TrackEnv, "_make_world", recording)
@@ -269,8 +269,9 @@ def test_dgrasp_tracking_curriculum_trains_through_the_curriculum_then_in_the_ta
            "curriculum": "short", "curriculum_stage_steps": 64}  # fmt: skip
     prepare(path, out, None, "shadow", "mujoco", 0, {}, ppo, "dgrasp-tracking-curriculum")
     cur = load_curriculum("short")
-    stages = [cur.contact(i) for i, st in enumerate(cur.stages) if not st.residual]
-    assert len(stages) == 5
+    # as stage 2 steps them at the fast budget: 10 substeps per frame in the soft ones, 20 in the stiffest
+    stages = [(cur.contact(i), 20 if i == cur.stiffest else 10) for i, st in enumerate(cur.stages) if not st.residual]
+    assert len(stages) == 5 and cur.stiffest == 4
     train(out, 192, progress=False)  # three of the five simulators
     assert stepped == stages[:3]
     assert json.loads((out / "checkpoint.json").read_text())["span"] == 2

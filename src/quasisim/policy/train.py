@@ -179,16 +179,19 @@ Segment = tuple[dict[str, float] | None, int]  # (the simulator's contact settin
 def segments(setup: TrainSetup, cfg: Any, steps: int) -> list[Segment]:
     """What a training of ``steps`` env steps trains in, span by span: the target throughout, or (``CURRICULUM``)
     ``cfg.curriculum_stage_steps`` in each analytical simulator of ``cfg.curriculum`` from soft to stiff (its
-    residual simulators left out: the target takes their place), then the target up to ``steps``. A span ends at
+    residual simulators left out: the target takes their place; each with the substeps per frame stage 2 gives it
+    at the ``fast`` budget, ``substeps``), then the target up to ``steps``. A span ends at
     the first whole rollout past its end step."""
     if setup.method != CURRICULUM:
         return [(None, steps)]
+    from quasisim.method.config import TransferConfig
     from quasisim.method.curriculum import load_curriculum
 
-    cur = load_curriculum(cfg.curriculum)
+    cur, bud = load_curriculum(cfg.curriculum), TransferConfig.from_yaml().budget("fast")
     analytical = [i for i, st in enumerate(cur.stages) if not st.residual]
     ends = [min(steps, (k + 1) * cfg.curriculum_stage_steps) for k in range(len(analytical))]
-    return [(cur.contact(i), end) for i, end in zip(analytical, ends, strict=True)] + [(None, steps)]
+    step = lambda i: {"substeps": bud.substeps if i == cur.stiffest else bud.soft}  # noqa: E731  (as stage 2 steps)
+    return [(cur.contact(i) | step(i), end) for i, end in zip(analytical, ends, strict=True)] + [(None, steps)]
 
 
 def training_task(out: Path, setup: TrainSetup) -> tuple[Any, Any]:

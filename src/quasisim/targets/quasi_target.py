@@ -4,8 +4,8 @@ policy can be trained in it (DGrasp-Tracking w/ curriculum, :mod:`quasisim.polic
 Not a target in the sense of :data:`~quasisim.targets.TARGETS`: nothing is judged in it (success is judged in
 MuJoCo or PyBullet); it is what ``quasisim/Track-v0`` steps when it is given a curriculum stage
 (``physics=...``). One control frame is :func:`~quasisim.sim.step.rollout` of one frame of the quasi-physical
-simulator of the scene (:func:`~quasisim.sim.build.build_model`, the hands as one hand set, the transfer
-config's default step: ``substeps`` per frame, the ``n_candidates`` nearest hand points tested for contact) with
+simulator of the scene (:func:`~quasisim.sim.build.build_model`, the hands as one hand set, ``substeps`` per
+frame, the ``n_candidates`` nearest hand points tested for contact) with
 the curriculum stage's contact settings (``alpha``, ``d_c``, ``k_n``, ``k_f``, ``k_d``, ``mu``), driven as
 stage 2 drives it from PD targets (:func:`~quasisim.optim.trajectory.sim_controls`: the hand roots follow the
 bases kinematically, the joints obey the PD law towards the interpolated targets). Residual physics is not
@@ -56,13 +56,12 @@ def _observe(model: Any, state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 
 class QuasiTarget(Target):
-    """The quasi-physical simulator of ``scene`` with the contact settings ``stage`` (:data:`STAGE_KEYS`; see the
-    module docstring)."""
+    """The quasi-physical simulator of ``scene`` with the contact settings ``stage`` (:data:`STAGE_KEYS`, and
+    ``substeps`` per frame, 20 where it does not say; see the module docstring)."""
 
     name = "quasisim"
 
-    def __init__(self, scene: Scene, stage: dict[str, float], substeps: int = 20, n_candidates: int = 128,
-                 threads: int = 1) -> None:  # fmt: skip
+    def __init__(self, scene: Scene, stage: dict[str, float], n_candidates: int = 128, threads: int = 1) -> None:
         from quasisim.assets.hand import join_hands
         from quasisim.sim.build import SimOptions, build_model, hand_set_points
 
@@ -70,7 +69,9 @@ class QuasiTarget(Target):
         if missing:
             raise ValueError(f"a curriculum stage needs {list(STAGE_KEYS)}; missing {sorted(missing)}")
         self.scene, self.stage, self.nominal = scene, {k: float(stage[k]) for k in STAGE_KEYS}, scene
-        opts = SimOptions.for_fps(scene.fps, substeps, n_candidates=n_candidates, table_points="hull")
+        opts = SimOptions.for_fps(
+            scene.fps, int(stage.get("substeps", 20)), n_candidates=n_candidates, table_points="hull"
+        )
         points = hand_set_points(scene.hands, opts)
         self.model = build_model(join_hands(scene.hands), scene.obj, scene.table, opts, scene.object_pos0, points)
         self._dt = opts.dt
