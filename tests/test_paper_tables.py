@@ -86,3 +86,40 @@ def test_the_tables_hold_our_means_beside_the_papers_figures() -> None:
     for table in text.split("#### ")[1:]:  # every row has as many cells as the header
         rows = [ln for ln in table.splitlines() if ln.startswith("|")]
         assert len({ln.count("|") for ln in rows}) == 1, table
+
+
+def test_runs_of_other_folders_fill_the_rows_out_lacks(tmp_path, monkeypatch) -> None:
+    """``--from``: a clip's run missing in OUT is read from the first other folder that has it; OUT's own run of a
+    clip stands where both have one; the other folders are only read (report only)."""
+    import json
+
+    import quasisim.bench.transfer as bt
+    from quasisim.bench.paper import run_paper_bench
+
+    clips = [tmp_path / f"c{i}.npz" for i in range(2)]
+    monkeypatch.setattr("quasisim.eval.tables.clips", lambda data, pattern, names: clips)
+
+    def row(clip: str, method: str, r: float) -> dict:
+        return {"clip": clip, "method": method, **_metrics(r, True, 0.5)}
+
+    def in_out(data, names, pattern, runs, stages, budget, target, hand, out, report_only, *rest):
+        (out / "transfer.json").write_text(json.dumps([row("c0", "paper", 10.0)]))
+
+    calls = []
+
+    def in_source(data, names, pattern, runs, stages, budget, target, hand, folder, report_only, *rest):
+        calls.append((folder.name, report_only))
+        r = {"a": 20.0, "b": 40.0}[folder.name]
+        return [row("c0", "paper", r), row("c1", "paper", r), row("c1", "mpc-base", r)]
+
+    monkeypatch.setattr(bt, "run_transfer_bench", in_out)
+    monkeypatch.setattr(bt, "transfer_rows", in_source)
+    out = tmp_path / "out"
+    out.mkdir()
+    text = run_paper_bench(
+        tmp_path, (), "*.npz", ("main",), out, None, True, None, 0, "fast", (tmp_path / "a", tmp_path / "b")
+    )
+    assert calls == [("a", True), ("b", True)]
+    lines = {ln.split(" | ")[0]: ln for ln in text.splitlines() if ln.startswith("| ")}
+    assert "| 2 | 15.0 |" in lines["| Ours"]  # c0 from OUT (10), c1 from the first folder (20), not the second's
+    assert "| 1 of 2 | 20.0 |" in lines["| MPC (w/ base sim.)"]

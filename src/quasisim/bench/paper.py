@@ -175,11 +175,14 @@ def markdown(results: dict[str, dict[str, Any] | None], tables: tuple[str, ...],
 def run_paper_bench(
     data_dir: Path, clip_names: tuple[str, ...], pattern: str, tables: tuple[str, ...], out: Path,
     policy: Path | None, report_only: bool, settings: Any, robust: int | None, budget: str = "fast",
+    sources: tuple[Path, ...] = (),
 ) -> str:  # fmt: skip
     """Run the tables' transfer runs on the clips (resumable, :func:`run_transfer_bench`, whose per-clip
     tables land in ``out/transfer.md``), read the policy rows from ``policy``, and write ``out/paper.md``
-    (and ``paper.json``: each row's summary); returns the markdown."""
-    from quasisim.bench.transfer import run_transfer_bench
+    (and ``paper.json``: each row's summary); returns the markdown. ``sources``: other folders of ``quasisim
+    bench transfer`` on these clips (with the same settings) whose finished runs stand where ``out`` has none of a
+    clip's run (read only, nothing run or written there; the first folder that has it)."""
+    from quasisim.bench.transfer import run_transfer_bench, transfer_rows
     from quasisim.eval.tables import clips as clip_paths
 
     bad = [t for t in tables if t not in TABLES]
@@ -190,6 +193,11 @@ def run_paper_bench(
     run_transfer_bench(data_dir, clip_names, pattern, runs, ("1", "2"), budget, "mujoco", "shadow", out, report_only,
                        None, settings, robust)  # fmt: skip
     rows = json.loads((out / "transfer.json").read_text())
+    for folder in sources:
+        have = {(x["clip"], x["method"]) for x in rows}
+        more = transfer_rows(data_dir, clip_names, pattern, runs, ("1", "2"), budget, "mujoco", "shadow", folder, True,
+                             None, settings, robust)  # fmt: skip
+        rows += [x for x in more if (x["clip"], x["method"]) not in have]
     results: dict[str, dict[str, Any] | None] = {
         r: measured({x["clip"]: x for x in rows if x["method"] == r}, names) for r in runs
     }

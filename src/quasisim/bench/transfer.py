@@ -117,6 +117,34 @@ def run_transfer_bench(
     of the tracker's settings (``configs/track.yaml``). ``robust_set``: overrides of every perturbation set
     (``--robust-set seed=7``), open and closed loop.
     Prints and writes the markdown tables."""
+    s = (settings or Settings(keep_scratch=True)).resolved()
+    rows = transfer_rows(data_dir, clip_names, pattern, runs, stages, budget, target, hand_name, out, report_only, judge,
+                         s, robust, robust_set)  # fmt: skip
+    lines = []
+    if closed_loop:
+        from quasisim.bench import closed_loop as cl
+
+        by_clip = {p.stem: p for p in clips(data_dir, pattern, clip_names)}
+        sets, track = closed_loop
+        rows = cl.add_closed_loop(
+            rows, out, by_clip, robust or 0, sets, judge or target, s.workers or 2, track, robust_set
+        )
+        lines = ["", *cl.markdown(rows, runs, sets, track)]
+    return publish(
+        out,
+        "transfer" if (judge or target) == target else f"transfer_{judge}",
+        rows,
+        _markdown(rows, runs, hand_name, target, judge or target, budget) + lines,
+    )
+
+
+def transfer_rows(
+    data_dir: Path, clip_names: tuple[str, ...], pattern: str, runs: tuple[str, ...], stages: tuple[str, ...],
+    budget: str, target: str, hand_name: str, out: Path, report_only: bool = False, judge: str | None = None,
+    settings: Settings | None = None, robust: int | None = None, robust_set: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """The rows of :func:`run_transfer_bench` (its arguments), without the closed-loop pass and without writing
+    the tables: each finished run's, after running the rest unless ``report_only``, and the kinematic replay's."""
     over = tuple(sorted((robust_set or {}).items()))
     base = TransferSpec(
         hand=hand_name, target=target, budget=budget, render=False, progress=False, robust=robust, robust_set=over
@@ -140,21 +168,7 @@ def run_transfer_bench(
         rows.append(row)
     for r in rows:
         r["lifted"] = lifted_as_demo(r)
-    lines = []
-    if closed_loop:
-        from quasisim.bench import closed_loop as cl
-
-        sets, track = closed_loop
-        rows = cl.add_closed_loop(
-            rows, out, by_clip, robust or 0, sets, judge or target, s.workers or 2, track, robust_set
-        )
-        lines = ["", *cl.markdown(rows, runs, sets, track)]
-    return publish(
-        out,
-        "transfer" if (judge or target) == target else f"transfer_{judge}",
-        rows,
-        _markdown(rows, runs, hand_name, target, judge or target, budget) + lines,
-    )
+    return rows
 
 
 def _markdown(

@@ -266,6 +266,9 @@ def bench_policy(
 @_BUDGET
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/paper"), show_default=True)
 @click.option("--report-only", is_flag=True, help="Tabulate the finished runs in OUT; run nothing.")
+@click.option("--from", "sources", multiple=True, type=click.Path(path_type=Path, exists=True, file_okay=False),
+              help="Another folder of `quasisim bench transfer` on these clips (repeatable): its finished runs fill "
+                   "the rows OUT lacks (read only).")  # fmt: skip
 @_clips_options(
     ray_help="Run on an existing Ray cluster: auto (the one `ray start` made here) or HOST:PORT (default: local Ray).",
     set_help="Override a config key (as in transfer).",
@@ -274,7 +277,7 @@ def bench_policy(
 @_friendly
 def bench_paper(
     data_dir: Path, tables: str, policy: Path | None, robust: int | None, budget: str, out: Path, report_only: bool,
-    clips: Clips,
+    sources: tuple[Path, ...], clips: Clips,
 ) -> None:  # fmt: skip
     """The paper's two tables (baselines, ablations) on clips of DATA_DIR: every row quasisim has, run as one
     resumable batch in MuJoCo with the Shadow hand, beside the paper's own figures; writes OUT/paper.md."""
@@ -288,7 +291,7 @@ def bench_paper(
     TransferConfig.from_yaml(overrides=c.overrides)
     s = Settings(c.ray_address, c.workers, overrides=c.overrides, keep_scratch=True, lead_clip=c.lead_clip)
     chosen = tuple(t.strip() for t in tables.split(",") if t.strip())
-    run_paper_bench(data_dir, c.names, c.pattern, chosen, out, policy, report_only, s, robust, budget)
+    run_paper_bench(data_dir, c.names, c.pattern, chosen, out, policy, report_only, s, robust, budget, sources)
 
 
 @bench.command("failures")
