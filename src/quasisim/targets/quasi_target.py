@@ -61,7 +61,7 @@ class QuasiTarget(Target):
 
     name = "quasisim"
 
-    def __init__(self, scene: Scene, stage: dict[str, float], n_candidates: int = 128, threads: int = 1) -> None:
+    def __init__(self, scene: Scene, stage: dict[str, float], n_candidates: int = 128) -> None:
         from quasisim.assets.hand import join_hands
         from quasisim.sim.build import SimOptions, build_model, hand_set_points
 
