@@ -96,3 +96,34 @@ def test_pinned_workers_get_cores_of_their_own_and_an_xla_pool_of_that_size(tmp_
     finally:
         for p, _ in children:
             p.communicate("")
+
+
+def test_a_run_releases_its_compiled_programs_after_each_stage_with_the_same_result(
+    example_dir, tmp_path, monkeypatch
+) -> None:
+    """The method ``paper`` compiles more programs in one run than the kernel's mapping limit allows (aborted in
+    stage 3 at 65,530 mappings): the pipeline releases them after every stage where the process holds over half
+    of the limit, and the run's result is the same bit for bit as a run that kept them."""
+    import numpy as np
+
+    from quasisim.data.controls import load_controls
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.spec import TransferSpec
+    from quasisim.pipeline import run_transfer
+
+    cfg = TransferConfig.from_yaml(
+        overrides={"sampling.samples": 8, "sampling.horizon": 3, "sampling.backtrack": 0, "sampling.screen": 1}
+    )
+    spec = TransferSpec(stages=("sample", "select"), render=False, progress=False)
+    released = []
+    free = runtime.free_compiled_programs
+    monkeypatch.setattr(runtime, "free_compiled_programs", lambda force=False: released.append(free(force)))
+    monkeypatch.setattr(runtime, "_map_counts", lambda: (100, 65530))  # far below the limit: kept
+    run_transfer(example_dir / "cube_lift.npz", tmp_path / "kept", spec, cfg)
+    assert released == [False, False]
+    released.clear()
+    monkeypatch.setattr(runtime, "_map_counts", lambda: (40000, 65530))  # over half of it: released
+    run_transfer(example_dir / "cube_lift.npz", tmp_path / "released", spec, cfg)
+    assert released == [True, True]  # after each of the two stages
+    kept, rel = (load_controls(tmp_path / d / "controls.npz").q_targets for d in ("kept", "released"))
+    np.testing.assert_array_equal(kept, rel)

@@ -108,11 +108,14 @@ def run_transfer(
         plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
         outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
         ran: list[Stage] = []
+        from quasisim import runtime
+
         for stage in stages:
             if outcome.done and not stage.after_done:  # a stage ended the run: the cascade's quick step passed
                 continue
             outcome = stage.run(ctx, outcome)
             ran.append(stage)
+            runtime.free_compiled_programs()  # a long method (paper: stages 1-3) outgrows the mapping limit
 
         controls = Controls(
             hand=spec.hand, demo=demo.name, method=f"{spec.method}[{cur.name};stages {','.join(spec.stages)};{spec.budget}]",
