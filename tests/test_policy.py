@@ -191,6 +191,15 @@ def test_bench_policy_tabulates_policies_beside_ours(clip, tmp_path) -> None:
                         timeout=900)  # fmt: skip
     assert r2.returncode == 0 and "from the start" not in r2.stdout
     assert (out / path.stem / "ours+residual" / "eval" / "metrics.json").stat().st_mtime_ns == before
+    # --report-only tabulates what is finished at --steps, trains and judges nothing
+    for n, policies_in in ((1024, 4), (2048, 0)):
+        args_n = [*args[: args.index("--steps") + 1], n, *args[args.index("--steps") + 2 :], "--report-only"]
+        r3 = subprocess.run([sys.executable, "-m", "quasisim.cli", *map(str, args_n)], capture_output=True, text=True,
+                            timeout=900)  # fmt: skip
+        assert r3.returncode == 0 and "up to" not in r3.stdout, r3.stderr[-2000:]  # no training started
+        rows = json.loads((out / "policy.json").read_text())
+        assert sum(row["env_steps"] is not None for row in rows) == policies_in and len(rows) == policies_in + 2
+    assert json.loads((dgrasp / "training.json").read_text())["env_steps"] == 1024
 
 
 def test_dgrasp_base_trains_on_its_guide_and_is_judged_on_the_clip(clip, tmp_path) -> None:

@@ -66,11 +66,29 @@ def _evaluate(train_dir: Path, eval_dir: Path, robust: int, which: str) -> dict[
     return evaluate_policy(train_dir, eval_dir, robust, which=which).metrics
 
 
+def _finished(folder: Path, steps: int, robust: int) -> tuple[dict[str, Any], dict[str, Any]] | None:
+    """A policy trained to ``steps`` and judged at that step count in ``robust`` worlds: its ``training.json``
+    and the metrics of its best and final models; None where it is not (yet)."""
+    try:
+        info = json.loads((folder / "train" / "training.json").read_text())
+        ms = {
+            w: json.loads((folder / sub / "metrics.json").read_text())
+            for w, sub in (("best", "eval"), ("final", "eval-final"))
+        }
+    except FileNotFoundError:
+        return None
+    judged = all(m["policy"]["training"].get("env_steps") == info["env_steps"]
+                 and m.get(ROBUST_KEY + CLOSED_LOOP_SUFFIX, {}).get("n") == robust for m in ms.values())  # fmt: skip
+    return (info, ms) if info["env_steps"] >= steps and judged else None
+
+
 def run_policy_bench(
     data_dir: Path, clips: list[str], runs: Path, run: str, steps: int, robust: int, workers: int, out: Path,
     methods: tuple[str, ...] = POLICY_METHODS[:2], seed: int = 0, overrides: Overrides = ({}, {}),
+    report_only: bool = False,
 ) -> list[dict[str, Any]]:  # fmt: skip
-    """Train, judge and tabulate (see the module docstring); returns the rows (also ``OUT/policy.json``)."""
+    """Train, judge and tabulate (see the module docstring); returns the rows (also ``OUT/policy.json``).
+    ``report_only``: nothing is trained or judged; the policies finished and judged at ``steps`` are tabulated."""
     from quasisim.bench.closed_loop import add_closed_loop
 
     for c in clips:
@@ -80,10 +98,18 @@ def run_policy_bench(
     for method in methods:
         for c in clips:
             folder = out / c / method
-            info = _train(data_dir / f"{c}.npz", folder / "train", method, runs / c / run, steps, seed, overrides)
-            for which, label, sub in (("best", method, "eval"), ("final", f"{method} (final model)", "eval-final")):
-                m = _evaluate(folder / "train", folder / sub, robust, which)
-                rows.append(_row(c, label, m, m[ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))
+            if report_only:
+                if (done := _finished(folder, steps, robust)) is None:
+                    continue
+                info, ms = done
+            else:
+                info = _train(data_dir / f"{c}.npz", folder / "train", method, runs / c / run, steps, seed, overrides)
+                ms = {
+                    w: _evaluate(folder / "train", folder / sub, robust, w)
+                    for w, sub in (("best", "eval"), ("final", "eval-final"))
+                }
+            for which, label in (("best", method), ("final", f"{method} (final model)")):
+                rows.append(_row(c, label, ms[which], ms[which][ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))
     ours = [{"clip": c, "method": run} | _our_metrics(runs / c, run) for c in clips]
     ours = add_closed_loop(ours, runs, {c: data_dir / f"{c}.npz" for c in clips}, robust, ("default",), "mujoco",
                            workers)  # fmt: skip

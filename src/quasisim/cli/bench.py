@@ -231,10 +231,11 @@ def _layout(text: str) -> Layout:
               help="A setting of every policy trained: env.KEY=V (configs/track_env.yaml), ppo.KEY=V "
                    "(configs/ppo.yaml); a folder trained with other settings is refused.")  # fmt: skip
 @click.option("--out", "out", type=click.Path(path_type=Path), default=Path("bench_out/policy"), show_default=True)
+@click.option("--report-only", is_flag=True, help="Tabulate the policies finished and judged in OUT; train nothing.")
 @_friendly
 def bench_policy(
     data_dir: Path, clip_names: str, runs: Path, run: str, steps: int, robust: int, workers: int, methods: str,
-    sets: tuple[str, ...], out: Path,
+    sets: tuple[str, ...], out: Path, report_only: bool,
 ) -> None:  # fmt: skip
     """Learned tracking policies (ours+residual, dgrasp-tracking) beside ours open and closed loop, per clip;
     resumable (finished policies are kept, unfinished ones resume from their checkpoints)."""
@@ -252,7 +253,8 @@ def bench_policy(
             raise choice_error("--methods entry", m, POLICY_METHODS)
     names = [c.strip() for c in clip_names.split(",") if c.strip()]
     env_o, ppo_o = _split_sets(sets)
-    run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen, overrides=(env_o, ppo_o))
+    run_policy_bench(data_dir, names, runs, run, steps, robust, workers, out, chosen, overrides=(env_o, ppo_o),
+                     report_only=report_only)  # fmt: skip
 
 
 @bench.command("paper")
