@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -84,5 +83,4 @@ def test_a_perturbed_world_sets_its_parameters(clip) -> None:
     target.reset(controls.q_targets[0])
     np.testing.assert_allclose(target.observe()["obj_pos"], heavy.object_pos0, atol=1e-6)
     other = dataclasses.replace(scene, obj=dataclasses.replace(scene.obj, name="another"))
-    assert not target.set_world(other)
-    assert jnp.isfinite(target.params.obj_mass)
+    assert not target.set_world(other)  # another object: the caller builds a simulator for it
