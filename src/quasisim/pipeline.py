@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from quasisim import runtime
 from quasisim.assets.hand import load_hand
 from quasisim.data.controls import Controls
 from quasisim.data.demo import Demo, content_hash, load_demo, warn_long_clip
@@ -108,8 +109,6 @@ def run_transfer(
         plan = Plan(prob.trajectory(kin["q"]), SysID.init())  # its q_targets: the retarget, rounded to float32
         outcome = Outcome(plan, prob.objective(prob.reference()), plan.traj.q_targets)
         ran: list[Stage] = []
-        from quasisim import runtime
-
         for stage in stages:
             if outcome.done and not stage.after_done:  # a stage ended the run: the cascade's quick step passed
                 continue

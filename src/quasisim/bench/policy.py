@@ -27,6 +27,7 @@ POLICY_METHODS = ("ours+residual", "dgrasp-tracking", "dgrasp-base", "dgrasp-tra
 
 
 Overrides = tuple[dict[str, Any], dict[str, Any]]  # (env, ppo) settings of every policy (--set)
+MODELS = (("best", "eval"), ("final", "eval-final"))  # each policy's model judged, and the folder of its judgement
 
 
 def _train(clip: Path, folder: Path, method: str, ours: Path, steps: int, seed: int, sets: Overrides) -> dict[str, Any]:
@@ -71,10 +72,7 @@ def _finished(folder: Path, steps: int, robust: int) -> tuple[dict[str, Any], di
     and the metrics of its best and final models; None where it is not (yet)."""
     try:
         info = json.loads((folder / "train" / "training.json").read_text())
-        ms = {
-            w: json.loads((folder / sub / "metrics.json").read_text())
-            for w, sub in (("best", "eval"), ("final", "eval-final"))
-        }
+        ms = {w: json.loads((folder / sub / "metrics.json").read_text()) for w, sub in MODELS}
     except FileNotFoundError:
         return None
     judged = all(m["policy"]["training"].get("env_steps") == info["env_steps"]
@@ -104,10 +102,7 @@ def run_policy_bench(
                 info, ms = done
             else:
                 info = _train(data_dir / f"{c}.npz", folder / "train", method, runs / c / run, steps, seed, overrides)
-                ms = {
-                    w: _evaluate(folder / "train", folder / sub, robust, w)
-                    for w, sub in (("best", "eval"), ("final", "eval-final"))
-                }
+                ms = {w: _evaluate(folder / "train", folder / sub, robust, w) for w, sub in MODELS}
             for which, label in (("best", method), ("final", f"{method} (final model)")):
                 rows.append(_row(c, label, ms[which], ms[which][ROBUST_KEY + CLOSED_LOOP_SUFFIX], info))
     ours = [{"clip": c, "method": run} | _our_metrics(runs / c, run) for c in clips]

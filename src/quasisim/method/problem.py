@@ -109,10 +109,17 @@ def make_problem(
     quasi-physical simulator of two hands holds both as one hand set (:func:`~quasisim.assets.hand.join_hands`: one kinematic root per hand), whose points are the
     points of each hand sampled on its own (so a hand has the same points alone and in a pair)."""
     scene = scene_for(demo, placements, obj)
-    opts = SimOptions.for_fps(demo.fps, substeps, n_candidates=n_candidates, table_points=table_points)
+    return Problem(demo, scene, scene_model(scene, substeps, n_candidates, demo.object_pos[0], table_points))
+
+
+def scene_model(
+    scene: Scene, substeps: int, n_candidates: int, origin: np.ndarray, table_points: str = "hull"
+) -> Model:  # fmt: skip
+    """The quasi-physical simulator of ``scene``: its hands as one hand set, ``substeps`` per frame of
+    ``scene.fps``, the ``n_candidates`` nearest hand points tested for contact, the origin at ``origin`` (3,)."""
+    opts = SimOptions.for_fps(scene.fps, substeps, n_candidates=n_candidates, table_points=table_points)
     points = hand_set_points(scene.hands, opts)
-    model = build_model(join_hands(scene.hands), scene.obj, scene.table, opts, demo.object_pos[0], points)
-    return Problem(demo, scene, model)
+    return build_model(join_hands(scene.hands), scene.obj, scene.table, opts, origin, points)
 
 
 def fitted_problem(

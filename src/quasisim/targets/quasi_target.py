@@ -62,20 +62,15 @@ class QuasiTarget(Target):
     name = "quasisim"
 
     def __init__(self, scene: Scene, stage: dict[str, float], n_candidates: int = 128) -> None:
-        from quasisim.assets.hand import join_hands
-        from quasisim.sim.build import SimOptions, build_model, hand_set_points
+        from quasisim.method.problem import scene_model
+        from quasisim.rotations import np_mat_to_quat
 
         missing = set(STAGE_KEYS) - set(stage)
         if missing:
             raise ValueError(f"a curriculum stage needs {list(STAGE_KEYS)}; missing {sorted(missing)}")
         self.scene, self.stage, self.nominal = scene, {k: float(stage[k]) for k in STAGE_KEYS}, scene
-        opts = SimOptions.for_fps(
-            scene.fps, int(stage.get("substeps", 20)), n_candidates=n_candidates, table_points="hull"
-        )
-        points = hand_set_points(scene.hands, opts)
-        self.model = build_model(join_hands(scene.hands), scene.obj, scene.table, opts, scene.object_pos0, points)
-        self._dt = opts.dt
-        self.base_quat = jnp.asarray(_base_quats(scene), F32)
+        self.model = scene_model(scene, int(stage.get("substeps", 20)), n_candidates, scene.object_pos0)
+        self.base_quat = jnp.asarray(np_mat_to_quat(np.stack(scene.base_rots)), F32)
         self.params = self._params(scene)
         self.state: Any = None
         self._q = self._qd = np.zeros(scene.n_dof)  # the commanded PD targets (bases) and their velocity
@@ -95,7 +90,7 @@ class QuasiTarget(Target):
 
     @property
     def dt(self) -> float:
-        return self._dt
+        return self.model.dt
 
     def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None) -> None:
         from quasisim.optim.trajectory import observed_state
@@ -144,9 +139,3 @@ class QuasiTarget(Target):
             return False
         self.scene, self.params, self.state = scene, self._params(scene), None
         return True
-
-
-def _base_quats(scene: Scene) -> np.ndarray:
-    from quasisim.rotations import np_mat_to_quat
-
-    return np_mat_to_quat(np.stack(scene.base_rots))
