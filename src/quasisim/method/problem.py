@@ -18,10 +18,11 @@ from quasisim.method.retarget import RetargetResult, retarget_hands
 from quasisim.optim.objective import Reference, TrackingObjective, make_objective
 from quasisim.optim.trajectory import Trajectory, simulate, split_q
 from quasisim.rotations import np_mat_to_quat
-from quasisim.sim.build import SimOptions, build_model, default_params, hand_set_points
+from quasisim.sim.build import default_params
 from quasisim.sim.kinematics import fk_full, points_world
 from quasisim.sim.types import Model, Params, State
 from quasisim.targets.build import demo_hands, scene_for
+from quasisim.targets.quasi_target import scene_model
 from quasisim.targets.scene import Placement, Scene, place_hands
 
 
@@ -110,16 +111,6 @@ def make_problem(
     points of each hand sampled on its own (so a hand has the same points alone and in a pair)."""
     scene = scene_for(demo, placements, obj)
     return Problem(demo, scene, scene_model(scene, substeps, n_candidates, demo.object_pos[0], table_points))
-
-
-def scene_model(
-    scene: Scene, substeps: int, n_candidates: int, origin: np.ndarray, table_points: str = "hull"
-) -> Model:  # fmt: skip
-    """The quasi-physical simulator of ``scene``: its hands as one hand set, ``substeps`` per frame of
-    ``scene.fps``, the ``n_candidates`` nearest hand points tested for contact, the origin at ``origin`` (3,)."""
-    opts = SimOptions.for_fps(scene.fps, substeps, n_candidates=n_candidates, table_points=table_points)
-    points = hand_set_points(scene.hands, opts)
-    return build_model(join_hands(scene.hands), scene.obj, scene.table, opts, origin, points)
 
 
 def fitted_problem(

@@ -55,6 +55,21 @@ def _observe(model: Any, state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
     return pos[0], quat[0], hand_keypoints(model, s)[0]
 
 
+def scene_model(
+    scene: Scene, substeps: int, n_candidates: int, origin: np.ndarray, table_points: str = "hull"
+) -> Any:  # fmt: skip
+    """The quasi-physical simulator (:class:`~quasisim.sim.types.Model`) of ``scene``: its hands as one hand set,
+    ``substeps`` per frame of ``scene.fps``, the ``n_candidates`` nearest hand points tested for contact, the
+    origin at ``origin`` (3,). The one builder of a scene's simulator (stages 1-3 via
+    :func:`~quasisim.method.problem.make_problem`, and :class:`QuasiTarget`)."""
+    from quasisim.assets.hand import join_hands
+    from quasisim.sim.build import SimOptions, build_model, hand_set_points
+
+    opts = SimOptions.for_fps(scene.fps, substeps, n_candidates=n_candidates, table_points=table_points)
+    points = hand_set_points(scene.hands, opts)
+    return build_model(join_hands(scene.hands), scene.obj, scene.table, opts, origin, points)
+
+
 class QuasiTarget(Target):
     """The quasi-physical simulator of ``scene`` with the contact settings ``stage`` (:data:`STAGE_KEYS`, and
     ``substeps`` per frame, 20 where it does not say; see the module docstring)."""
@@ -62,7 +77,6 @@ class QuasiTarget(Target):
     name = "quasisim"
 
     def __init__(self, scene: Scene, stage: dict[str, float], n_candidates: int = 128) -> None:
-        from quasisim.method.problem import scene_model
         from quasisim.rotations import np_mat_to_quat
 
         missing = set(STAGE_KEYS) - set(stage)
