@@ -17,7 +17,6 @@ from quasisim.data.demo import Demo
 from quasisim.method.retarget import RetargetResult, retarget_hands
 from quasisim.optim.objective import Reference, TrackingObjective, make_objective
 from quasisim.optim.trajectory import Trajectory, simulate, split_q
-from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.build import default_params
 from quasisim.sim.kinematics import fk_full, points_world
 from quasisim.sim.types import Model, Params, State
@@ -52,7 +51,7 @@ class Problem:
     @property
     def base_quat(self) -> np.ndarray:
         """(H, 4) :attr:`base_rots` as quaternions (w x y z)."""
-        return np_mat_to_quat(self.base_rots)
+        return self.scene.base_quat
 
     @property
     def hand_joints(self) -> tuple[int, ...]:

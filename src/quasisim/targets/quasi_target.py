@@ -21,7 +21,7 @@ targets.
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +29,9 @@ import numpy as np
 
 from quasisim.targets.base import Observation, Target
 from quasisim.targets.scene import Scene
+
+if TYPE_CHECKING:
+    from quasisim.sim.types import Model
 
 F32 = jnp.float32
 STAGE_KEYS = ("alpha", "d_c", "k_n", "k_f", "k_d", "mu")  # a curriculum stage's contact settings
@@ -57,8 +60,8 @@ def _observe(model: Any, state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 def scene_model(
     scene: Scene, substeps: int, n_candidates: int, origin: np.ndarray, table_points: str = "hull"
-) -> Any:  # fmt: skip
-    """The quasi-physical simulator (:class:`~quasisim.sim.types.Model`) of ``scene``: its hands as one hand set,
+) -> Model:  # fmt: skip
+    """The quasi-physical simulator of ``scene``: its hands as one hand set,
     ``substeps`` per frame of ``scene.fps``, the ``n_candidates`` nearest hand points tested for contact, the
     origin at ``origin`` (3,). The one builder of a scene's simulator (stages 1-3 via
     :func:`~quasisim.method.problem.make_problem`, and :class:`QuasiTarget`)."""
@@ -77,14 +80,12 @@ class QuasiTarget(Target):
     name = "quasisim"
 
     def __init__(self, scene: Scene, stage: dict[str, float], n_candidates: int = 128) -> None:
-        from quasisim.rotations import np_mat_to_quat
-
         missing = set(STAGE_KEYS) - set(stage)
         if missing:
             raise ValueError(f"a curriculum stage needs {list(STAGE_KEYS)}; missing {sorted(missing)}")
         self.scene, self.stage, self.nominal = scene, {k: float(stage[k]) for k in STAGE_KEYS}, scene
         self.model = scene_model(scene, int(stage.get("substeps", 20)), n_candidates, scene.object_pos0)
-        self.base_quat = jnp.asarray(np_mat_to_quat(np.stack(scene.base_rots)), F32)
+        self.base_quat = jnp.asarray(scene.base_quat, F32)
         self.params = self._params(scene)
         self.state: Any = None
         self._q = self._qd = np.zeros(scene.n_dof)  # the commanded PD targets (bases) and their velocity

@@ -25,7 +25,7 @@ import numpy as np
 from quasisim.assets.hand import HandModel
 from quasisim.data.demo import N_KEYPOINTS, SIDES, Demo
 from quasisim.errors import QuasisimError
-from quasisim.rotations import np_quat_to_mat
+from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
 
 if TYPE_CHECKING:
     from quasisim.assets.object import ObjectAsset
@@ -127,6 +127,11 @@ class Scene:
     def base_rots(self) -> tuple[np.ndarray, ...]:
         """(3, 3) base frame of each hand of :attr:`hands`."""
         return tuple(p.base_rot for p in self.placements)
+
+    @property
+    def base_quat(self) -> np.ndarray:
+        """(H, 4) :attr:`base_rots` as quaternions (w x y z)."""
+        return np_mat_to_quat(np.stack(self.base_rots))
 
     @property
     def sides(self) -> tuple[str, ...]:

@@ -37,7 +37,6 @@ from quasisim.method.stages._common import q_expect
 from quasisim.optim.adam import adam_steps
 from quasisim.optim.objective import Weights, WindowObjective, make_window_objective, padded, window_references
 from quasisim.optim.trajectory import Trajectory, observed_state
-from quasisim.rotations import np_mat_to_quat
 from quasisim.sim.types import Model, Params, State
 from quasisim.targets import Observation, Target, TargetRollout, make_target
 from quasisim.targets.scene import Scene
@@ -105,7 +104,7 @@ def _closed_loop(
     T, H = len(plan), opts.horizon
     scene = target.scene
     kp_index = np.flatnonzero(model.hand.kp_metric)
-    bq = jnp.asarray(np_mat_to_quat(np.stack(scene.base_rots)), F32)
+    bq = jnp.asarray(scene.base_quat, F32)
     vg = _gradient_fn(make_window_objective(model, bq, demo.fps, kp_index), weights.arrays(), opts)
     rng = np.random.default_rng(opts.seed)
     refs = window_references(demo, model.hand.kp_human, kp_index, H)
