@@ -186,7 +186,8 @@ def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip(
     """What run_batch hands to Ray (a stand-in here, no Ray): a local batch of 2 pinned workers of 1 thread
     runs its first readable clip (broken.npz, first in order, cannot be read) alone, as the lead task on both
     cores with 2 threads, in a process that ends after it, then the other clip as an ordinary task; a batch on a
-    cluster, of unpinned workers, of one worker, with --no-lead-clip or of one clip has no lead."""
+    cluster, of unpinned workers, of one worker, with --no-lead-clip, of one clip or resumed (a clip finished
+    in its folder) has no lead."""
     import quasisim.batch
 
     def tasks(jobs: list[Job], **settings: Any) -> list[tuple[str, str, dict[str, Any], int]]:
@@ -210,6 +211,12 @@ def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip(
     assert tasks(jobs, lead_clip=False) == plain
     assert tasks(jobs, workers=1) == plain
     assert tasks(jobs[1:2]) == plain[:1]
+    fake, out = _FakeRay(), tmp_path / "resumed"
+    monkeypatch.setattr(quasisim.batch, "_ray_init", lambda s: fake)
+    s = Settings(workers=2, threads=1, overrides=FAST)
+    run_batch(jobs[1:2], out, s)
+    res = run_batch(jobs, out, s)  # resumed with cube_lift finished: the clips left run as ordinary tasks
+    assert fake.tasks == [plain[0], plain[1]] and res.lead is None and len(res.rows) == 2
 
 
 def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path) -> None:

@@ -392,6 +392,8 @@ def run_batch(
         missing = tuple(r for r in j.runs if r.name not in done)
         if missing:
             todo.append(dataclasses.replace(j, runs=missing))
+    if rows:  # resumed: its first part filled the persistent caches a lead clip would fill, and a lead clip holds
+        s = dataclasses.replace(s, lead_clip=False)  # every core for one clip's whole run (docs/batch.md)
     failures: dict[str, str] = {}
     peak: dict[str, float] = {}
     cores: dict[str, list[int] | None] = {}
