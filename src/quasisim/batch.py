@@ -113,7 +113,7 @@ class Settings:
     keep_scratch: bool = False  # keep each clip's checkpoints (later runs of the same clip start from them)
     record_transitions: bool = False  # each run keeps what its sampling stage rolled out (RUN/transitions/)
     pin_cores: bool = True  # each worker on `threads` cores of its own (runtime.pin_to_free_cores)
-    # a local batch of pinned workers runs its first clip alone on every core first (:func:`leads`)
+    # a local batch of pinned workers runs its first clip alone on every core first (:func:`leads`), unless resumed
     lead_clip: bool = True
 
     def resolved(self) -> Settings:
@@ -430,7 +430,8 @@ def leads(s: Settings, n_todo: int) -> bool:
     start: a local batch (``ray_address`` None) of several pinned workers and clips. Every later clip's
     compiled programs then come from the persistent caches that clip filled, and XLA compiles each program
     on every core instead of each worker compiling the same programs side by side on one core each
-    (BENCHMARKS.md, "The first clip alone on both cores")."""
+    (docs/history/benchmarks-2026-11-23-to-12-03.md, "The first clip alone on both cores").
+    :func:`run_batch` turns it off for a resumed batch."""
     return s.lead_clip and s.ray_address is None and s.pin_cores and s.workers > 1 and n_todo > 1
 
 

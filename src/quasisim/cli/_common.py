@@ -165,7 +165,7 @@ def _ranges(text: str) -> tuple[str, ...]:
 _LEAD_CLIP = click.option(
     "--lead-clip/--no-lead-clip", default=True, show_default=True,
     help="A local batch of several workers runs its first clip alone on every core first, so that its programs "
-    "compile once on all cores (docs/batch.md).",
+    "compile once on all cores; a resumed batch never does (docs/batch.md).",
 )  # fmt: skip
 
 
