@@ -227,6 +227,9 @@ def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None
         p = _batch(clips_dir, out, "--ray", cluster.address, env={}, hooks=hooks)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 240, "held clip on the second node", p)
         first, held = (f.stem for f in sorted(hold.glob("*.started"), key=lambda f: f.stat().st_mtime_ns))
+        # the driver has node 1's finished clip before the kill: a result still in node 1's object store would
+        # be lost with it, and Ray would run that clip again on the head (seen on a loaded machine)
+        _wait(lambda: (out / first / "clip.json").is_file(), 240, f"{first}'s result from the second node", p)
         os.kill(raylet, signal.SIGKILL)
         r = _completed(p)
         assert r.returncode == 0, r.stderr[-3000:]
