@@ -130,6 +130,86 @@ def test_unrepairable_open_mesh_raises(tmp_path: Path, kind: str) -> None:
     assert f"{kind}.ply" in str(err.value) and "\n" not in str(err.value)
 
 
+def two_boxes_sharing_an_edge(subdivide: bool = False) -> tuple[trimesh.Trimesh, list[tuple[np.ndarray, np.ndarray]]]:
+    """Two closed boxes touching along one edge (x = y = 0, |z| <= 15 mm) merged into one mesh: the edge (two
+    edges when ``subdivide`` splits it) has four faces and no edge is open. Also returns each box's (lo, hi)."""
+    spans = [(np.array([-0.02, -0.02, -0.015]), np.array([0.0, 0.0, 0.015])),
+             (np.array([0.0, 0.0, -0.015]), np.array([0.03, 0.02, 0.015]))]  # fmt: skip
+    parts = []
+    for lo, hi in spans:
+        b = trimesh.creation.box(hi - lo)
+        b.apply_translation((lo + hi) / 2)
+        parts.append(b.subdivide() if subdivide else b)
+    mesh = trimesh.util.concatenate(parts)
+    mesh.merge_vertices()
+    return mesh, spans
+
+
+def box_sdf(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    q = np.abs(p - (lo + hi) / 2) - (hi - lo) / 2
+    return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0)
+
+
+@pytest.mark.parametrize("subdivide", [False, True])
+def test_solids_touching_along_an_edge_are_split_there(tmp_path: Path, subdivide: bool) -> None:
+    """A mesh whose edges are shared by four faces (two closed solids touching along an edge, as in a decimated
+    TACO tool mesh) is accepted with a warning naming the count: the edge is split so each edge has two faces."""
+    mesh, spans = two_boxes_sharing_an_edge(subdivide)
+    n_bad = 2 if subdivide else 1
+    counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1]
+    assert (counts == 4).sum() == n_bad and (counts == 2).sum() == len(counts) - n_bad  # no open edge
+    with pytest.warns(RuntimeWarning, match=rf"{n_bad} non-manifold edges? \(shared by more than two faces\)"):
+        asset = load_object(write_mesh(tmp_path, mesh, "two_boxes.ply"))
+    tm = asset.to_trimesh()
+    assert tm.is_watertight and tm.is_winding_consistent
+    volume = sum(np.prod(hi - lo) for lo, hi in spans)
+    assert asset.volume == pytest.approx(volume, rel=1e-5)
+    assert asset.mass == pytest.approx(obj.DEFAULT_DENSITY * volume, rel=1e-5)
+
+    h = 0.002
+    grid = asset.sdf(spacing=h, padding=0.01)
+    p = points_in_grid(grid, 4000)
+    ex = np.minimum(*(box_sdf(p, lo, hi) for lo, hi in spans))  # the union's signed distance
+    d = np.asarray(sdf_query(grid, jnp.asarray(p, jnp.float32))[0])
+    assert np.abs(d - ex).max() < h / 2
+    inside = np.array([[-0.01, -0.01, 0], [0.015, 0.01, 0], [-0.001, -0.001, 0.01], [0.001, 0.001, -0.01]])
+    outside = np.array([[0.01, -0.01, 0], [-0.01, 0.01, 0], [0.001, -0.001, 0], [0.04, 0, 0]])  # by the edge too
+    d_in, d_out = (np.asarray(sdf_query(grid, jnp.asarray(q, jnp.float32))[0]) for q in (inside, outside))
+    assert (d_in < 0).all() and (d_out > 0).all()
+
+    parts = asset.convex_parts()
+    assert hull_gap(asset.vertices, parts).max() < 5e-4  # m
+    assert (hull_gap(outside[:2], parts) > 0.005).all()  # the empty quadrants stay empty
+    total = sum(trimesh.Trimesh(v, f, process=False).volume for v, f in parts)
+    assert total == pytest.approx(volume, rel=0.05)
+
+
+def box_with_fin_or_wall(kind: str) -> trimesh.Trimesh:
+    """A 2 cm cube plus a fin (one triangle on an edge: three faces there, two open fin edges) or an inner wall
+    (a diagonal square: three faces on each of its four edges, none open)."""
+    V = 0.01 * np.array([[2 * (i & 1) - 1, 2 * (i >> 1 & 1) - 1, 2 * (i >> 2 & 1) - 1] for i in range(8)])
+    faces = [[0, 2, 3], [0, 3, 1], [4, 5, 7], [4, 7, 6], [0, 4, 6], [0, 6, 2]]
+    faces += [[1, 3, 7], [1, 7, 5], [0, 1, 5], [0, 5, 4], [2, 6, 7], [2, 7, 3]]  # diagonals 0-3 and 4-7
+    box = trimesh.Trimesh(V, faces, process=False)
+    trimesh.repair.fix_normals(box)
+    if kind == "wall":
+        return trimesh.Trimesh(V, np.vstack([box.faces, [[0, 3, 7], [0, 7, 4]]]), process=False)
+    return trimesh.Trimesh(np.vstack([V, [0.02, -0.02, 0]]), np.vstack([box.faces, [[1, 5, 8]]]), process=False)
+
+
+@pytest.mark.parametrize(
+    ("kind", "faults"),
+    [("fin", "2 open edges and 1 non-manifold edge"), ("wall", "4 non-manifold edges")],
+)
+def test_non_manifold_edges_that_cannot_be_split_are_named(tmp_path: Path, kind: str, faults: str) -> None:
+    """Edges shared by three faces cannot be split into closed solids: refused, naming them (not "0 open edges")."""
+    mesh = box_with_fin_or_wall(kind)
+    assert trimesh.Trimesh(mesh.vertices, mesh.faces[:12]).is_watertight
+    with pytest.raises(InputError, match="watertight") as err:
+        load_object(write_mesh(tmp_path, mesh, f"{kind}.ply"))
+    assert f"got {faults} (shared by more than two faces) after trimesh repair" in str(err.value)
+
+
 def test_missing_and_non_mesh_files_raise(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"nope\.obj"):
         load_object(tmp_path / "nope.obj")

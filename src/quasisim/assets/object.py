@@ -327,7 +327,8 @@ class ObjectAsset:
     Attributes:
         name: label (file stem by default).
         mesh_path: the mesh file it was loaded from.
-        vertices: (V, 3) float64 object-frame vertex positions, m; the mesh is watertight.
+        vertices: (V, 3) float64 object-frame vertex positions, m; the mesh is watertight, each edge shared by
+            two faces (vertices repeat a position where solids touched along an edge, see :func:`load_object`).
         faces: (F, 3) int64 vertex indices, counter-clockwise seen from outside.
         mass: kg.
         com: (3,) centre of mass, object frame, m.
@@ -464,8 +465,35 @@ def farthest_points(x: np.ndarray, n: int) -> np.ndarray:
     return np.asarray(chosen)
 
 
-def _open_edges(mesh: trimesh.Trimesh) -> int:
-    return len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+def _edge_faults(mesh: trimesh.Trimesh) -> tuple[int, int]:
+    """(open, non-manifold): how many of the mesh's edges one face uses, and how many more than two faces use."""
+    counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1]
+    return int((counts == 1).sum()), int((counts > 2).sum())
+
+
+def _plural(n: int, what: str) -> str:
+    return f"{n} {what}{'' if n == 1 else 's'}"
+
+
+def _faults_text(mesh: trimesh.Trimesh) -> str:
+    """What keeps ``mesh`` from being closed, e.g. "2 open edges and 1 non-manifold edge (shared by ...)"."""
+    n_open, n_multi = _edge_faults(mesh)
+    faults = [_plural(n_open, "open edge")] if n_open or not n_multi else []
+    if n_multi:
+        faults.append(f"{_plural(n_multi, 'non-manifold edge')} (shared by more than two faces)")
+    return " and ".join(faults)
+
+
+def _split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh | None:
+    """``mesh`` with its vertices duplicated along edges that more than two faces share (libigl's
+    split_nonmanifold), so that each edge has two faces: the same triangles, so the same volume and winding
+    number (solids touching along an edge stay touching, each closed); None unless that gives a closed mesh with
+    consistent winding."""
+    V, F, _ = igl.split_nonmanifold(
+        np.ascontiguousarray(mesh.vertices, np.float64), np.ascontiguousarray(mesh.faces, np.int64)
+    )
+    split = trimesh.Trimesh(V, F, process=False)
+    return split if split.is_watertight and split.is_winding_consistent else None
 
 
 def load_object(
@@ -474,9 +502,11 @@ def load_object(
     """Read a mesh file (metres, object frame) into an :class:`ObjectAsset`.
 
     Coincident vertices are merged and degenerate faces dropped. A mesh that is not watertight, or whose
-    winding is inconsistent or inward, is repaired with trimesh (fill_holes, fix_normals); if it is
-    still open, :class:`~quasisim.errors.InputError` is raised. The mass is ``density`` (kg/m^3) times the
-    volume unless ``mass`` (kg) is given; the inertia is that of a uniform solid.
+    winding is inconsistent or inward, is repaired with trimesh (fill_holes, fix_normals); where more than two
+    faces then share an edge (solids touching along an edge) but no edge is open, the mesh is split along
+    those edges (libigl split_nonmanifold; a RuntimeWarning names their count). If it is still not
+    closed, :class:`~quasisim.errors.InputError` is raised naming the open and non-manifold edges. The mass is
+    ``density`` (kg/m^3) times the volume unless ``mass`` (kg) is given; the inertia is that of a uniform solid.
     """
     path = Path(mesh_path)
     if not path.is_file():
@@ -484,6 +514,35 @@ def load_object(
     st = path.stat()
     fields = _read_object(path.resolve(), st.st_mtime_ns, st.st_size, float(density), mass)
     return ObjectAsset(name=name or path.stem, **fields)  # a fresh asset (its own caches) every call
+
+
+def _repaired(path: Path, mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, int]:
+    """``mesh`` closed by trimesh (fill_holes, fix_normals) and, where more than two faces are left sharing an
+    edge but no edge is open, split there (:func:`_split_nonmanifold`), and the number of edges split;
+    :class:`~quasisim.errors.InputError` naming the open and non-manifold edges if it is still not closed."""
+    try:
+        trimesh.repair.fill_holes(mesh)
+        trimesh.repair.fix_normals(mesh)
+        mesh.merge_vertices()
+    except ImportError as e:  # trimesh's repair needs networkx
+        raise InputError(
+            path,
+            "mesh",
+            "a watertight (closed) triangle mesh with consistent winding",
+            f"{_faults_text(mesh)}; repair unavailable ({e})",
+        ) from None
+    n_open, n_multi = _edge_faults(mesh)
+    split = _split_nonmanifold(mesh) if n_multi and not n_open else None
+    if split is not None:
+        return split, n_multi
+    if not mesh.is_watertight:
+        raise InputError(
+            path,
+            "mesh",
+            "a watertight (closed) triangle mesh",
+            f"{_faults_text(mesh)} after trimesh repair (fill_holes, fix_normals)",
+        )
+    return mesh, 0
 
 
 @lru_cache(maxsize=16)
@@ -510,28 +569,14 @@ def _read_object(path: Path, mtime_ns: int, size: int, density: float, mass: flo
     f = mesh.faces
     mesh.update_faces((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
     mesh.remove_unreferenced_vertices()
+    n_split = 0
     if not (mesh.is_watertight and mesh.is_winding_consistent):
-        try:
-            trimesh.repair.fill_holes(mesh)
-            trimesh.repair.fix_normals(mesh)
-            mesh.merge_vertices()
-        except ImportError as e:  # trimesh's repair needs networkx
-            raise InputError(
-                path,
-                "mesh",
-                "a watertight (closed) triangle mesh with consistent winding",
-                f"{_open_edges(mesh)} open edges; repair unavailable ({e})",
-            ) from None
-        if not mesh.is_watertight:
-            raise InputError(
-                path,
-                "mesh",
-                "a watertight (closed) triangle mesh",
-                f"{_open_edges(mesh)} open edges after trimesh repair (fill_holes, fix_normals)",
-            )
-    if mesh.volume < 0:
+        mesh, n_split = _repaired(path, mesh)
+    with np.errstate(divide="ignore", invalid="ignore"):  # trimesh divides by a zero volume (refused below)
+        volume = float(mesh.volume)
+    if volume < 0:
         mesh.invert()
-    volume = float(mesh.volume)
+        volume = -volume
     if not volume > 0:
         raise InputError(
             path, "mesh", "a watertight (closed) mesh enclosing a positive volume", f"volume {volume:.3g} m^3"
@@ -543,6 +588,13 @@ def _read_object(path: Path, mtime_ns: int, size: int, density: float, mass: flo
     if not (np.isfinite(density) and density > 0):
         raise InputError(path, "density", "a positive density in kg/m^3", repr(density))
     mesh.density = float(density)
+    if n_split:  # said once the mesh is accepted (and once per file: the result is kept)
+        warnings.warn(
+            f"{path}: {_plural(n_split, 'non-manifold edge')} (shared by more than two faces): split with libigl "
+            "split_nonmanifold so that each edge has two faces (the same triangles and solid)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     V = np.ascontiguousarray(mesh.vertices, np.float64)
     F = np.ascontiguousarray(mesh.faces, np.int64)
     digest = hashlib.sha256(V.tobytes() + F.tobytes()).hexdigest()
