@@ -246,6 +246,33 @@ def test_bad_inputs_one_line(root, tmp_path, monkeypatch) -> None:
         assert not out.exists()
 
 
+def test_overwrite_replaces_only_a_dataset_quasisim_wrote(root, tmp_path) -> None:
+    """--overwrite replaces an HDF5 dataset that quasisim export wrote; any other file (HDF5 or not) or a
+    folder at --out is refused with one line naming it and --out, and left as it was."""
+    import h5py
+
+    run, more = root / "runs" / "cube_lift", ("--data", root / "demos", "--overwrite")
+    text = tmp_path / "notes.hdf5"
+    text.write_text("not a dataset")
+    folder = tmp_path / "folder.hdf5"
+    (folder / "keep").mkdir(parents=True)
+    plain = tmp_path / "plain.h5"
+    with h5py.File(plain, "w") as f:
+        f.attrs["owner"] = "someone else"
+    for out in (text, folder, plain):
+        r = _cli("export", run, "--out", out, *more)
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+        assert f"{out}: option '--out': expected" in r.output and "quasisim export wrote" in r.output, r.output
+    assert text.read_text() == "not a dataset" and (folder / "keep").is_dir()
+    with h5py.File(plain) as f:
+        assert dict(f.attrs) == {"owner": "someone else"}
+    ours = tmp_path / "ours.hdf5"
+    for flags in ((), ("--overwrite",)):
+        r = _cli("export", run, "--out", ours, "--data", root / "demos", *flags)
+        assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder.hdf5", "notes.hdf5", "ours.hdf5", "plain.h5"]
+
+
 def test_unreproduced_run_is_refused_and_no_partial_file(root, tmp_path) -> None:
     """A run whose rollout.npz the replay here does not reproduce is refused, naming its folder; the file being
     written is removed (nothing partial, no temporary file left)."""

@@ -9,7 +9,6 @@ then an Allegro run of the cube, which a Shadow dataset must refuse."""
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -233,4 +232,80 @@ def test_task_text_from_clip_names() -> None:
     assert t("arctic_s5_laptop_grab_01", "laptop") == "grab the laptop (arctic_s5_laptop_grab_01)"
     assert t("cube_lift", "cube") == "lift the cube (cube_lift)"
     assert t("my_clip", "cube") == "manipulate the cube (my_clip)"
-    assert json.loads(json.dumps(t("x", "y")))  # plain text
+    assert t("s2_apple_pass_1", "apple") == "pass the apple (s2_apple_pass_1)"  # the object's name starts it
+    assert t("x", "y") == "manipulate the y (x)"  # no action word: "manipulate"
+
+
+def _quasisim_lerobot(path: Path) -> Path:
+    """A folder laid out as a LeRobot dataset that quasisim export wrote (meta/info.json, its episodes file)."""
+    (path / "meta").mkdir(parents=True)
+    (path / "meta" / "info.json").write_text("{}")
+    (path / "meta" / "quasisim_episodes.jsonl").write_text("")
+    return path
+
+
+def test_overwrite_replaces_only_a_lerobot_export_without_inputs(tmp_path) -> None:
+    """--overwrite replaces a LeRobot dataset folder that quasisim wrote; a folder of anything else, or a
+    dataset folder that holds or is an input, is refused (naming it and --out) and left as it was."""
+    from quasisim.errors import InputError
+    from quasisim.eval.lerobot_export import _atomic_dir
+
+    def write(tmp: Path) -> None:
+        _quasisim_lerobot(tmp)
+        (tmp / "new").write_text("")
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "keep.txt").write_text("x")
+    with pytest.raises(InputError, match=r"mine: option '--out': expected a LeRobot dataset folder"):
+        with _atomic_dir(mine, True) as tmp:
+            write(tmp)
+    assert [p.name for p in mine.iterdir()] == ["keep.txt"] and list(tmp_path.iterdir()) == [mine]
+    old = _quasisim_lerobot(tmp_path / "old")
+    (old / "runs").mkdir()
+    for inputs in ((old / "runs",), (old,)):
+        with pytest.raises(InputError, match=r"old: option '--out': expected .*not an input"):
+            with _atomic_dir(old, True, inputs) as tmp:
+                write(tmp)
+        assert sorted(p.name for p in old.iterdir()) == ["meta", "runs"]
+    with _atomic_dir(old, True, (tmp_path / "mine",)) as tmp:
+        write(tmp)
+    assert sorted(p.name for p in old.iterdir()) == ["meta", "new"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "old"]
+
+
+def test_export_never_replaces_its_input(tmp_path) -> None:
+    """`export RUNS --format lerobot --out D --overwrite` with D the runs' folder or one above it: one line
+    naming D and --out, exit 2, before any work (the environment without lerobot refuses it too)."""
+    run = tmp_path / "runs" / "a"
+    run.mkdir(parents=True)
+    (run / "manifest.json").write_text("{}")
+    for out in (tmp_path, tmp_path / "runs"):
+        r = _cli("export", tmp_path / "runs", "--format", "lerobot", "--out", out, "--overwrite")
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+        assert f"{out}: option '--out': expected" in r.output and "not an input" in r.output, r.output
+    assert (run / "manifest.json").is_file()
+
+
+def test_bench_export_without_finished_runs(tmp_path) -> None:
+    """`bench export` on a folder with no finished run: one line naming it, exit 2."""
+    (tmp_path / "empty" / "sub").mkdir(parents=True)
+    r = _cli("bench", "export", tmp_path / "empty")
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert f"{tmp_path / 'empty'}: expected finished runs below it" in r.output, r.output
+
+
+@pytest.mark.lerobot
+def test_overwrite_keeps_the_runs(root, tmp_path) -> None:
+    """--overwrite never replaces the folder that holds the runs being exported (the runs stay), and does
+    replace a LeRobot dataset it wrote before."""
+    runs = tmp_path / "runs"
+    shutil.copytree(root / "runs" / "cube_lift", runs / "cube_lift")
+    more = ("--format", "lerobot", "--data", root / "demos", "--image-size", "96", "128", "--overwrite")
+    r = _cli("export", runs, "--out", tmp_path, *more)
+    assert r.exit_code == 2 and f"{tmp_path}: option '--out'" in r.output, r.output
+    assert (runs / "cube_lift" / "kinematic" / "manifest.json").is_file()
+    for _ in range(2):
+        r = _cli("export", runs, "--out", tmp_path / "lr", *more)
+        assert r.exit_code == 0 and "1 episodes" in r.output, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lr", "runs"]

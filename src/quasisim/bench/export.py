@@ -37,15 +37,16 @@ def run_export_bench(
     root: Path, data_dirs: tuple[Path, ...], closed_loop: int, image_size: tuple[int, int]
 ) -> tuple[list[ExportCost], str]:
     """Export each finished run below ``root`` alone in both formats; the costs and a markdown table (per run,
-    then the totals)."""
-    from quasisim.eval.dataset_export import export_dataset, find_runs
+    then the totals); :class:`~quasisim.errors.InputError` when ``root`` holds no finished run."""
+    from quasisim.eval.dataset_export import export_dataset, finished_runs
     from quasisim.eval.lerobot_export import export_lerobot, require_lerobot
     from quasisim.files import size_mb
 
+    runs = finished_runs(root)
     require_lerobot()
     rows = []
     with tempfile.TemporaryDirectory(prefix="qs-bench-export-") as tmp:
-        for i, run in enumerate(find_runs(root)):
+        for i, run in enumerate(runs):
             label = run.relative_to(root).as_posix() if run != root else run.name
             dirs = (*data_dirs, root)
             h5, lr = Path(tmp) / f"{i}.hdf5", Path(tmp) / f"lr{i}"

@@ -75,7 +75,10 @@ def view(run_dir: Path, web: bool, port: int, host: str, demo: Path | None) -> N
     help="robomimic: then replay every episode in MuJoCo; exit 1 if one deviates > 1e-9 (a lerobot export is "
     "always read back through LeRobotDataset and compared before it is kept).",
 )  # fmt: skip
-@click.option("--overwrite", is_flag=True, help="Replace an existing --out.")
+@click.option(
+    "--overwrite", is_flag=True,
+    help="Replace an existing --out that quasisim export wrote (never one that is or holds an input).",
+)  # fmt: skip
 @_friendly
 def export_cmd(
     batch_dir: Path, out: Path, fmt: str, image_size: tuple[int, int], only: str, min_robust: float | None,
@@ -95,11 +98,10 @@ def export_cmd(
     if out.suffix not in (".hdf5", ".h5"):
         raise InputError(out, "--out", "a file name ending in .hdf5 or .h5", repr(out.name))
     check_out_dir(out.parent)
-    if out.exists() and not overwrite:
-        raise InputError(out, "--out", "a new file (pass --overwrite to replace it)", "an existing file")
     _setup_runtime()
-    from quasisim.eval.dataset_export import export_dataset
+    from quasisim.eval.dataset_export import check_out, export_dataset
 
+    check_out(out, (batch_dir, *data_dirs), overwrite)
     res = export_dataset(batch_dir, out, only, min_robust, data_dirs, closed_loop=closed_loop)
     mb = out.stat().st_size / 1e6
     click.echo(f"wrote {out}: {len(res.episodes)} episodes, {res.total} samples, {mb:.1f} MB in {res.seconds:.1f} s")
@@ -121,12 +123,11 @@ def _export_lerobot(
     if out.suffix in (".hdf5", ".h5"):
         raise InputError(out, "--out", "a folder for --format lerobot (a .hdf5 file is --format robomimic's)", out.name)
     check_out_dir(out.parent)
-    if out.exists() and not overwrite:
-        raise InputError(out, "--out", "a new folder (pass --overwrite to replace it)", "an existing path")
     _setup_runtime()
-    from quasisim.eval.lerobot_export import export_lerobot
+    from quasisim.eval.lerobot_export import check_out, export_lerobot
     from quasisim.files import size_mb
 
+    check_out(out, (batch_dir, *data_dirs), overwrite)
     res = export_lerobot(batch_dir, out, only, min_robust, data_dirs, closed_loop, image_size, overwrite=overwrite)
     mb = size_mb(out)
     click.echo(f"wrote {out}: {len(res.episodes)} episodes, {res.total} frames, {mb:.1f} MB in {res.seconds:.1f} s; "

@@ -14,7 +14,9 @@ import dataclasses
 import datetime
 import hashlib
 import json
+import os
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -91,6 +93,17 @@ def find_runs(root: Path) -> list[Path]:
     return runs
 
 
+def finished_runs(root: Path) -> list[Path]:
+    """:func:`find_runs`, or :class:`InputError` naming ``root`` when it holds no finished run."""
+    paths = find_runs(root)
+    if not paths:
+        raise InputError(
+            root, None, "finished runs below it (folders with manifest.json: batch, transfer or bench transfer outputs)",
+            "none",
+        )  # fmt: skip
+    return paths
+
+
 def _json(path: Path) -> dict[str, Any]:
     try:
         d = json.loads(path.read_text())
@@ -165,13 +178,7 @@ def select_runs(root: Path, only: str, min_robust: float | None) -> tuple[list[R
     :class:`InputError` when none passes."""
     if only not in ONLY:
         raise InputError(None, "--only", f"one of {', '.join(ONLY)}", repr(only))
-    paths = find_runs(root)
-    if not paths:
-        raise InputError(
-            root, None, "finished runs below it (folders with manifest.json: batch, transfer or bench transfer outputs)",
-            "none",
-        )  # fmt: skip
-    runs = [read_run(p, root) for p in paths]
+    runs = [read_run(p, root) for p in finished_runs(root)]
     if min_robust is not None:
         for r in runs:
             check_robust(r)
@@ -406,6 +413,52 @@ def _episode_attrs(
         "state_spec": STATE_SPEC, "state_layout": _state_layout(model),
     }  # fmt: skip
     return attrs
+
+
+# ---- replacing --out ---------------------------------------------------------------------------------------
+
+
+def check_replace(
+    out: Path, inputs: Sequence[Path], overwrite: bool, new: str, what: str, why_not: Callable[[Path], str | None]
+) -> None:
+    """Refuse (:class:`InputError` naming ``out`` and ``--out``) an existing ``out`` that is or holds one of
+    ``inputs``, that ``overwrite`` is not given for, or that is not ``what`` quasisim export wrote (``why_not``:
+    why a path is not, or None); a new ``out`` passes. ``new``: what a new ``out`` is ("a new file")."""
+    out = Path(out)
+    if not out.exists() and not out.is_symlink():
+        return
+    own = f"{what} that quasisim export wrote"
+    o = Path(os.path.realpath(out))
+    for p in inputs:
+        q = Path(os.path.realpath(p))
+        if q == o or o in q.parents:
+            got = f"{'the input' if q == o else 'a folder holding the input'} {p}"
+            raise InputError(out, "--out", f"{new} or {own}, not an input or a folder holding one", got)
+    if not overwrite:
+        raise InputError(out, "--out", f"{new} (pass --overwrite to replace {own})", "an existing path")
+    why = why_not(out)
+    if why is not None:
+        raise InputError(out, "--out", f"{own}, to replace with --overwrite", why)
+
+
+def not_a_dataset(path: Path) -> str | None:
+    """Why ``path`` is not an HDF5 dataset file that quasisim export wrote (its ``format``), or None."""
+    import h5py
+
+    if path.is_symlink() or not path.is_file():
+        return "a symbolic link" if path.is_symlink() else "a folder" if path.is_dir() else "not a regular file"
+    try:
+        with h5py.File(path, "r") as f:
+            fmt, data = f.attrs.get("format"), "data" in f
+    except OSError:
+        return "a file that is not HDF5"
+    return None if fmt == FORMAT and data else f"an HDF5 file of format {fmt!r}"
+
+
+def check_out(out: Path, inputs: Sequence[Path], overwrite: bool) -> None:
+    """Refuse ``--out`` unless it is a new file, or (``overwrite``) an HDF5 dataset that quasisim export wrote
+    and not one of ``inputs`` (:func:`check_replace`)."""
+    check_replace(out, inputs, overwrite, "a new file", "an HDF5 dataset", not_a_dataset)
 
 
 # ---- the file ----------------------------------------------------------------------------------------------

@@ -26,7 +26,7 @@ import os
 import re
 import shutil
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,7 @@ import numpy as np
 from quasisim.data.demo import Demo
 from quasisim.data.run_demo import RunDemos
 from quasisim.errors import InputError, QuasisimError
-from quasisim.eval.dataset_export import ExportResult, run_episodes, run_scene, select_runs
+from quasisim.eval.dataset_export import ExportResult, check_replace, run_episodes, run_scene, select_runs
 
 CAMERA = "scene"
 SIDECAR = "meta/quasisim_episodes.jsonl"
@@ -103,20 +103,41 @@ def _meta(ep: dict[str, Any], index: int, task: str) -> dict[str, Any]:
             "metrics": {k: a["metrics"][k] for k in ("success", "robust", "unstable") if k in a["metrics"]}}  # fmt: skip
 
 
+def not_a_dataset(path: Path) -> str | None:
+    """Why ``path`` is not a LeRobot dataset folder that quasisim export wrote (lerobot's ``meta/info.json`` and
+    quasisim's :data:`SIDECAR`), or None."""
+    if path.is_symlink() or not path.is_dir():
+        return "a symbolic link" if path.is_symlink() else "a file"
+    missing = [n for n in ("meta/info.json", SIDECAR) if not (path / n).is_file()]
+    return f"a folder without {' and '.join(missing)}" if missing else None
+
+
+def check_out(out: Path, inputs: Sequence[Path], overwrite: bool) -> None:
+    """Refuse ``--out`` unless it is a new folder, or (``overwrite``) a LeRobot dataset that quasisim export
+    wrote and that neither is nor holds one of ``inputs`` (:func:`~quasisim.eval.dataset_export.check_replace`)."""
+    what = f"a LeRobot dataset folder (meta/info.json, {SIDECAR})"
+    check_replace(out, inputs, overwrite, "a new folder", what, not_a_dataset)
+
+
 @contextlib.contextmanager
-def _atomic_dir(out: Path, overwrite: bool) -> Iterator[Path]:
+def _atomic_dir(out: Path, overwrite: bool, inputs: Sequence[Path] = ()) -> Iterator[Path]:
     """A fresh path beside ``out`` (not created: lerobot creates it) moved onto ``out`` on success; on failure
-    it is removed and ``out`` left as it was."""
+    it is removed and ``out`` left as it was. An existing ``out`` is replaced only as :func:`check_out` allows,
+    checked before the block and again after it (``inputs`` may grow in it)."""
+    check_out(out, inputs, overwrite)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         yield tmp
+        check_out(out, inputs, overwrite)
         if out.exists():
-            if not overwrite:
-                raise InputError(out, "--out", "a new folder (pass --overwrite to replace it)", "an existing path")
             old = out.parent / f".{out.name}.old-{os.getpid()}"
             os.replace(out, old)
-            os.replace(tmp, out)
+            try:
+                os.replace(tmp, out)
+            except OSError:
+                os.replace(old, out)
+                raise
             shutil.rmtree(old)
         else:
             os.replace(tmp, out)
@@ -145,11 +166,13 @@ def export_lerobot(
     keep, skipped = select_runs(root, only, min_robust)
     res = ExportResult(out, skipped=skipped)
     demos, meta, ds, spec, expected = RunDemos(tuple(data_dirs), root), [], None, None, []
+    inputs = [root, *map(Path, data_dirs)]  # and each run's demo file, as found
     bar = tqdm(total=len(keep), desc="export", unit="run", disable=None if progress else True, leave=False)
-    with bar, _atomic_dir(out, overwrite) as tmp:
+    with bar, _atomic_dir(out, overwrite, inputs) as tmp:
         for r in keep:
             bar.set_postfix_str(r.label)
             demo = demos.find(r.path)
+            inputs += [Path(demo.path)] if demo.path else []
             scene = run_scene(r, demo)
             renderer = SideBySide(scene, demo, width=size[1], height=size[0])
             try:
