@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers import scene_with, smooth_targets
+from helpers import box_object, scene_with, smooth_targets
 from quasisim.targets import Target, make_target, pd_gains, pd_schedule
 
 
@@ -69,3 +69,64 @@ def test_warnings_are_counted_per_run(shadow) -> None:
     assert r.extras["sim_warnings"]["BADCTRL"] > 0 and r.instability.startswith("mujoco warned: ")
     r = tgt.rollout(q)
     assert set(r.extras["sim_warnings"]) >= {"BADQACC", "BADQPOS"} and not any(r.extras["sim_warnings"].values())
+
+
+def _overlapping(shadow, overlap: float):
+    """A scene whose box overlaps one of the hand's collision geoms (at the hand's zero pose) by ``overlap`` m,
+    and that pose; the box is moved along the two shapes' closest-point direction (``mj_geomDistance``)."""
+    import mujoco
+
+    q = np.zeros(6 + shadow.n_joints)
+    q[:3] = (0.0, 0.0, 1.2)
+    box = box_object()
+    box.content_hash = "box"  # one object: set_world may edit a model of it
+    sc = scene_with(shadow, box, object_pos=(0.0, 0.0, 1.1))
+    for _ in range(3):  # distances between convex meshes converge in a step or two
+        mm = make_target("mujoco", sc).mm
+        d = mujoco.MjData(mm.model)
+        mm.set_state(d, q, sc.object_pos0, sc.object_quat0)
+        hand = list(mm.grip_geoms)
+        obj = int(np.flatnonzero(mm.model.geom_bodyid == mm.obj_body)[0])
+        ft = np.zeros(6)
+        dists = [(mujoco.mj_geomDistance(mm.model, d, g, obj, 1.0, ft), g, ft.copy()) for g in hand]
+        dist, _, ft = min(dists, key=lambda x: x[0])
+        toward = (ft[:3] - ft[3:]) / max(np.linalg.norm(ft[:3] - ft[3:]), 1e-12) * np.sign(dist)
+        sc = scene_with(shadow, box, object_pos=sc.object_pos0 + (dist + overlap) * toward)
+    return sc, q
+
+
+def test_a_negative_contact_margin_lets_the_hand_into_the_object_by_that_much(shadow) -> None:
+    """``physics.contact_margin`` < 0 (the sampler's ``thin`` world): a hand geom 1 mm inside the object touches it
+    in the nominal world and with a 0.5 mm margin, not with a 2 mm one; the box on the table rests at the same
+    height whatever the margin (only the hand's geoms carry it); and ``set_world`` gives the
+    compiled model the margin that compiling gives it."""
+    import dataclasses
+
+    from quasisim.targets.mujoco_target import hand_object_contacts
+
+    def thin(sc, m):
+        return dataclasses.replace(sc, physics=dataclasses.replace(sc.physics, contact_margin=m))
+
+    sc, q = _overlapping(shadow, 0.001)
+    pose = (q[None], sc.object_pos0[None], sc.object_quat0[None])
+    counts = [hand_object_contacts(make_target("mujoco", thin(sc, m)).mm, *pose)[0] for m in (0.0, -0.0005, -0.002)]
+    assert counts[0] > 0 and counts[1] > 0 and counts[2] == 0, counts
+
+    rest = scene_with(shadow, object_pos=(0.0, 0.0, 0.83))  # the box drops 5 mm onto the table, the hand far above
+    far = np.zeros((2, 6 + shadow.n_joints))
+    far[:, :3] = (0.0, 0.0, 1.5)
+    z = []
+    for m in (0.0, -0.002):
+        with make_target("mujoco", thin(rest, m)) as tgt:
+            tgt.reset(far[0])
+            for _ in range(20):
+                tgt.advance(far[0], far[1])
+            z.append(tgt.observe()["obj_pos"][2])
+    assert z[0] == pytest.approx(z[1], abs=1e-6) and z[0] == pytest.approx(0.825, abs=2e-4), z
+
+    compiled = make_target("mujoco", thin(sc, -0.002)).mm
+    edited = make_target("mujoco", sc)
+    assert edited.set_world(thin(sc, -0.002))
+    np.testing.assert_array_equal(edited.mm.model.geom_margin, compiled.model.geom_margin)
+    assert (compiled.model.geom_margin[compiled.grip_geoms] == -0.002).all()
+    assert (np.delete(compiled.model.geom_margin, compiled.grip_geoms) == 0).all()

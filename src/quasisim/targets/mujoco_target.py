@@ -69,7 +69,7 @@ def build_spec(scene: Scene, visual: bool = True) -> Any:
     _add_world(spec, scene, visual, fr)
     for hand, base_rot, prefix in zip(scene.hands, scene.base_rots, scene.prefixes, strict=True):
         bodies = _add_hand_bodies(spec, hand, base_rot, prefix)
-        _add_hand_geoms(spec, hand, prefix, bodies, visual, fr)
+        _add_hand_geoms(spec, hand, prefix, bodies, visual, fr, scene.physics.contact_margin)
     _add_object(spec, scene, visual, fr)
     for hand, prefix in zip(scene.hands, scene.prefixes, strict=True):
         _add_actuators(spec, hand, prefix, scene.physics.gain_scale)
@@ -161,8 +161,11 @@ def _add_hand_bodies(spec: Any, hand: HandModel, base_rot: np.ndarray, prefix: s
     return bodies
 
 
-def _add_hand_geoms(spec: Any, hand: HandModel, prefix: str, bodies: list[Any], visual: bool, fr: list[float]) -> None:
-    """Collision geoms (and visual ones when ``visual``) and the keypoint sites of the hand (names start with ``prefix``)."""
+def _add_hand_geoms(
+    spec: Any, hand: HandModel, prefix: str, bodies: list[Any], visual: bool, fr: list[float], margin: float = 0.0
+) -> None:
+    """Collision geoms (and visual ones when ``visual``; collision margin ``margin``, m) and the keypoint sites of
+    the hand (names start with ``prefix``)."""
     for gi, g in enumerate(hand.geoms):
         if not g.collision and not visual:
             continue
@@ -179,7 +182,8 @@ def _add_hand_geoms(spec: Any, hand: HandModel, prefix: str, bodies: list[Any], 
             spec.add_mesh(name=mname, uservert=g.vertices.ravel().tolist(), userface=g.faces.ravel().tolist())
             kw["meshname"] = mname
         if g.collision:
-            kw.update(contype=HAND_CONTYPE, conaffinity=HAND_CONAFFINITY, friction=fr, group=3, condim=3)
+            kw.update(contype=HAND_CONTYPE, conaffinity=HAND_CONAFFINITY, friction=fr, group=3, condim=3,
+                      margin=margin)  # fmt: skip
             if visual and any(not h.collision for h in hand.geoms if h.body == g.body):
                 kw["rgba"] = [0, 0, 0, 0]  # the body has visual meshes; keep collision shapes invisible
         else:
@@ -299,18 +303,20 @@ class MujocoModel:
         self.obj_dof = int(m.jnt_dofadr[oj])
         self.obj_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")
         self.contact_geoms = np.flatnonzero((m.geom_contype != 0) | (m.geom_conaffinity != 0))  # friction fr
+        self.grip_geoms = self.contact_geoms[np.isin(m.geom_bodyid[self.contact_geoms], self.hand_body)]  # margin
 
     def set_physics(self, scene: Scene) -> None:
         """Give the compiled model the physical parameters of ``scene`` (of the model's structure,
         :func:`same_structure`) as compiling it would: the object's mass, inertia and initial position, the sliding
         friction of every colliding geom, the PD gains (kp, kv); then the constants derived from them
         (``mj_setConst``) and the statistics the compiler computes (``meanmass``, ``meaninertia``, which scales
-        the solver's tolerance), which ``mj_setConst`` leaves."""
+        the solver's tolerance), which ``mj_setConst`` leaves. Also the hand geoms' contact margin."""
         m, b, o = self.model, self.obj_body, self.obj_qpos
         m.body_mass[b], m.body_ipos[b], iquat, m.body_inertia[b] = object_inertial(scene.obj)
         m.body_iquat[b] = _normalized(iquat)
         m.body_pos[b] = m.qpos0[o : o + 3] = m.qpos_spring[o : o + 3] = scene.object_pos0  # the free joint's origin
         m.geom_friction[self.contact_geoms, 0] = scene.physics.friction
+        m.geom_margin[self.grip_geoms] = scene.physics.contact_margin
         gains = [pd_gains(h, scene.physics.gain_scale) for h in scene.hands]
         kp, kv = np.concatenate([g.kp for g in gains]), np.concatenate([g.kv for g in gains])
         m.actuator_gainprm[self.pd_act, 0], m.actuator_biasprm[self.pd_act, 1] = kp, -kp
@@ -548,3 +554,19 @@ class MujocoTarget(Target):
         if self._windows is not None:
             self._windows.pool.close()
             self._windows = None
+
+
+def hand_object_contacts(mm: MujocoModel, qpos: np.ndarray, obj_pos: np.ndarray, obj_quat: np.ndarray) -> np.ndarray:
+    """(T,) the number of contacts between any hand body and the object at each frame of a recorded run
+    (hand ``qpos`` (T, D), object pose (T, 3), (T, 4) w x y z) in the compiled scene ``mm``. Contacts depend on
+    the geometry alone, so a perturbed world's run may be read in its nominal scene."""
+    data = mujoco.MjData(mm.model)
+    hand = np.zeros(mm.model.nbody, bool)
+    hand[mm.hand_body] = True
+    out = np.zeros(len(qpos), np.int64)
+    for t in range(len(qpos)):
+        mm.set_state(data, qpos[t], obj_pos[t], obj_quat[t])
+        b1 = mm.model.geom_bodyid[data.contact.geom1[: data.ncon]]
+        b2 = mm.model.geom_bodyid[data.contact.geom2[: data.ncon]]
+        out[t] = int(np.sum((hand[b1] & (b2 == mm.obj_body)) | (hand[b2] & (b1 == mm.obj_body))))
+    return out

@@ -278,6 +278,11 @@ class PybulletTarget(Target):
     def __init__(self, scene: Scene, threads: int = 1) -> None:
         """``threads`` is accepted for the common constructor (:func:`~quasisim.targets.make_target`); PyBullet
         steps one client on one thread."""
+        if scene.physics.contact_margin != 0:
+            raise QuasisimError(
+                f"pybullet target: physics.contact_margin {scene.physics.contact_margin:g} m is MuJoCo's (a negative "
+                "geom margin); expected 0 with --target pybullet (the sampler's 'thin' world: mujoco only)"
+            )
         self.scene = scene
         self.pb = _pybullet()
         self.client = self.pb.connect(self.pb.DIRECT)

@@ -59,13 +59,23 @@ class Table:
 class PhysicsOptions:
     """Target-simulator settings (SI units). ``friction`` is the sliding coefficient on every contact;
     ``gain_scale`` multiplies every PD gain (kp and kv) of the hands (1; else a perturbed target,
-    :mod:`quasisim.targets.perturb`)."""
+    :mod:`quasisim.targets.perturb`). ``contact_margin`` (m, <= 0; MuJoCo only) is the margin of every hand
+    collision geom: below 0 a hand's contact pushes only once the shapes overlap by more than
+    ``-contact_margin`` (MuJoCo adds a pair's two margins): a thinner object under the fingers, a grasp that
+    squeezes less; the object's contact with the table is unchanged."""
 
     mujoco_dt: float = 0.002
     pybullet_dt: float = 0.0005
     friction: float = 1.0
     gravity: float = 9.81
     gain_scale: float = 1.0
+    contact_margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not -0.01 <= self.contact_margin <= 0.0:
+            raise QuasisimError(
+                f"physics.contact_margin: expected a margin in [-0.01, 0] m, got {self.contact_margin!r}"
+            )
 
 
 @dataclass(frozen=True, eq=False)
