@@ -18,6 +18,7 @@ from quasisim.method.curriculum import load_curriculum
 pytest.importorskip("stable_baselines3", reason="the optional extra rl is not installed (pip install -e '.[rl]')")
 
 TINY = ["--set", "ppo.n_steps=64", "--set", "ppo.batch_size=64", "--set", "ppo.checkpoint_every=64", "--no-progress"]
+ONE = ["--set", "ppo.n_envs=1", "--set", "ppo.validate_worlds=0"]  # one process, the nominal world only
 
 
 def _cli(*args: str, ok: bool = True) -> subprocess.CompletedProcess:
@@ -99,20 +100,121 @@ def test_mistakes_are_one_line_errors(clip, trained, tmp_path) -> None:
     assert unfinished.returncode == 2 and "setup.json" in unfinished.stderr
 
 
+def _log_std(model_zip) -> float:
+    """The initial exploration noise a saved model was made with (-2.5: a residual policy; -1.0: from scratch)."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    return load_from_zip_file(model_zip, load_data=True)[0]["policy_kwargs"]["log_std_init"]
+
+
 def test_overwrite_starts_the_training_afresh(clip, trained, tmp_path) -> None:
     """--overwrite removes everything the previous training wrote, its best model and validation too: the new
-    run's checkpoints are judged among themselves, and the best model evaluated is one of the new run's."""
+    run's checkpoints are judged among themselves, and the best model evaluated is one of the new run's. A file
+    the previous training did not write stays."""
     path = clip[0]
     out = tmp_path / "again"
     shutil.copytree(trained[0], out)
-    old_best = (out / "best.zip").read_bytes()
+    (out / "notes.txt").write_text("mine")
+    assert _log_std(out / "best.zip") == -2.5  # the previous training's: ours+residual
     _cli("train", path, "--steps", 128, "--out", out, "--overwrite", *TINY)  # another reference: dgrasp-tracking
+    assert _log_std(out / "best.zip") == -1.0  # the new training's model, from scratch
     validation = json.loads((out / "validation.json").read_text())
     assert [h[0] for h in validation["history"]] == [0, 64, 128]
     info = json.loads((out / "training.json").read_text())
     assert info["method"] == "dgrasp-tracking" and info["best"] == validation["best"]
-    assert validation["best"]["steps"] <= 128 and (out / "best.zip").read_bytes() != old_best
+    assert validation["best"]["steps"] <= 128 and json.loads((out / "checkpoint.json").read_text())["steps"] == 128
     assert len(list((out / "logs").glob("*/progress.csv"))) == 1
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def _invoke(*args: object):
+    """``quasisim policy ARGS`` in this process (for errors raised before any training starts)."""
+    from click.testing import CliRunner
+
+    from quasisim.cli import main
+
+    return CliRunner().invoke(main, ["policy", *map(str, args)])
+
+
+def _listing(folder) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _stored_training(path, out, method: str = "dgrasp-tracking", seed: int = 3):
+    """A folder as ``policy train`` leaves it once prepared (setup.json, reference.npz: the example's retarget to
+    shadow, or ours+residual on it), with a final model of the previous training standing in; nothing trained."""
+    from dataclasses import asdict
+
+    from quasisim.policy.train import REFERENCE, SETUP, TrainSetup
+
+    out.mkdir(parents=True)
+    kinematic = path.parent / "kinematic.npz"
+    shutil.copyfile(kinematic, out / REFERENCE)
+    source = str(kinematic.resolve()) if method == "ours+residual" else "kinematic retarget to shadow"
+    (out / SETUP).write_text(json.dumps(asdict(TrainSetup(str(path.resolve()), method, "mujoco", source, seed))))
+    (out / "policy.zip").write_bytes(b"the previous training")
+    (out / "logs" / "000").mkdir(parents=True)
+    (out / "logs" / "000" / "progress.csv").write_text("time/total_timesteps\n64\n")
+    return out
+
+
+def test_train_refuses_a_folder_it_did_not_write(clip, tmp_path) -> None:
+    """A non-empty --out without setup.json (here a data folder: meshes/, logs/) is refused, --overwrite or not,
+    and nothing in it is removed."""
+    path = clip[0]
+    out = tmp_path / "data"
+    (out / "meshes").mkdir(parents=True)
+    (out / "meshes" / "cube.obj").write_text("v 0 0 0\n")
+    (out / "logs").mkdir()
+    (out / "logs" / "notes.txt").write_text("mine")
+    before = _listing(out)
+    for extra in ([], ["--overwrite"]):
+        r = _invoke("train", path, "--steps", 64, "--out", out, *TINY, *ONE, *extra)
+        assert r.exit_code == 2 and _listing(out) == before, r.output
+        assert str(out) in r.output and "--out" in r.output and "setup.json" in r.output
+        assert len(r.output.strip().splitlines()) == 1
+
+
+def test_overwrite_keeps_the_previous_training_when_the_new_one_is_refused(clip, tmp_path) -> None:
+    """--overwrite validates the new training (its settings, reference, method) before it removes anything of
+    the previous one: a typo leaves the previous training as it was."""
+    path = clip[0]
+    out = _stored_training(path, tmp_path / "run")
+    before = _listing(out)
+    for bad, said in ((["--set", "ppo.n_step=64"], "n_step"), (["--set", "reward.x=1"], "env.KEY"),
+                      (["--set", "ppo.n_steps=0"], "n_steps"), (["--residual", tmp_path / "nope.npz"], "nope.npz"),
+                      (["--method", "dgrasp-tracking-curriculum", "--set", "ppo.curriculum=nope"], "nope"),
+                      (["--hand", "nohand"], "nohand")):  # fmt: skip
+        r = _invoke("train", path, "--steps", 64, "--out", out, "--overwrite", "--no-progress", *bad)
+        assert r.exit_code == 2 and said in r.output, r.output
+        assert _listing(out) == before, bad
+
+
+def test_resume_refuses_options_that_differ_from_the_stored_training(clip, tmp_path) -> None:
+    """--resume continues the stored training: an option given with another value than the stored one is refused,
+    naming it and both values; the same values are accepted (then: nothing to resume, no checkpoint here)."""
+    path = clip[0]
+    out = _stored_training(path, tmp_path / "run")  # dgrasp-tracking to shadow in mujoco, seed 3
+    kinematic = path.parent / "kinematic.npz"
+    resume = ["train", path, "--steps", 128, "--out", out, "--resume", "--no-progress"]
+    for opt, given, stored in (("--seed", "1", "3"), ("--target", "pybullet", "mujoco"), ("--hand", "allegro", "shadow"),
+                               ("--method", "dgrasp-base", "dgrasp-tracking"),
+                               ("--residual", str(kinematic.resolve()), "dgrasp-tracking")):  # fmt: skip
+        r = _invoke(*resume, opt, given)
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+        assert opt in r.output and given in r.output and stored in r.output, r.output
+    same = _invoke(*resume, "--seed", 3, "--target", "mujoco", "--hand", "shadow", "--method", "dgrasp-tracking")
+    assert same.exit_code == 2 and "nothing to resume" in same.output, same.output
+    ours = _stored_training(path, tmp_path / "ours", "ours+residual", seed=0)
+    resume[resume.index(out)] = ours
+    other = tmp_path / "other.npz"
+    shutil.copyfile(kinematic, other)
+    r = _invoke(*resume, "--residual", other)
+    assert r.exit_code == 2 and "--residual" in r.output and str(kinematic.resolve()) in r.output, r.output
+    r = _invoke(*resume, "--method", "dgrasp-tracking")
+    assert r.exit_code == 2 and "--method" in r.output and "ours+residual" in r.output, r.output
+    same = _invoke(*resume, "--residual", kinematic, "--seed", 0)
+    assert same.exit_code == 2 and "nothing to resume" in same.output, same.output
 
 
 def test_a_resumed_training_continues_the_sequence_of_worlds(clip, tmp_path, monkeypatch) -> None:

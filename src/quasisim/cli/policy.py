@@ -35,6 +35,19 @@ def _split_sets(sets: tuple[str, ...]) -> tuple[dict, dict]:
     return groups["env"], groups["ppo"]
 
 
+RESUMED = {"clip": "CLIP", "residual": "--residual", "method": "--method", "hand": "--hand", "target": "--target",
+           "seed": "--seed", "algo": "--algo"}  # the options --resume takes from the stored training  # fmt: skip
+
+
+def _given(ctx: click.Context) -> dict[str, object]:
+    """The options of :data:`RESUMED` given on the command line (not left at their defaults): name -> value."""
+    from click.core import ParameterSource
+
+    defaults = (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None)
+    return {opt: ctx.params[name] for name, opt in RESUMED.items()
+            if ctx.get_parameter_source(name) not in defaults and ctx.params[name] is not None}  # fmt: skip
+
+
 @policy.command("train")
 @click.argument("clip", type=click.Path(path_type=Path))
 @click.option("--algo", type=click.Choice(["ppo"]), default="ppo", show_default=True, help="RL algorithm.")
@@ -81,7 +94,7 @@ def policy_train(
     _need_rl()
     _setup_runtime()
     from quasisim.files import check_out_dir, run_lock
-    from quasisim.policy.train import SETUP, TrainSetup, clear, prepare, train
+    from quasisim.policy.train import SETUP, TrainSetup, check_owned, check_resume, prepare, train
 
     if method is not None and residual is not None:
         raise QuasisimError(f"--method {method} with --residual: a residual policy is ours+residual; "
@@ -90,16 +103,16 @@ def policy_train(
         raise QuasisimError(f"--set with --resume: a resumed training continues with the stored settings "
                             f"({out / SETUP}); to change them, start again with --overwrite")  # fmt: skip
     check_out_dir(out)
+    if not resume:
+        env_o, ppo_o = _split_sets(sets)
+        check_owned(out)  # a folder of something else: refused, nothing in it touched
+        if (out / SETUP).exists() and not overwrite:
+            raise QuasisimError(f"{out} holds a training already: --resume to continue it, --overwrite to restart")
     with run_lock(out, f"policy train {clip}"):
         if resume:
             setup = TrainSetup.read(out)
-            if Path(setup.clip) != clip.resolve():
-                raise QuasisimError(f"--resume: {out} trains {setup.clip}, not {clip.resolve()}")
-        else:
-            if (out / SETUP).exists() and not overwrite:
-                raise QuasisimError(f"{out} holds a training already: --resume to continue it, --overwrite to restart")
-            clear(out)  # everything of the previous training: its best model and validation too
-            env_o, ppo_o = _split_sets(sets)
+            check_resume(out, setup, _given(click.get_current_context()))
+        else:  # validated first, then the previous training (its best model and validation too) replaced
             setup = prepare(clip, out, residual, hand, target, seed, env_o, ppo_o, method or "dgrasp-tracking")
         click.echo(f"{setup.method} on {Path(setup.clip).stem} in {setup.target}: up to {steps} env steps")
         info = train(out, steps, resume=resume, progress=progress)

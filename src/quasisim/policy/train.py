@@ -2,7 +2,9 @@
 
 A training folder ``OUT`` holds:
 
-* ``setup.json``: what is trained (:class:`TrainSetup`: the clip, the method, the target, the settings);
+* ``setup.json``: what is trained (:class:`TrainSetup`: the clip, the method, the target, the settings); it marks
+  the folder as a training: ``policy train`` refuses a non-empty folder without one (:func:`check_owned`) and
+  replaces only what a training wrote (:func:`prepare`);
 * ``reference.npz``: the reference PD targets: our result (``ours+residual``) or the kinematic retarget
   (``dgrasp-tracking``, which acts on the measured pose and sees the reference only in its observation;
   ``dgrasp-base``: the retarget of its guide; ``dgrasp-tracking-curriculum``: as ``dgrasp-tracking``, trained
@@ -26,6 +28,8 @@ A training folder ``OUT`` holds:
 from __future__ import annotations
 
 import json
+import shutil
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.errors import InputError, QuasisimError
-from quasisim.files import atomic_path, save_json_atomic
+from quasisim.files import LOCK, TMP_MARK, atomic_path, save_json_atomic
 
 METHODS = {"dgrasp-tracking": False, "dgrasp-base": False, "dgrasp-tracking-curriculum": False,
            "ours+residual": True}  # method -> residual actions  # fmt: skip
@@ -78,10 +82,56 @@ class TrainSetup:
         if not p.is_file():
             raise InputError(out, None, f"a training folder of quasisim policy train (with {SETUP})", f"no {SETUP}")
         try:
-            data = json.loads(p.read_text())
-            return cls(**data)
+            setup = cls(**json.loads(p.read_text()))
         except (json.JSONDecodeError, TypeError) as e:
             raise InputError(p, None, "the setup written by quasisim policy train", str(e)) from None
+        if setup.method not in METHODS:
+            raise InputError(p, "method", f"one of {', '.join(METHODS)}", repr(setup.method))
+        return setup
+
+
+def check_owned(out: Path, option: str = "--out") -> None:
+    """Refuse ``out`` where it is neither missing, empty nor a training folder (:data:`SETUP`): ``policy train``
+    replaces only what a training wrote, and never takes over a folder holding files of something else."""
+    out = Path(out)
+    if not out.is_dir():
+        return
+    held = sorted(p.name for p in out.iterdir() if p.name != LOCK and not _orphan(p.name))
+    if held and not (out / SETUP).is_file():
+        shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
+        raise InputError(out, option, f"an empty folder or a training folder of quasisim policy train (with {SETUP})",
+                         f"a folder holding {shown}")  # fmt: skip
+    if held:
+        TrainSetup.read(out)  # a damaged or foreign setup.json: refused too
+
+
+def _orphan(name: str) -> bool:
+    """What an interrupted atomic write left (:func:`quasisim.files.remove_orphans`)."""
+    return name.startswith(".") and (name.endswith(TMP_MARK) or f"{TMP_MARK}." in name)
+
+
+def check_resume(out: Path, setup: TrainSetup, given: dict[str, Any]) -> None:
+    """Refuse ``--resume`` with an option whose value differs from the one the training in ``out`` was started
+    with (``given``: the options given on the command line, ``CLIP`` included: name -> value): a resumed training
+    continues as it was started."""
+    stored = {"CLIP": setup.clip, "--residual": setup.reference_source if setup.residual else None,
+              "--method": setup.method, "--target": setup.target, "--seed": setup.seed, "--algo": setup.algo}  # fmt: skip
+    paths = ("CLIP", "--residual")
+    for opt, value in given.items():
+        value = str(Path(value).resolve()) if opt in paths else value
+        was = _stored_hand(out) if opt == "--hand" else stored[opt]
+        if value != was:
+            shown = f"no --residual ({setup.method} trains from scratch)" if was is None else was
+            leave = "" if opt == "CLIP" else f"leave {opt} out to continue it, or "
+            raise QuasisimError(f"{out / SETUP}: --resume with {opt} {value}: expected {shown}, as the training was "
+                                f"started ({leave}start again with --overwrite)")  # fmt: skip
+
+
+def _stored_hand(out: Path) -> str:
+    """The robot hand of training folder ``out``: its reference controls'."""
+    from quasisim.data.controls import load_controls
+
+    return load_controls(out / REFERENCE).hand
 
 
 def prepare(
@@ -91,13 +141,13 @@ def prepare(
     """Write ``setup.json`` and ``reference.npz`` into ``out``: our result's controls (``residual_run``, a run
     folder or controls.npz: ``ours+residual``) or, without one, the kinematic retarget to ``hand`` of ``clip``
     (``method`` ``dgrasp-tracking``) or of its DGrasp-Base guide (``dgrasp-base``, with ``guide.npz`` and
-    ``guide.json``). The settings are validated here, before any process starts."""
-    from quasisim.data.demo import load_demo, save_demo
+    ``guide.json``). Everything is validated and computed first (a guide in a staging folder), before any process
+    starts and before ``out`` changes; then the previous training in ``out`` is replaced (:func:`_clear`)."""
+    from quasisim.data.demo import load_demo
     from quasisim.envs.config import TrackEnvConfig
-    from quasisim.envs.track import load_reference
-    from quasisim.eval.evaluate import check_controls, hands_of
     from quasisim.policy.config import PPOConfig
 
+    check_owned(out)
     if method not in FROM_SCRATCH:
         from quasisim.errors import choice_error
 
@@ -108,30 +158,53 @@ def prepare(
         from quasisim.method.curriculum import load_curriculum
 
         load_curriculum(ppo.curriculum)  # refused here (naming the valid ones), before any process starts
-    demo, guide = load_demo(clip), ""
-    if residual_run is not None:
-        controls, path = load_reference(residual_run)
-        check_controls(demo, controls, hands_of(controls, path), path)
-        method, source = "ours+residual", str(Path(residual_run).resolve())
-    else:
-        from quasisim.method.retarget import kinematic_controls
-        from quasisim.targets.build import demo_hands
-
-        source = f"kinematic retarget to {hand}"
-        if method == "dgrasp-base":
-            from quasisim.policy.dgrasp import grasp_guide
-
-            demo, info = grasp_guide(demo, env_cfg.contact_radius, DGRASP_MU)
-            demo = _with_mesh_in(demo, out / "meshes")
-            demo = load_demo(save_demo(demo, out / GUIDE))  # as the training reads it (float32 on disk)
+    demo = load_demo(clip)
+    with tempfile.TemporaryDirectory(prefix="quasisim-guide-") as stage:
+        guide = Path(stage) / GUIDE
+        if residual_run is not None:
+            controls, info = _residual_reference(demo, residual_run), None
+            method, source = "ours+residual", str(Path(residual_run).resolve())
+        else:
+            controls, source, info = _kinematic_reference(demo, hand, method, env_cfg.contact_radius, guide)
+        _clear(out)
+        setup = TrainSetup(str(Path(clip).resolve()), method, target, source, seed, "ppo", env_overrides,
+                           ppo_overrides, str((out / GUIDE).resolve()) if method == "dgrasp-base" else "")  # fmt: skip
+        save_json_atomic(out / SETUP, asdict(setup))  # first: the folder stays marked as a training throughout
+        if setup.guide:
+            _with_mesh_in(load_demo(guide), out / "meshes")
+            with atomic_path(out / GUIDE) as tmp:
+                shutil.copyfile(guide, tmp)
             save_json_atomic(out / GUIDE_INFO, {"mu": DGRASP_MU, "radius": env_cfg.contact_radius, "hands": info})
-            guide, source = str((out / GUIDE).resolve()), f"{source}, of the DGrasp-Base guide ({GUIDE})"
-        controls = kinematic_controls(demo_hands(hand, demo.sides), demo, hand)
-    controls.save(out / REFERENCE)
-    setup = TrainSetup(str(Path(clip).resolve()), method, target, source, seed, "ppo", env_overrides, ppo_overrides,
-                       guide)  # fmt: skip
-    save_json_atomic(out / SETUP, asdict(setup))
+        controls.save(out / REFERENCE)
     return setup
+
+
+def _residual_reference(demo: Any, residual_run: Path) -> Any:
+    """Our result's controls (a run folder or controls.npz), checked against ``demo``."""
+    from quasisim.envs.track import load_reference
+    from quasisim.eval.evaluate import check_controls, hands_of
+
+    controls, path = load_reference(residual_run)
+    check_controls(demo, controls, hands_of(controls, path), path)
+    return controls
+
+
+def _kinematic_reference(demo: Any, hand: str, method: str, radius: float, guide: Path) -> tuple[Any, str, Any]:
+    """The kinematic retarget to ``hand`` of ``demo`` or (``dgrasp-base``) of its guide, written to ``guide`` (with
+    its mesh in ``meshes/`` beside) and read back as the training reads it (float32 on disk); (controls, their
+    source, the guide's grasp frames or None)."""
+    from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets.build import demo_hands
+
+    source, info = f"kinematic retarget to {hand}", None
+    if method == "dgrasp-base":
+        from quasisim.data.demo import load_demo, save_demo
+        from quasisim.policy.dgrasp import grasp_guide
+
+        demo, info = grasp_guide(demo, radius, DGRASP_MU)
+        demo = load_demo(save_demo(_with_mesh_in(demo, guide.parent / "meshes"), guide))
+        source = f"{source}, of the DGrasp-Base guide ({GUIDE})"
+    return kinematic_controls(demo_hands(hand, demo.sides), demo, hand), source, info
 
 
 def _with_mesh_in(demo: Any, folder: Path) -> Any:
@@ -147,14 +220,19 @@ def _with_mesh_in(demo: Any, folder: Path) -> Any:
     return dataclasses.replace(demo, object_mesh_path=mesh.resolve())
 
 
-def clear(out: Path) -> None:
-    """Remove everything a training wrote into ``out`` (:data:`OUTPUTS`; ``--overwrite``), so that nothing of
-    it (its best model, its validation scores) is taken for the next training's."""
-    import shutil
-
+def _clear(out: Path) -> None:
+    """Remove what the previous training in ``out`` wrote (:data:`OUTPUTS`, ``meshes/`` only where it trained
+    against a guide; ``--overwrite``) but its ``setup.json``, replaced next, so that nothing of it (its best model,
+    its validation scores) is taken for the next training's. Nothing where ``out`` holds no training; files of
+    other origins stay."""
+    if not (out / SETUP).is_file():
+        return
+    old = TrainSetup.read(out)
     for name in OUTPUTS:
         p = out / name
-        shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+        if name == SETUP or (name == "meshes" and not old.guide):
+            continue
+        shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
 
 
 def make_env(out: Path, setup: TrainSetup, physics: dict[str, float] | None = None) -> Any:
