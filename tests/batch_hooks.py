@@ -1,5 +1,5 @@
 """Hooks of the batch tests (:class:`quasisim.batch.BatchHooks`): a worker killed in the middle of a clip, clips
-held until the test lets them go. The hooks travel to the workers with each task, so the workers must import
+held until the test lets them go, a driver that takes no result until the test lets it. The hooks travel to the workers with each task, so the workers must import
 this module: tests put this folder on the ``PYTHONPATH`` of the batch's driver (a local Ray's workers inherit
 it) and of the ``ray start`` nodes (:func:`pythonpath`)."""
 
@@ -45,13 +45,16 @@ class ScriptedHooks(BatchHooks):
     - ``gate`` (a folder): on the nodes that do not hold, a clip waits until that folder shows a held clip
       (two ``.started`` files), so that another node gets clips meanwhile.
     - ``node_scratch``: each Ray node keeps its clips' scratch folders in a folder of its own,
-      ``OUT/.work@<node id>/<clip>`` (nodes on this one machine share its disk; on a cluster each has its own)."""
+      ``OUT/.work@<node id>/<clip>`` (nodes on this one machine share its disk; on a cluster each has its own).
+    - ``results_gate`` (a folder): the driver waits for no clip's result (so stores none, and fetches none from
+      the node that holds it) until that folder holds ``go``."""
 
     fault: str = ""
     hold: str = ""
     hold_node: str = ""
     gate: str = ""
     node_scratch: bool = False
+    results_gate: str = ""
     limit_s: float = 120.0
 
     def to_json(self) -> str:
@@ -73,6 +76,10 @@ class ScriptedHooks(BatchHooks):
                 _sleep_until(lambda: False, self.limit_s)
         elif self.gate:
             _sleep_until(lambda: len(list(Path(self.gate).glob("*.started"))) >= 2, self.limit_s)
+
+    def waiting(self) -> None:
+        if self.results_gate:
+            _sleep_until(lambda: (Path(self.results_gate) / "go").exists(), self.limit_s)
 
     def piece_hook(self, clip: str, scratch: Path) -> Callable[[str, Callable[[], Any]], Any] | None:
         if clip != self.fault or (scratch / "fault-injected").exists():

@@ -108,60 +108,84 @@ def test_batch_runs_resumes_reports_failures_and_retries(clips_dir: Path, tmp_pa
     assert r.returncode == 0 and list(dead["failures"]) == [good[0]] and not dead["rows"]
 
 
-def test_a_worker_removes_its_clips_scratch_folder_once_done_or_failed(
-    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The worker's side of a clip (run_job, here in this process; the transfer a stand-in that writes a
-    checkpoint and an output, then returns or fails): its scratch folder (the demo, the checkpoints) is gone
-    when run_job returns the clip's outputs or raises its error, on the node that holds it (the two-node test
-    checks this on a cluster); kept with keep_scratch (bench transfer's later runs start from it)."""
+def _stub_transfer(monkeypatch: pytest.MonkeyPatch, fail: set[str], seen: list[tuple[str, bool, bool]]) -> None:
+    """``run_transfer`` replaced by a stand-in that writes a checkpoint and an output, then returns or (for the
+    clips in ``fail``) raises; it records (clip, resume, whether the checkpoint was there when it started)."""
     from types import SimpleNamespace
 
     import quasisim.pipeline
-    from quasisim.batch import pack_demo, run_job
 
-    def transfer(demo: Path, run_dir: Path, spec: TransferSpec, cfg: Any, **kw: Any) -> Any:
-        assert demo.is_file() and demo.parent == scratch / "input"
-        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-        (run_dir / "checkpoints" / "kinematic.npz").write_bytes(b"piece")
+    def transfer(demo: Path, run_dir: Path, spec: TransferSpec, cfg: Any, resume: bool = False, **kw: Any) -> Any:
+        assert demo.is_file() and demo.parent == run_dir.parents[1] / "input"
+        piece = run_dir / "checkpoints" / "kinematic.npz"
+        seen.append((demo.stem, resume, piece.is_file()))
+        piece.parent.mkdir(parents=True, exist_ok=True)
+        piece.write_bytes(b"piece")
         (run_dir / "controls.npz").write_bytes(b"controls")
-        if fail:
+        if demo.stem in fail:
             raise RuntimeError("the transfer failed")
         return SimpleNamespace(metrics={"ok": 1}, kinematic_metrics={}, record=SimpleNamespace(seconds={}))
 
     monkeypatch.setattr(quasisim.pipeline, "run_transfer", transfer)
+
+
+def test_a_worker_keeps_its_clips_checkpoints_for_the_driver_and_after_an_error(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's side of a clip (run_job, here in this process; the transfer a stand-in that writes a
+    checkpoint and an output, then returns or fails): its scratch folder (the demo, the checkpoints) is still
+    there when run_job returns the clip's outputs (the driver has them on disk only later: it removes the
+    folder then, :func:`quasisim.batch.remove_scratch`) and when run_job raises the clip's error, which then
+    names the folder kept; keep_scratch keeps it after the driver stored the clip too (bench transfer's later
+    runs start from it)."""
+    import quasisim.batch as qb
+    from quasisim.batch import pack_demo, run_job
+
+    fail: set[str] = set()
+    _stub_transfer(monkeypatch, fail, [])
     job = Job(clips_dir / "cube_lift.npz", (Run("", SPEC),))
     files, s = pack_demo(job.demo_path), Settings(workers=1, threads=1, pin_cores=False)
-    scratch, fail = tmp_path / ".work" / job.clip, False
+    scratch = tmp_path / ".work" / job.clip
+    piece = scratch / "runs" / "_" / "checkpoints" / "kinematic.npz"
     res = run_job(job, files, s, scratch)
     assert res["files"] == {"controls.npz": b"controls"} and res["rows"][0]["metrics"] == {"ok": 1}
+    assert piece.is_file() and res["scratch"] == str(scratch)  # kept until the driver stored the clip
+    qb.remove_scratch(res["scratch"], s)
     assert not scratch.exists()
-    fail = True
-    with pytest.raises(RuntimeError, match="the transfer failed"):  # an error is final (Ray retries dead workers)
+    fail.add(job.clip)
+    with pytest.raises(RuntimeError, match="the transfer failed") as e:  # an error is final (Ray retries dead workers)
         run_job(job, files, s, scratch)
-    assert not scratch.exists()
-    fail = False
-    run_job(job, files, dataclasses.replace(s, keep_scratch=True), scratch)
-    assert (scratch / "runs" / "_" / "checkpoints" / "kinematic.npz").is_file()
-    assert (scratch / "input" / "cube_lift.npz").is_file()
+    assert piece.is_file()  # kept: the same command resumes the clip from it
+    assert f"checkpoints kept in {scratch}" in "".join(getattr(e.value, "__notes__", [])), e.value
+    fail.clear()
+    res = run_job(job, files, dataclasses.replace(s, keep_scratch=True), scratch)
+    qb.remove_scratch(res["scratch"], dataclasses.replace(s, keep_scratch=True))
+    assert piece.is_file() and (scratch / "input" / "cube_lift.npz").is_file()
 
 
 class _Ref:
-    def __init__(self, result: dict[str, Any]) -> None:
+    def __init__(self, result: dict[str, Any] | Exception) -> None:
         self.result = result
 
 
 class _FakeRay:
     """``ray`` for run_batch without Ray: records each task (its function, clip, Ray options and the threads
-    it is given) and answers it at once with a result as a worker's, its pid the task's number."""
+    it is given) and answers it at once with a result as a worker's, its pid the task's number; with ``run``,
+    runs the task's function here instead (its error raised by ``get``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, run: bool = False) -> None:
         self.tasks: list[tuple[str, str, dict[str, Any], int]] = []
+        self.run = run
 
     def remote(self, **options: Any) -> Any:
         def wrap(fn: Any) -> Any:
             def submit(job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: Any) -> _Ref:
                 self.tasks.append((fn.__name__, job.clip, options, s.threads))
+                if self.run:
+                    try:
+                        return _Ref(fn(job, files, s, scratch, hooks))
+                    except Exception as e:
+                        return _Ref(e)
                 row = {"clip": job.clip, "run": "sample-target", "metrics": {}, "kinematic_metrics": {}, "seconds": {}}
                 return _Ref({"files": {}, "rows": [row], "peak_rss_mb": 1.0, "pid": len(self.tasks), "cores": None,
                              "node": "n", **({"lead": True} if fn.__name__ == "run_lead_job" else {})})  # fmt: skip
@@ -174,10 +198,80 @@ class _FakeRay:
         return refs[:1], refs[1:]
 
     def get(self, ref: _Ref) -> dict[str, Any]:
+        if isinstance(ref.result, Exception):
+            raise ref.result
         return ref.result
 
     def shutdown(self, **kwargs: Any) -> None:
         pass
+
+
+def test_the_driver_removes_a_clips_checkpoints_once_it_stored_the_clip(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """run_batch with Ray a stand-in that runs each task here (run_job, its transfer a stand-in that writes a
+    checkpoint): a driver interrupted (Ctrl-C) after a clip's worker returned and before it stored the clip
+    leaves the clip's checkpoints where the worker left them, and the same batch again resumes the clip from
+    them; once the driver stored the clip (its clip.json), the clip's scratch folder is gone. A clip that fails
+    with an error keeps its checkpoints (an out-of-memory error in a late stage keeps the earlier stages) and
+    its failure in batch.json says where."""
+    import quasisim.batch
+
+    seen: list[tuple[str, bool, bool]] = []
+    _stub_transfer(monkeypatch, {"cylinder_lift_turn"}, seen)
+    monkeypatch.setattr(quasisim.batch, "_ray_init", lambda s: _FakeRay(run=True))
+    persist = quasisim.batch._persist
+
+    def interrupted(*args: Any) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(quasisim.batch, "_persist", interrupted)
+    out, s = tmp_path / "out", Settings(workers=1, threads=1, pin_cores=False, overrides=FAST)
+    jobs = [j for j in _jobs(clips_dir) if j.clip != "broken"]
+    assert [j.clip for j in jobs] == ["cube_lift", "cylinder_lift_turn"]
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(jobs[:1], out, s)
+    work = (out / ".work").resolve()
+    assert seen == [("cube_lift", False, False)] and not (out / "cube_lift").exists()
+    assert (work / "cube_lift" / "runs" / "_" / "checkpoints" / "kinematic.npz").is_file()  # kept: not stored yet
+    monkeypatch.setattr(quasisim.batch, "_persist", persist)
+    res = run_batch(jobs, out, s)
+    assert seen[1:] == [("cube_lift", True, True), ("cylinder_lift_turn", False, False)]  # resumed from the checkpoint
+    assert (out / "cube_lift" / "clip.json").is_file() and not (work / "cube_lift").exists()
+    assert (work / "cylinder_lift_turn" / "runs" / "_" / "checkpoints" / "kinematic.npz").is_file()
+    err = res.failures["cylinder_lift_turn"]
+    assert err.startswith("RuntimeError: the transfer failed"), err
+    assert f"checkpoints kept in {work / 'cylinder_lift_turn'} on node " in err, err
+
+
+def test_export_finds_a_renamed_clips_demo_as_the_file_its_batch_ran(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`quasisim example`, its demo renamed to a.npz (inside it the demo is still named cube_lift), `quasisim
+    batch` on that folder (its Ray a stand-in that runs the clip here) and `quasisim export` of the batch: the
+    clip's clip.json records the file the batch ran, relative to the batch's data_dir, and export finds the
+    demo there (no cube_lift.npz anywhere it searches)."""
+    from click.testing import CliRunner
+
+    import quasisim.batch
+    import quasisim.runtime
+    from quasisim.cli import main
+
+    def cli(*args: Any) -> Any:
+        r = CliRunner().invoke(main, [str(a) for a in args])
+        assert r.exit_code == 0, r.output
+        return r
+
+    data, out = tmp_path / "data", tmp_path / "out"
+    cli("example", "--out", data, "--name", "cube_lift", "--frames", "12")
+    (data / "cube_lift.npz").rename(data / "a.npz")
+    monkeypatch.setenv("QUASISIM_DATA", str(tmp_path / "nothing"))
+    monkeypatch.setattr(quasisim.batch, "_ray_init", lambda s: _FakeRay(run=True))
+    monkeypatch.setattr(quasisim.runtime, "pin_to_free_cores", lambda n: None)  # the clip runs in this process
+    cli("batch", data, "--out", out, "--method", "kinematic", "--robust", "0", "--workers", "1", "--threads", "1")
+    r = cli("export", out, "--out", tmp_path / "a.hdf5")
+    assert (tmp_path / "a.hdf5").is_file(), r.output
+    assert json.loads((out / "a" / "clip.json").read_text())["demo_file"] == "a.npz"
 
 
 def test_only_a_local_batch_of_pinned_workers_leads_with_one_clip(

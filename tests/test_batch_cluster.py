@@ -1,8 +1,8 @@
 """``quasisim batch`` beside and on Ray clusters started here with ``ray start`` (token authentication as Ray
 defaults it): a local batch never attaches to another Ray (a live cluster, its address file left behind,
 ``RAY_ADDRESS``), Ctrl-C ends a batch with status 130 and nothing of its Ray left and the same command resumes,
-and a batch on a cluster of two nodes loses one of them in the middle of a clip and still does every clip
-exactly once, with the results of a local batch. Every Ray process here is ours, stopped through the process
+and a batch on a cluster of two nodes loses one of them in the middle of a clip, with the result of another
+clip of it not yet stored, and still does every clip exactly once, with the results of a local batch. Every Ray process here is ours, stopped through the process
 groups of our `ray start`s (or with the batch that started it); processes that merely name a cluster's folder
 are left alone."""
 
@@ -209,44 +209,59 @@ def test_local_batch_ignores_other_rays_stops_on_ctrl_c_and_resumes(local_run: L
     assert "Traceback" not in r.auto_stale.stderr
 
 
-@pytest.mark.slow  # two `ray start` nodes, a batch of 5 clips, one node killed; a local batch beside (~65 s)
+@pytest.mark.slow  # two `ray start` nodes, a batch of 5 clips, one node killed; a local batch beside (~80 s)
 def test_batch_on_two_nodes_survives_losing_one(clips_dir: Path, token_env: None, tmp_path: Path) -> None:
-    """Clips run on both nodes; the second node's raylet is killed while it holds a clip, which Ray retries
-    on the head: every clip done once, with the results of a local batch (run beside the live cluster, to its
-    end), no clip's scratch folder left on either node, and no process of the cluster left."""
+    """Clips run on both nodes; the second node's raylet is killed while it holds a clip and after it finished
+    another one whose result the driver has not stored (nor fetched: the driver takes no result until then).
+    Ray retries the held clip on the head and computes the finished one again there (its result was lost with
+    the node): every clip done once, with the results of a local batch. The finished clip's checkpoints are
+    still on the lost node (kept until the driver stored the clip: a clip that runs there again resumes from
+    them); the head's scratch folder is empty (removed once the driver stored each clip); no process of the
+    cluster is left."""
     hold, out = tmp_path / "hold", tmp_path / "out"
     hold.mkdir()
-    cluster = LocalCluster.start((1, 1), env={"PYTHONPATH": pythonpath()})  # its workers import batch_hooks
+    # results above 1000 bytes stay in the object store of the worker's node (Ray's default: above 100 kB;
+    # a real clip's are megabytes): a finished clip's result not yet fetched is lost with its node
+    env = {"PYTHONPATH": pythonpath(), "RAY_max_direct_call_object_size": "1000"}  # its workers import batch_hooks
+    cluster = LocalCluster.start((1, 1), env=env)
     try:
         assert b"Token authentication is enabled" in cluster.log(0).read_bytes()  # Ray's default, a token here
         raylet, node1 = cluster.raylet(1)
         # node 1 holds its second clip; the head's first clip waits for that, so that node 1 gets two clips;
-        # each node keeps its scratch folders apart (OUT/.work@NODE), as nodes of their own machines would
-        hooks = ScriptedHooks(hold=str(hold), hold_node=node1, gate=str(hold), node_scratch=True)
+        # each node keeps its scratch folders apart (OUT/.work@NODE), as nodes of their own machines would; the
+        # driver takes no result until the test says `go`
+        hooks = ScriptedHooks(
+            hold=str(hold), hold_node=node1, gate=str(hold), node_scratch=True, results_gate=str(hold)
+        )
         # the explicit address: Ray sends no token unless told (RAY_AUTH_MODE), quasisim tells it
         p = _batch(clips_dir, out, "--ray", cluster.address, env={}, hooks=hooks)
         _wait(lambda: len(list(hold.glob("*.started"))) >= 2, 240, "held clip on the second node", p)
         first, held = (f.stem for f in sorted(hold.glob("*.started"), key=lambda f: f.stat().st_mtime_ns))
-        # the driver has node 1's finished clip before the kill: a result still in node 1's object store would
-        # be lost with it, and Ray would run that clip again on the head (seen on a loaded machine)
-        _wait(lambda: (out / first / "clip.json").is_file(), 240, f"{first}'s result from the second node", p)
+        # node 1 runs one clip at a time: its first clip's worker returned before the held one started, and
+        # kept its checkpoints; the driver has stored nothing, the result is only in node 1's object store
+        assert (out / f".work@{node1}" / first / "runs" / "_" / "checkpoints").is_dir()
+        assert not list(out.glob("*/clip.json"))
         os.kill(raylet, signal.SIGKILL)
+        (hold / "go").touch()
         r = _completed(p)
         assert r.returncode == 0, r.stderr[-3000:]
         res = json.loads((out / "batch.json").read_text())
         nodes = res["node_per_clip"]
-        assert not res["failures"] and res["clips_run"] == N_CLIPS and res["nodes_used"] == 2
+        assert not res["failures"] and res["clips_run"] == N_CLIPS
         assert (
             sorted(row["clip"] for row in res["rows"])
             == sorted(nodes)
             == sorted(p.stem for p in clips_dir.glob("*.npz"))
         )  # every clip once
-        assert nodes[first] == node1 and nodes[held] != node1  # the held clip ran again on the head
+        head = nodes[held]
+        assert head != node1 and set(nodes.values()) == {head}  # both clips of node 1 ran again on the head
         assert not list(out.glob(".*.incoming"))  # no clip folder half written
-        # each node's scratch folder is empty: its workers removed their clips' (the held clip waited before
-        # writing any); the driver cannot reach them
-        assert sorted(d.name for d in out.glob(".work*")) == sorted(f".work@{n}" for n in set(nodes.values()))
-        assert not [str(c) for c in out.glob(".work*/*")]
+        # the lost node's scratch folder keeps the finished clip's checkpoints (the held clip waited before
+        # writing any); the head's is empty: each clip's was removed there once the driver stored it
+        assert sorted(d.name for d in out.glob(".work*")) == sorted([f".work@{node1}", f".work@{head}"])
+        assert [d.name for d in (out / f".work@{node1}").iterdir()] == [first]
+        assert (out / f".work@{node1}" / first / "runs" / "_" / "checkpoints").is_dir()
+        assert not [str(c) for c in (out / f".work@{head}").iterdir()]
         assert cluster.procs[1].poll() is not None  # the second node's `ray start` ended with its raylet
         # a local batch beside the live cluster (its address file where Ray looks) runs to its end, on its own Ray
         local = _completed(_batch(clips_dir, tmp_path / "local", env={"RAY_TMPDIR": str(cluster.temp)}))
@@ -347,7 +362,13 @@ def test_an_older_ray_is_one_line_naming_the_version_needed(
 ) -> None:
     """With a Ray older than 2.59 (its version monkeypatched; no Ray starts here) `quasisim batch` and a
     LocalCluster fail where they first use Ray, with one line naming the version needed, the version
-    pyproject.toml asks for; 2.59 passes."""
+    pyproject.toml asks for; 2.59 passes the version check.
+
+    What it does not show: that quasisim works on Ray 2.59 itself. It only compares the version strings
+    (RAY_MIN, a monkeypatched ``ray.__version__``, pyproject.toml's ``cluster`` extra); the Ray tests (the
+    two-node test, the local batches) run on the Ray installed here (``make setup``: the newest), never on
+    2.59, so a Ray API that quasisim uses and that came after 2.59 would pass here. RAY_MIN rests on reading
+    Ray's sources (raycluster.RAY_MIN's comment)."""
     import re
     import tomllib
 

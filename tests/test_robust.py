@@ -163,18 +163,135 @@ def test_every_command_carries_the_robust_settings_to_its_judging(command, tmp_p
     elif command == "batch":
         monkeypatch.setattr(quasisim.batch, "run_batch_command", recorder(3))
         args = ["batch", str(tmp_path / "clips"), "--out", str(tmp_path / "o"), *opts]
-    else:
+    else:  # transfer_rows and the closed-loop pass run; the batch and the pass's judging are replaced
+        import quasisim.bench.closed_loop
+        from quasisim.eval.robust import replays
 
-        def record(*a, **k):
-            seen["spec"] = quasisim.method.spec.TransferSpec(robust=a[12], robust_set=tuple(k["robust_set"].items()))
-            seen["ranges"] = k["closed_loop"][0]
+        def batch(js, *a, **k):
+            seen["spec"] = js[0].runs[0].spec  # what transfer_rows made of the options: the batch judges with it
+            return type("Result", (), {"rows": [], "failures": {}})()
 
-        monkeypatch.setattr(quasisim.bench.transfer, "run_transfer_bench", record)
+        def closed(rows, out, paths, n, sets, target, workers, track, robust_set):
+            seen["ranges"], seen["closed"] = sets, [replays(n, r, robust_set) for r in sets]  # as judge_run does
+            raise Recorded
+
+        monkeypatch.setattr(quasisim.bench.transfer, "run_batch", batch)
+        monkeypatch.setattr(quasisim.bench.closed_loop, "add_closed_loop", closed)
         args = ["bench", "transfer", str(tmp_path / "clips"), "--out", str(tmp_path / "o"), "--closed-loop", *opts]
     res = CliRunner().invoke(main, args, catch_exceptions=True)
     assert "spec" in seen, res.output
     spec = seen["spec"]
     ranges = seen.get("ranges", spec.ranges)
-    cfgs = dataclasses.replace(spec, ranges=ranges).robust_configs()
+    cfgs = seen.get("closed") or spec.robust_configs()
+    if "closed" in seen:  # the batch judges its runs open loop in the default worlds, with the same replays
+        assert [(c.name, c.n, c.seed, c.friction) for c in spec.robust_configs()] == [("robust", 3, 9, 0.3)]
     assert [(c.name, c.n, c.seed, c.friction) for c in cfgs] == [("robust_wide", 3, 9, 0.3), ("robust_mine", 3, 9, 0.3)]
     assert cfgs[1].mass == 0.4 and ranges == ("wide", str(mine.resolve()))
+
+
+def _draws_and_noise(cfg: RobustConfig, i: int) -> tuple[float, ...]:
+    """World ``i`` of ``cfg`` as numbers: its 6 draws (mass ... push) and its sensor's first noise draw."""
+    from quasisim.targets.perturb import Sensor, _draws
+
+    return (*_draws(cfg, i), Sensor(cfg, i, np.zeros(3, bool))._rng.standard_normal())
+
+
+def test_the_methods_worlds_are_never_the_worlds_it_is_judged_in(monkeypatch) -> None:
+    """robust_select.seed (the cascade's gate and selection) and sampling.robust_seed (the sampling stage's copies)
+    draw their worlds from a stream of their own: whatever the integer seeds, no world the method chooses plans in is
+    a world that ``--robust-set seed=N`` judges them in. The judging worlds are those they always were
+    (``default_rng([seed, i])``), so the robust figures already published stay valid."""
+    import quasisim.method.track as track
+    import quasisim.targets.perturb as perturb
+    from quasisim.eval.robust import replays
+    from quasisim.method.config import TransferConfig
+    from quasisim.method.options import RobustSelectOptions
+    from quasisim.method.stages import sampling
+    from quasisim.method.stages.selection import closed_loop_success
+
+    method: list[tuple[RobustConfig, int]] = []
+    monkeypatch.setattr(
+        perturb, "world_replays", lambda sc, q, tgt, cfg, pol: method.extend((cfg, i) for i in range(cfg.n)) or iter(())
+    )
+    monkeypatch.setattr(track, "closed_loop", lambda *a, **k: lambda *b: None)
+    prob = type("P", (), {"demo": None, "scene": None})()
+    for seed in (1, 2, 7):
+        closed_loop_success(prob, "mujoco", np.zeros((2, 3)), RobustSelectOptions(worlds=4, seed=seed), None)
+    monkeypatch.setattr(sampling, "perturbed_scene", lambda sc, cfg, i: method.append((cfg, i)))
+    opts = TransferConfig.from_yaml().sampling
+    for seed in (0, 1, 2, 7):
+        sampling.copy_scenes(None, dataclasses.replace(opts, robust_seed=seed, robust_copies=4))
+    assert len(method) == 3 * 4 + 4 * 4
+    judged = {_draws_and_noise(replays(8, "default", {"seed": s}), i) for s in range(10) for i in range(8)}
+    assert len(judged) == 80
+    assert judged.isdisjoint(_draws_and_noise(cfg, i) for cfg, i in method)
+    cfg = replays(8, "default", {"seed": 3})  # the judging worlds, as published
+    np.testing.assert_array_equal(perturb._draws(cfg, 5), np.random.default_rng([3, 5]).uniform(-1.0, 1.0, size=6))
+    # the method's seeds lie in [0, 2**32), where that separation holds (perturb.TrainingWorlds)
+    from quasisim.errors import QuasisimError
+
+    with pytest.raises(InputError, match=r"robust_select\.seed.*\[0, 2\*\*32\)"):
+        TransferConfig.from_yaml(overrides={"robust_select.seed": 2**32})
+    with pytest.raises(QuasisimError, match=r"robust_seed.*\[0, 2\*\*32\), got -1"):
+        dataclasses.replace(opts, robust_seed=-1)
+
+
+def test_a_batch_resumed_with_other_judging_settings_is_refused(tmp_path) -> None:
+    """A run's robust replays (``--robust``), perturbation sets (``--ranges``) and their overrides (``--robust-set``)
+    are part of its identity in ``clip.json``: a batch (or a report-only pass) into the same OUT with other ones
+    is refused in one line naming the option, the stored and the given value; folders written before the judging
+    settings were recorded are checked against the replays their rows hold."""
+    from quasisim.batch import CLIP_FILE, Job, Run, Settings, _persist, finished_runs
+    from quasisim.errors import QuasisimError
+    from quasisim.method.spec import TransferSpec
+
+    out, s = tmp_path / "out", Settings()
+
+    def job(**judging) -> Job:
+        return Job(tmp_path / "a.npz", (Run("cascade", TransferSpec(**{"robust": 8, **judging})),))
+
+    row = {"clip": "a", "run": "cascade", "metrics": {"robust": {"n": 8, "seed": 0, "strict": 0.5, "unstable": 0}}}
+    _persist(out, job(), s, {"files": {}, "rows": [row]})
+    assert finished_runs(out, job(), s) == {"cascade": row}
+    refusals = {
+        "--robust-set seed: stored 0, given 1": job(robust_set=(("seed", 1),)),
+        "--robust-set friction: stored 0.2, given 0.3": job(robust_set=(("friction", 0.3),)),
+        "--robust: stored 8, given 3": job(robust=3),
+        "--ranges: stored robust, given robust_wide": job(ranges=("wide",)),
+    }
+    for msg, other in refusals.items():
+        for any_revision in (False, True):  # a batch, a report-only pass
+            with pytest.raises(QuasisimError, match=rf"^{out / 'a'}: run 'cascade' .*{msg}") as e:
+                finished_runs(out, other, s, any_revision)
+            assert "\n" not in str(e.value)
+    legacy = json.loads((out / "a" / CLIP_FILE).read_text())  # as clip.json was written before this
+    legacy["runs"]["cascade"]["identity"].pop("judging")
+    (out / "a" / CLIP_FILE).write_text(json.dumps(legacy))
+    assert finished_runs(out, job(), s) == {"cascade": row}
+    assert finished_runs(out, job(robust_set=(("friction", 0.3),)), s) == {"cascade": row}  # not recorded then
+    for msg in ("--robust-set seed: stored 0, given 1", "--robust: stored 8, given 3"):
+        with pytest.raises(QuasisimError, match=msg):
+            finished_runs(out, refusals[msg], s)
+
+
+def test_bench_transfer_into_an_out_judged_otherwise_exits_2(tmp_path) -> None:
+    """``quasisim bench transfer --report-only`` with another ``--robust-set seed`` than the OUT was judged with:
+    exit 2, one line naming the option and both values."""
+    from click.testing import CliRunner
+
+    from quasisim.batch import Job, Run, Settings, _persist
+    from quasisim.bench.transfer import run_spec
+    from quasisim.cli import main
+    from quasisim.method.spec import TransferSpec
+
+    data, out = tmp_path / "clips", tmp_path / "out"
+    data.mkdir()
+    (data / "a.npz").write_bytes(b"")
+    base = TransferSpec(render=False, progress=False, robust=8)
+    row = {"clip": "a", "run": "cascade", "metrics": {"robust": {"n": 8, "seed": 0, "strict": 0.5, "unstable": 0}}}
+    job = Job(data / "a.npz", (Run("cascade", run_spec("cascade", ("1", "2"), base)),))
+    _persist(out, job, Settings(keep_scratch=True), {"files": {}, "rows": [row]})
+    args = ["bench", "transfer", str(data), "--out", str(out), "--runs", "cascade", "--robust", "8", "--report-only"]
+    res = CliRunner().invoke(main, [*args, "--robust-set", "seed=1"])
+    assert res.exit_code == 2, res.output
+    assert "--robust-set seed: stored 0, given 1" in res.output and len(res.output.strip().splitlines()) == 1

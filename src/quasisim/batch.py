@@ -4,13 +4,15 @@ Each clip is one Ray task (a :class:`Job`: one or more transfer runs of that cli
 demo and its mesh to the worker as bytes, the worker runs the transfers in a scratch folder (their
 checkpoints live there, so a retried or resumed clip continues where it stopped) and returns the output
 files as bytes; only the driver writes results: each clip's folder ``OUT/<clip>/`` appears at once (written
-aside and renamed) with ``clip.json`` (the clip's metrics and settings) in it, and ``OUT/batch.json`` /
-``OUT/batch.md`` (per-clip rows, failures and the summary table) are rewritten atomically after every clip.
+aside and renamed) with ``clip.json`` (the clip's metrics and settings, and the demo file it ran, relative to
+the batch's data folder) in it, and ``OUT/batch.json`` / ``OUT/batch.md`` (per-clip rows, failures and the
+summary table) are rewritten atomically after every clip.
 
 - Resumable: a clip whose folder exists is never redone; a clip that was running when the batch was killed
   resumes from its checkpoints in the scratch folder (``OUT/.work/<clip>`` by default, on the node that runs
-  it). The worker removes that folder once its results are in its reply, or when the clip fails with an
-  error (:func:`run_job`; ``keep_scratch`` keeps it).
+  it). That folder is removed only once the driver has stored the clip (:func:`remove_scratch`, on its node;
+  ``keep_scratch`` keeps it): a clip whose result is lost before (its node lost, the driver stopped) or that
+  fails with an error (its failure says so) keeps its checkpoints to resume from.
 - A worker that dies (killed, out of memory) has its clip retried (``max_retries``); a clip that fails
   with an error is reported with it and the batch goes on.
 - Local by default: a Ray of the batch's own with this machine's cores, whatever other Ray runs here;
@@ -50,7 +52,8 @@ SKIP_OUTPUT = ("checkpoints",)  # stays in the worker's scratch folder
 
 
 class BatchHooks:
-    """Where tests reach into a clip's run on its worker (:func:`run_job`); here every hook does nothing.
+    """Where tests reach into a clip's run on its worker (:func:`run_job`) and into the driver taking the
+    results (:func:`_run_group`); here every hook does nothing.
 
     A batch takes its hooks from :func:`run_batch`'s ``hooks`` (default: :data:`HOOKS`, which a test's
     driver process may replace before the batch starts) and carries them to the workers with each task, so a
@@ -67,6 +70,9 @@ class BatchHooks:
         """``run_transfer``'s ``piece_hook`` for the clip (each checkpointed piece's name and computation
         go through it); None: none."""
         return None
+
+    def waiting(self) -> None:
+        """Called on the driver before it waits for the next clip's result (so before it stores any)."""
 
 
 NO_HOOKS = BatchHooks()
@@ -89,14 +95,24 @@ class Run:
 
 @dataclass(frozen=True)
 class Job:
-    """The runs of one clip."""
+    """The runs of one clip; ``data_dir``: the batch's data folder (None: the demo's folder)."""
 
     demo_path: Path
     runs: tuple[Run, ...]
+    data_dir: Path | None = None
 
     @property
     def clip(self) -> str:
         return self.demo_path.stem
+
+    @property
+    def demo_file(self) -> str:
+        """The demo file relative to ``data_dir`` (its name where it is not below it): ``clip.json``'s
+        ``demo_file``, where ``export`` looks first (the demo's own name may differ from the file's)."""
+        with contextlib.suppress(ValueError):
+            if self.data_dir is not None:
+                return self.demo_path.relative_to(self.data_dir).as_posix()
+        return self.demo_path.name
 
 
 @dataclass(frozen=True)
@@ -125,11 +141,14 @@ class Settings:
 def identity(run: Run, s: Settings) -> dict[str, Any]:
     """What makes a run's results (recorded in its clip's ``clip.json``; a batch into the same OUT must
     match it), as JSON would give it back: the run, its spec, the config settings its stages read and, for a
-    run with a stage in the quasi-physical simulator, the simulator's revision."""
+    run with a stage in the quasi-physical simulator, the simulator's revision; ``judging``: the worlds its robust
+    success was judged in (:func:`quasisim.eval.robust.judged_with`; checked apart, :func:`finished_runs`)."""
+    from quasisim.eval.robust import judged_with
     from quasisim.method.stage import simulator_identity
 
     spec = run.spec.identity() | {"stages": _identity_stages(s, run.spec)}
     d = {"name": run.name, **spec, "seed_from": run.seed_from, "config_sha256": config_hash(s, run.spec)}
+    d |= {"judging": judged_with(run.spec.robust_configs())}
     return json.loads(json.dumps(d | simulator_identity(run.spec.stages)))
 
 
@@ -239,12 +258,14 @@ def run_job(
     job: Job, files: dict[str, bytes], s: Settings, scratch: Path, hooks: BatchHooks = NO_HOOKS
 ) -> dict[str, Any]:
     """Run ``job``'s transfers in ``scratch`` (resumed from the checkpoints there); returns their output
-    files ({run/relative path: bytes}), a result row per run and the worker's peak memory.
+    files ({run/relative path: bytes}), a result row per run, the worker's peak memory, its node and the
+    scratch folder it used.
 
-    The worker removes ``scratch`` itself (unless ``s.keep_scratch``), on the node that holds it: once the
-    outputs are read into its result, or when the clip fails with an error (for good: Ray retries a clip
-    only when its worker dies). A clip whose worker dies (killed, out of memory, its node lost, the batch
-    interrupted) keeps it, to resume from."""
+    The worker keeps ``scratch``: the driver has it removed on this node once it stored the clip
+    (:func:`remove_scratch`), so a result lost on its way (the node lost, the driver stopped) leaves the
+    checkpoints to resume from. A clip that fails with an error (for good: Ray retries a clip only when its
+    worker dies) keeps them too, and its error says where (a note on the exception): the same command resumes
+    it, an out-of-memory error in a late stage keeps the earlier stages."""
     from quasisim.runtime import configure, free_compiled_programs, pin_to_free_cores
 
     scratch = hooks.scratch(scratch)
@@ -254,16 +275,17 @@ def run_job(
     free_compiled_programs()  # a worker runs clip after clip: keep below the kernel's mapping limit
     try:
         out_files, rows = _run_transfers(job, files, s, scratch, hooks.piece_hook(job.clip, scratch))
-    except Exception:  # not BaseException: a worker stopped by the batch's end keeps its checkpoints
-        _drop_scratch(scratch, s)
+    except Exception as e:
+        e.add_note(f"checkpoints kept in {scratch} on node {_node()}: the same command resumes the clip from them")
         raise
-    _drop_scratch(scratch, s)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {"files": out_files, "rows": rows, "peak_rss_mb": peak_mb, "pid": os.getpid(), "cores": cores,
-            "node": _node()}  # fmt: skip
+            "node": _node(), "scratch": str(scratch)}  # fmt: skip
 
 
-def _drop_scratch(scratch: Path, s: Settings) -> None:
+def remove_scratch(scratch: str, s: Settings) -> None:
+    """Remove a clip's scratch folder (unless ``s.keep_scratch``), on the node that holds it, once the driver
+    has stored the clip (:class:`Removals`)."""
     if not s.keep_scratch:
         shutil.rmtree(scratch, ignore_errors=True)
 
@@ -330,13 +352,24 @@ class BatchResult:
 def finished_runs(out: Path, job: Job, s: Settings, any_revision: bool = False) -> dict[str, dict[str, Any]]:
     """{run name: result row} of ``job``'s runs already in ``OUT/<clip>/clip.json``; an error when one of
     them was made with other settings (``any_revision``: made by any revision of the simulator, for reading
-    back finished runs; a batch never extends them)."""
+    back finished runs; a batch never extends them) or judged with other robust settings (the option named)."""
+    from quasisim.eval.robust import judging_mismatch
+
     p = out / job.clip / CLIP_FILE
     if not p.is_file():
         return {}
     done = json.loads(p.read_text())["runs"]
-    drop = (lambda d: {k: v for k, v in d.items() if k != "simulator_revision"}) if any_revision else (lambda d: d)
+    skip = {"judging", *(["simulator_revision"] if any_revision else [])}  # judging: checked apart (older: none)
+    drop = lambda d: {k: v for k, v in d.items() if k not in skip}  # noqa: E731
     for r in job.runs:
+        differs = r.name in done and judging_mismatch(
+            done[r.name]["identity"], done[r.name]["row"], r.spec.robust_configs()
+        )
+        if differs:
+            raise QuasisimError(
+                f"{out / job.clip}: run {r.name or job.clip!r} was judged with other robust settings ({differs}; see "
+                f"{p}); give the same, or use another --out"
+            )
         if r.name in done and drop(done[r.name]["identity"]) != drop(identity(r, s)):
             raise QuasisimError(
                 f"{out / job.clip}: run {r.name or job.clip!r} was made with other settings (see {p}); use another "
@@ -355,7 +388,7 @@ def _persist(out: Path, job: Job, s: Settings, result: dict[str, Any]) -> None:
         runs = json.loads((final / CLIP_FILE).read_text())["runs"]
     _write_tree(tmp, result["files"])
     runs |= {r.name: {"identity": identity(r, s), "row": row} for r, row in zip(job.runs, result["rows"], strict=True)}
-    save_json_atomic(tmp / CLIP_FILE, {"clip": job.clip, "runs": runs})
+    save_json_atomic(tmp / CLIP_FILE, {"clip": job.clip, "demo_file": job.demo_file, "runs": runs})
     if final.exists():
         shutil.rmtree(old, ignore_errors=True)
         os.replace(final, old)
@@ -418,7 +451,7 @@ def _take(job: Job, result: dict[str, Any] | str, out: Path, s: Settings, acc: t
     if isinstance(result, str):
         failures[job.clip] = result
         return
-    _persist(out, job, s, result)  # its scratch folder is its worker's to remove, on its node (run_job)
+    _persist(out, job, s, result)  # its scratch folder is removed on its node after this (Removals)
     rows.extend(result["rows"])
     peak[str(result["pid"])] = result["peak_rss_mb"]
     cores[str(result["pid"])] = None if result["cores"] is None else list(result["cores"])
@@ -465,7 +498,7 @@ def _dispatch_on_ray(
     ray = _ray_init(s)
     try:
         task = ray.remote(num_cpus=s.threads, max_retries=s.max_retries)(run_job)
-        rest = list(todo)
+        rest, removals = list(todo), Removals(ray, s)
         with tqdm(total=len(todo), desc="clips", unit="clip", dynamic_ncols=True) as bar:
             if leads(s, len(todo)):
                 cores = s.workers * s.threads  # the XLA flags (the compilation cache's key) stay the workers'
@@ -473,18 +506,49 @@ def _dispatch_on_ray(
                 lead_s = dataclasses.replace(s, threads=cores)
                 while rest:  # until one lead clip could be read and submitted
                     first, rest = rest[:1], rest[1:]
-                    if (yield from _run_group(ray, lead, lead_s, first, scratch, bar, hooks)):
+                    if (yield from _run_group(ray, lead, lead_s, first, scratch, bar, hooks, removals)):
                         break
-            yield from _run_group(ray, task, s, rest, scratch, bar, hooks)
+            yield from _run_group(ray, task, s, rest, scratch, bar, hooks, removals)
+        removals.wait()
     finally:
         ray.shutdown(wait_for_processes=not s.ray_address)  # a local Ray's processes are gone when it returns
 
 
+class Removals:
+    """The removal of each stored clip's scratch folder on its node (:func:`remove_scratch`): by the driver
+    itself in a local batch (its node), by a task pinned to the clip's node on a cluster (a node that is gone
+    keeps it: its disk went with it, or it is there to resume from should the clip run there again)."""
+
+    def __init__(self, ray: Any, s: Settings) -> None:
+        self.ray, self.s = ray, s
+        self.tasks: list[Any] = []  # the removals' Ray tasks (a cluster's)
+        self.fn = ray.remote(num_cpus=0, max_retries=0)(remove_scratch) if s.ray_address else None
+
+    def stored(self, result: dict[str, Any]) -> None:
+        """``result``'s clip is stored: remove its scratch folder (none named: a worker of an older quasisim)."""
+        scratch = result.get("scratch")
+        if self.s.keep_scratch or not scratch:
+            return
+        if self.fn is None:
+            remove_scratch(scratch, self.s)
+            return
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        where = NodeAffinitySchedulingStrategy(result["node"], soft=False)
+        self.tasks.append(self.fn.options(scheduling_strategy=where).remote(scratch, self.s))
+
+    def wait(self, timeout_s: float = 120.0) -> None:
+        """Until the removals on the cluster's nodes ended (done or failed: a node lost), at most ``timeout_s``."""
+        if self.tasks:
+            self.ray.wait(self.tasks, num_returns=len(self.tasks), timeout=timeout_s)
+
+
 def _run_group(
-    ray: Any, fn: Any, s: Settings, jobs: list[Job], scratch: Path, bar: Any, hooks: BatchHooks
+    ray: Any, fn: Any, s: Settings, jobs: list[Job], scratch: Path, bar: Any, hooks: BatchHooks, removals: Removals
 ) -> Generator[tuple[Job, dict[str, Any] | str], None, int]:
-    """Submit ``jobs`` as tasks of the Ray function ``fn``, yield (job, result or error text) as they end;
-    returns how many were submitted (a demo that cannot be read is not)."""
+    """Submit ``jobs`` as tasks of the Ray function ``fn``, yield (job, result or error text) as they end
+    (the caller stores each before it asks for the next: its scratch folder is removed then); returns how many
+    were submitted (a demo that cannot be read is not)."""
     pending = {}
     for j in jobs:
         try:
@@ -494,26 +558,32 @@ def _run_group(
             yield j, str(e)
     submitted = len(pending)
     while pending:
+        hooks.waiting()
         ready, _ = ray.wait(list(pending), num_returns=1)
         job = pending.pop(ready[0])
         try:
-            yield job, ray.get(ready[0])
+            result = ray.get(ready[0])
         except Exception as e:  # one clip's failure is reported; the batch goes on
             yield job, _error_text(e)
             bar.set_postfix(failed=job.clip)
+        else:
+            yield job, result
+            removals.stored(result)  # the caller stored it (an error there, an interrupt: kept)
         bar.update(1)
     return submitted
 
 
 def _error_text(e: BaseException) -> str:
-    """The clip's error in one line: a quasisim error's message, else the exception and its last frame."""
+    """The clip's error in one line: a quasisim error's message, else the exception and its last frame; then
+    its notes (the worker's: where the clip's checkpoints are kept)."""
     cause = getattr(e, "cause", None) or e
+    notes = "".join(f"; {n}" for n in getattr(cause, "__notes__", ()))
     if isinstance(cause, QuasisimError):
-        return str(cause)
+        return f"{cause}{notes}"
     tb = traceback.extract_tb(cause.__traceback__)
     where = f" ({tb[-1].filename}:{tb[-1].lineno})" if tb else ""
     text = str(cause).strip().splitlines()
-    return f"{type(cause).__name__}: {text[-1] if text else ''}{where}"
+    return f"{type(cause).__name__}: {text[-1] if text else ''}{where}{notes}"
 
 
 def write_batch_files(
@@ -582,7 +652,7 @@ def run_batch_command(
         record_transitions=record_transitions,
         lead_clip=lead_clip,
     ).resolved()
-    jobs = [Job(p, (Run("", spec),)) for p in paths]
+    jobs = [Job(p, (Run("", spec),), data_dir) for p in paths]
     meta = {"data_dir": str(data_dir), "spec": dataclasses.asdict(spec), "workers": s.workers, "threads": s.threads,
             "ray": ray_address or "local"}  # fmt: skip
     res = run_batch(jobs, out, s, lambda rows, fails: write_batch_files(out, rows, fails, meta))

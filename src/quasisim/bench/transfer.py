@@ -115,7 +115,8 @@ def run_transfer_bench(
     ``closed_loop``: perturbation sets (:data:`quasisim.eval.robust.RANGES`) whose ``robust`` worlds every
     finished run is then replayed in, open and closed loop (:mod:`quasisim.bench.closed_loop`), and overrides
     of the tracker's settings (``configs/track.yaml``). ``robust_set``: overrides of every perturbation set
-    (``--robust-set seed=7``), open and closed loop.
+    (``--robust-set seed=7``), open and closed loop. An OUT whose runs were judged with another ``robust`` or
+    ``robust_set`` is refused, report-only too (:func:`quasisim.batch.finished_runs`).
     Prints and writes the markdown tables."""
     s = (settings or Settings(keep_scratch=True)).resolved()
     rows = transfer_rows(data_dir, clip_names, pattern, runs, stages, budget, target, hand_name, out, report_only, judge,

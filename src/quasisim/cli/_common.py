@@ -147,7 +147,8 @@ _RANGES = click.option(
 _ROBUST_SET = click.option(
     "--robust-set", "robust_sets", multiple=True,
     help="Override a setting of every perturbation set of --ranges (the keys of configs/robust.yaml), e.g. "
-    "--robust-set seed=7 (other worlds) or --robust-set mass=0.3; --robust N sets the number of replays.",
+    "--robust-set seed=7 (other worlds; never those the method chose its plans in, whatever the seed) or "
+    "--robust-set mass=0.3; --robust N sets the number of replays.",
 )  # fmt: skip
 
 

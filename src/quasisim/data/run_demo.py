@@ -21,6 +21,7 @@ from quasisim.data.demo import Demo, content_hash, load_demo
 from quasisim.errors import InputError
 
 CONTROLS_FILE, RUN_INFO = "controls.npz", Path("checkpoints") / "run.json"
+CLIP_FILE = "clip.json"  # a batch's record of a clip (quasisim.batch.CLIP_FILE), in the clip's folder
 
 
 @dataclass(frozen=True)
@@ -47,14 +48,27 @@ def recorded(run_dir: Path) -> Recorded:
     return Recorded(name, content, sha)
 
 
+def batch_demo_file(run_dir: Path) -> str:
+    """The demo file a batch ran for ``run_dir``, relative to the batch's data folder: ``clip.json``'s
+    ``demo_file`` in the run's folder or the one above it (a clip's named runs); "" where none is recorded (a
+    batch's older runs, ``transfer``'s)."""
+    for d in (run_dir, run_dir.parent):
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            rel = json.loads((d / CLIP_FILE).read_text()).get("demo_file")
+            if isinstance(rel, str) and rel and not Path(rel).is_absolute():
+                return rel
+    return ""
+
+
 def file_hash(path: Path) -> str:
     """16 hex digits of the sha256 of the file's bytes (``checkpoints/run.json`` ``demo_sha256``)."""
     return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
 
 
 class RunDemos:
-    """Finds a run's demo as ``NAME.npz`` (and ``*/NAME.npz`` in the folders marked so below, e.g. ``arctic/``)
-    in, first found wins: the ``data_dirs`` (deep), the ``data_dir`` of a ``batch.json`` in the run's folder or
+    """Finds a run's demo as the file its batch ran (:func:`batch_demo_file`, in each of the folders below),
+    then as ``NAME.npz`` (and ``*/NAME.npz`` in the folders marked so below, e.g. ``arctic/``) in, first found
+    wins: the ``data_dirs`` (deep), the ``data_dir`` of a ``batch.json`` in the run's folder or
     above it (deep), the run's folder and those above it (deep as far up as ``root``, by themselves above it),
     ``$QUASISIM_DATA`` (deep). A file is the run's demo when its content hash is the recorded one, else (no
     content hash recorded) its file hash, else (no hash) by name alone. Loaded demos are kept."""
@@ -97,9 +111,14 @@ class RunDemos:
         return not rec.sha or file_hash(path) == rec.sha
 
     def candidates(self, run_dir: Path, name: str) -> Iterator[Path]:
-        """The files named like the demo ``name`` in search order (each once)."""
+        """The file its batch ran, then the files named like the demo ``name``, in search order (each once)."""
         seen: set[Path] = set()
-        for folder, deep in self.places(run_dir):
+        places, rel = self.places(run_dir), batch_demo_file(run_dir)
+        for folder, _ in places if rel else ():
+            if (folder / rel).is_file() and (folder / rel).resolve() not in seen:
+                seen.add((folder / rel).resolve())
+                yield folder / rel
+        for folder, deep in places:
             below = sorted(folder.glob(f"*/{glob.escape(name)}.npz")) if deep and folder.is_dir() else []
             for p in [folder / f"{name}.npz", *below]:
                 if p.is_file() and p.resolve() not in seen:
@@ -121,9 +140,10 @@ class RunDemos:
             others.append(str(p))
         searched = ", ".join(dict.fromkeys(str(d) for d, _ in self.places(run_dir)))
         hashes = f"content hash {rec.content or 'not recorded'}" + (f", file hash {rec.sha}" if rec.sha else "")
+        ran = batch_demo_file(run_dir)
         raise InputError(
             run_dir / CONTROLS_FILE, "demo",
-            f"the demo {rec.name!r} ({hashes}) as NAME.npz or */NAME.npz under --data DIR, the batch's data_dir, "
-            "the run's folder or those above it, or $QUASISIM_DATA",
+            f"the demo {rec.name!r} ({hashes}) as {f'{ran} (the file its batch ran) or ' if ran else ''}NAME.npz "
+            "or */NAME.npz under --data DIR, the batch's data_dir, the run's folder or those above it, or $QUASISIM_DATA",
             f"other content in {', '.join(others)}" if others else f"not found (searched {searched})",
         )  # fmt: skip

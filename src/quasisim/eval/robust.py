@@ -76,3 +76,50 @@ def robust_success(
         out["seconds_per_replay"] = wall / cfg.n
         out["tracker"] = {k: float(np.mean([c[k] for c in costs])) for k in costs[0]}
     return out
+
+
+# ---- the judging settings in a run's identity (a batch's clip.json) ------------------------------------------
+
+LEGACY_KEYS = ("name", "n", "seed")  # what a row written before the judging settings were recorded tells of them
+
+
+def judged_with(cfgs: list[RobustConfig]) -> list[dict[str, Any]]:
+    """The worlds a run is judged in, as its identity records them: every set with replays, its settings (the
+    file's path aside)."""
+    import dataclasses
+    import json
+
+    sets = [{k: v for k, v in dataclasses.asdict(c).items() if k != "path"} for c in cfgs if c.n]
+    return json.loads(json.dumps(sets))
+
+
+def judged_in_row(metrics: dict[str, Any]) -> list[dict[str, Any]]:
+    """The open-loop sets a run's metrics hold, as ``{name, n, seed}`` (a row of a folder written before the
+    judging settings were part of a run's identity)."""
+    return [
+        {"name": k, "n": v["n"], "seed": v["seed"]}
+        for k, v in metrics.items()
+        if isinstance(v, dict) and {"n", "seed"} <= v.keys() and not k.endswith(CLOSED_LOOP_SUFFIX)
+    ]
+
+
+def judging_mismatch(identity: dict[str, Any], row: dict[str, Any], given: list[RobustConfig]) -> str | None:
+    """How the judging settings ``given`` differ from those a finished run was judged with (its stored
+    ``identity``, or for an identity without them its ``row``'s metrics): ``"OPTION: stored A, given B"`` naming
+    the first difference, or None where there is none."""
+    want = judged_with(given)
+    if "judging" in identity:
+        have = identity["judging"]
+    else:
+        have, want = judged_in_row(row.get("metrics", {})), [{k: c[k] for k in LEGACY_KEYS} for c in want]
+    if have == want:
+        return None
+    if not have or not want:
+        return f"--robust: stored {have[0]['n'] if have else 0}, given {want[0]['n'] if want else 0}"
+    names = [c["name"] for c in have], [c["name"] for c in want]
+    if names[0] != names[1]:
+        return f"--ranges: stored {','.join(names[0])}, given {','.join(names[1])}"
+    h, w = next((h, w) for h, w in zip(have, want, strict=True) if h != w)
+    key = next(k for k in [*w, *h] if h.get(k) != w.get(k))
+    option = "--robust" if key == "n" else f"--robust-set {key}"
+    return f"{option}: stored {h.get(key)}, given {w.get(key)}" + (f" (set {w['name']})" if len(want) > 1 else "")

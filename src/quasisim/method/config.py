@@ -188,10 +188,8 @@ def _check_ranges(cfg: TransferConfig, path: Path) -> None:
     ro = cfg.robust_select
     if not isinstance(ro.worlds, int) or not 0 <= ro.worlds <= 64:
         raise InputError(path, "robust_select.worlds", "a count of training worlds in [0, 64]", repr(ro.worlds))
-    if not isinstance(ro.seed, int) or ro.seed < 1:
-        raise InputError(
-            path, "robust_select.seed", "an integer >= 1 (0 seeds the worlds of robust success)", repr(ro.seed)
-        )
+    if isinstance(ro.seed, bool) or not isinstance(ro.seed, int) or not 0 <= ro.seed < 2**32:
+        raise InputError(path, "robust_select.seed", "a training-world seed in [0, 2**32)", repr(ro.seed))
     if not 0 <= ro.gate <= 1:
         raise InputError(path, "robust_select.gate", "a fraction in [0, 1]", repr(ro.gate))
     if isinstance(ro.margin, bool) or not isinstance(ro.margin, int | float) or not 0 <= ro.margin < 1:

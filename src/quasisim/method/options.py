@@ -89,7 +89,8 @@ class SamplingOptions:
             outside the limits (step 6).  backtrack_limit: the fraction of the strict limits whose crossing
             backs up (step 6; 1: the limits themselves).
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
-            ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none).
+            ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none; the
+            method's own worlds, :class:`~quasisim.targets.perturb.TrainingWorlds`, never a judging world).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
         robust_risk: how step 7 aggregates a candidate's costs over the target and the copies: ``mean``,
             ``worst`` (the largest), ``cvar`` (the mean of the worst ``robust_cvar`` fraction, at least one).
@@ -160,9 +161,12 @@ class SamplingOptions:
             v = getattr(self, name)
             if not _is_int(v) or v < 0:
                 raise QuasisimError(f"sampling option '{name}' must be an integer >= 0, got {v!r}")
-        for name in ("seed", "robust_seed"):
-            if not _is_int(getattr(self, name)):
-                raise QuasisimError(f"sampling option '{name}' must be an integer, got {getattr(self, name)!r}")
+        if not _is_int(self.seed):
+            raise QuasisimError(f"sampling option 'seed' must be an integer, got {self.seed!r}")
+        if not _is_int(self.robust_seed) or not 0 <= self.robust_seed < 2**32:  # perturb.TrainingWorlds
+            raise QuasisimError(
+                f"sampling option 'robust_seed' must be an integer in [0, 2**32), got {self.robust_seed!r}"
+            )
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "grip",
                      "grip_gap"):  # fmt: skip
             v = getattr(self, name)
@@ -303,7 +307,8 @@ class RobustSelectOptions:
     """Choosing plans for the worlds they will meet (``configs/transfer.yaml``, ``robust_select``): the cascade's
     gate (stage ``quick``) and the selection (stage ``select``) replay the plans that pass strict success in the
     nominal target **closed loop** (the tracker of ``tracker``) in ``worlds`` perturbed copies of it (the ranges
-    of ``configs/robust.yaml``, drawn with ``seed``, never the seed robust success is judged with). The quick
+    of ``configs/robust.yaml``, drawn with ``seed`` from the method's own stream,
+    :class:`~quasisim.targets.perturb.TrainingWorlds`: never a world robust success is judged in). The quick
     result ends the run only where at least ``gate`` of them pass strict success; the selection keeps, among the
     candidates that pass strict nominally, the one passing strict in most worlds (then the objective). ``worlds`` 0: both judge in the nominal target alone, as before.
 
@@ -312,7 +317,8 @@ class RobustSelectOptions:
     limits, and the result kept where it passes with a smaller largest error.
 
     Attributes:
-        worlds: training worlds per plan (0: off).  seed: their seed (>= 1; robust success uses 0).
+        worlds: training worlds per plan (0: off).  seed: their seed, in [0, 2**32) (whatever it is, never a
+            judging world's, ``--robust-set seed=N`` included).
         gate: the fraction of worlds the quick result must pass strict in, in [0, 1].
         tracker: the tracker's settings: a file of ``configs/`` (``track_fast.yaml``) or a path.
         margin: the fraction of the strict limits a plan's largest error may reach before stage ``margin``

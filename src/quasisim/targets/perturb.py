@@ -4,7 +4,10 @@ stage's robust scoring (:mod:`quasisim.method.stages.sampling`, step 7).
 :class:`RobustConfig` holds the ranges (``configs/robust.yaml``, or the wider ``configs/robust_wide.yaml``
 with a push mid-clip); :func:`perturbed_scene` draws replay ``i``'s copy of a scene (object mass and
 inertia, friction, PD gains, the object's initial position) and :func:`push_of` its push, each from a
-generator seeded with ``(seed, i)``, the same on every machine and in every run. :class:`Sensor` is what a
+generator seeded with ``(seed, i)``, the same on every machine and in every run. The method's own worlds
+(:class:`TrainingWorlds`: the cascade's gate and selection, the sampling stage's copies) draw from a stream of
+their own, so that no choice of seeds makes a world a plan was chosen in a world it is judged in.
+:class:`Sensor` is what a
 closed-loop controller sees of replay ``i``'s world: its observations late by ``latency`` frames and noisy
 (``obs_pos``, ``obs_rot``, ``obs_joints``), drawn from a generator of their own; the world itself is never touched.
 :func:`replay` runs a clip in one such world, open loop or with a closed-loop :class:`Policy` (robust success,
@@ -30,6 +33,9 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 ROBUST_PATH = CONFIGS / "robust.yaml"
 ROBUST_KEY = "robust"  # metrics.json (the default ranges; the wide ones: "robust_wide")
 CLOSED_LOOP_SUFFIX = "_closed_loop"  # metrics.json: "robust_closed_loop", "robust_wide_closed_loop"
+# the spawn key of the method's worlds (TrainingWorlds): "plan" in ASCII; the judging worlds have none
+PLAN_KEY = int.from_bytes(b"plan", "big")
+SEED_LIMIT = 2**32  # the method's seeds are below it (a judging world then never repeats one: TrainingWorlds)
 
 
 @dataclass(frozen=True)
@@ -93,16 +99,45 @@ class RobustConfig:
         """Whether a controller sees the worlds through noise or latency (:class:`Sensor`)."""
         return bool(self.obs_pos or self.obs_rot or self.obs_joints or self.latency)
 
+    def rng(self, *words: int) -> np.random.Generator:
+        """The generator of world ``words`` (replay ``i``: ``(i,)``; its sensor: ``(i, 1)``): the judging worlds'
+        ``default_rng([seed, *words])``, as it always was."""
+        return np.random.default_rng([self.seed, *words])
+
+
+@dataclass(frozen=True)
+class TrainingWorlds(RobustConfig):
+    """The worlds the method chooses plans in (``robust_select.seed``, ``sampling.robust_seed``): the same ranges,
+    drawn from ``SeedSequence([seed, *words], spawn_key=(PLAN_KEY,))``. The judging worlds' entropy is the words
+    ``[seed, i]`` alone; these are ``[seed, i, 0, 0, PLAN_KEY]`` (the spawn key pads the words to 4 first). With
+    ``seed`` and ``i`` below :data:`SEED_LIMIT`, a judging world has the same words only if its replay index is at
+    least ``PLAN_KEY * 2**32`` (about 8e18): no integer seed makes ``--robust-set seed=N`` judge a plan in the worlds
+    it was chosen in."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < SEED_LIMIT:
+            raise InputError(self.path or None, "seed", "a training-world seed in [0, 2**32)", repr(self.seed))
+
+    def rng(self, *words: int) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence([self.seed, *words], spawn_key=(PLAN_KEY,)))
+
+
+def training_worlds(seed: int, n: int = 0) -> TrainingWorlds:
+    """``n`` of the method's worlds (:class:`TrainingWorlds`), the ranges of ``configs/robust.yaml`` drawn with
+    ``seed``."""
+    return TrainingWorlds.from_yaml(None, {"n": n, "seed": seed})
+
 
 def _draws(cfg: RobustConfig, i: int) -> np.ndarray:
     """Replay ``i``'s 6 uniform draws in [-1, 1): mass, friction, gains, object x, object y (the first five,
     as they always were), then the push's direction."""
-    return np.random.default_rng([cfg.seed, i]).uniform(-1.0, 1.0, size=6)
+    return cfg.rng(i).uniform(-1.0, 1.0, size=6)
 
 
 def perturbed_scene(scene: Scene, cfg: RobustConfig, i: int) -> Scene:
-    """Replay ``i``'s copy of ``scene``: every factor drawn uniformly within its range from a generator
-    seeded with ``(cfg.seed, i)`` (the same copy on every machine and in every run)."""
+    """Replay ``i``'s copy of ``scene``: every factor drawn uniformly within its range from ``cfg``'s generator
+    of world ``i`` (:meth:`RobustConfig.rng`; the same copy on every machine and in every run)."""
     u = _draws(cfg, i)
     scaled = scaled_scene(scene, 1 + cfg.mass * u[0], 1 + cfg.friction * u[1], 1 + cfg.pd_gains * u[2])
     return dataclasses.replace(scaled, object_pos0=scene.object_pos0 + cfg.object_pos * np.array([u[3], u[4], 0.0]))
@@ -144,7 +179,7 @@ class Sensor:
 
     def __init__(self, cfg: RobustConfig, i: int, finger_cols: np.ndarray) -> None:
         self.cfg, self.fingers = cfg, np.asarray(finger_cols, bool)
-        self._rng = np.random.default_rng([cfg.seed, i, 1])
+        self._rng = cfg.rng(i, 1)
         self._past: list[dict[str, np.ndarray]] = []
         self._frames = 0  # observations seen so far
 

@@ -71,7 +71,7 @@ At every control frame ``t`` of a clip with ``T`` frames:
    themselves is lost;
 7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
    (:func:`quasisim.targets.perturb.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
-   ``robust_seed``, never the seed the robust replays are judged with), each started as the target is and
+   ``robust_seed`` in the method's own stream, never a judging world), each started as the target is and
    advanced with the same applied frames, open loop, as a robust replay would run them. The ``robust_top``
    cheapest candidates in the target are also rolled out from its own state in every copy whose object is
    still within the strict limits (a copy that has lost it no longer tells candidates apart), and the window
@@ -153,7 +153,7 @@ from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
 from quasisim.sim.kinematics import fk_full, keypoints
 from quasisim.targets import Observation, Prediction, Prune, Target, TargetRollout, make_target
-from quasisim.targets.perturb import RobustConfig, perturbed_scene
+from quasisim.targets.perturb import perturbed_scene, training_worlds
 from quasisim.targets.scene import Scene
 from quasisim.tracecache import cached_jit
 
@@ -495,8 +495,9 @@ def run_sampling(
 
 def copy_scenes(scene: Scene, opts: SamplingOptions) -> list[Scene]:
     """The scenes of the perturbed copies that score candidates (step 7): ``opts.robust_copies`` draws of
-    :func:`quasisim.targets.perturb.perturbed_scene` with the shipped ranges and ``opts.robust_seed``."""
-    cfg = dataclasses.replace(RobustConfig.from_yaml(), seed=opts.robust_seed)
+    :func:`quasisim.targets.perturb.perturbed_scene` with the shipped ranges and ``opts.robust_seed``
+    (:class:`~quasisim.targets.perturb.TrainingWorlds`)."""
+    cfg = training_worlds(opts.robust_seed)  # the method's stream, never a judging world
     return [perturbed_scene(scene, cfg, i) for i in range(opts.robust_copies)]
 
 

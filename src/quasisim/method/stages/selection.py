@@ -14,8 +14,8 @@ stages' weights (:func:`quasisim.optim.objective.clip_cost`, through the target'
 With ``robust_select.worlds`` > 0 (:class:`~quasisim.method.options.RobustSelectOptions`) the choice asks
 what the result is for: the candidates that pass strict success replayed in the nominal target are tracked
 closed loop (:mod:`quasisim.method.track`) in that many perturbed training worlds (:func:`closed_loop_success`;
-seeds never those robust success is judged with), and the one passing strict in the most worlds wins (ties:
-the lower J). Where no candidate passes strict nominally, J decides.
+a stream of their own, never a world robust success judges in), and the one passing strict in the most worlds
+wins (ties: the lower J). Where no candidate passes strict nominally, J decides.
 """
 
 from __future__ import annotations
@@ -78,16 +78,16 @@ def closed_loop_success(
     prob: Problem, target: str, q: np.ndarray, opts: RobustSelectOptions, weights: Weights
 ) -> float | None:
     """The fraction of ``opts.worlds`` training worlds (the ranges of ``configs/robust.yaml`` drawn with
-    ``opts.seed``; :func:`~quasisim.targets.perturb.perturbed_scene`) in which PD targets ``q`` (T, D), tracked
+    ``opts.seed``: :class:`~quasisim.targets.perturb.TrainingWorlds`) in which PD targets ``q`` (T, D), tracked
     closed loop by the tracker of ``opts.tracker`` (built from the nominal scene only), pass strict success; None
     without worlds. The same replay as closed-loop robust success, in other worlds."""
     from quasisim.method.track import TrackOptions, closed_loop
-    from quasisim.targets.perturb import RobustConfig, world_replays
+    from quasisim.targets.perturb import training_worlds, world_replays
 
     if opts.worlds == 0:
         return None
     demo, scene = prob.demo, prob.scene
-    cfg = RobustConfig.from_yaml(None, {"n": opts.worlds, "seed": opts.seed})
+    cfg = training_worlds(opts.seed, opts.worlds)  # the method's stream, never a judging world
     tracker = closed_loop(TrackOptions.preset(opts.tracker), weights)(demo, scene, q, target)
     return sum(passes(demo, roll) for roll, _, _ in world_replays(scene, q, target, cfg, tracker)) / cfg.n
 
