@@ -125,3 +125,38 @@ def test_a_failure_after_the_demo_put_the_object_back_is_not_a_push_on_the_appro
     run = _run(demo.object_pos + _after(T - 2, [0, 0.03, 0]))
     f = replay_failure(demo, run, _run(demo.object_pos), HELD, 0)
     assert (f.frame, f.label) == (T - 2, "slip in grasp")
+
+
+def test_bench_failures_replays_reads_the_closed_loop_caches_of_the_set_and_tracker(tmp_path) -> None:
+    """``bench failures --replays``: the caches of the asked set and tracker only (another tracker's, an older
+    cache without labels: "not recorded"), per clip and loop, and the label counts; none found: one line, exit 2."""
+    import json
+
+    from click.testing import CliRunner
+
+    from quasisim.bench.closed_loop import _track_dict
+    from quasisim.cli import main
+    from quasisim.method.track import TrackOptions
+
+    track = json.loads(json.dumps(_track_dict(TrackOptions.from_yaml())))
+    other = {**track, "samples": 32}
+    rows = [{"replay": 0, "label": "pass", "frame": -1, "over": ""},
+            {"replay": 1, "label": "drop", "frame": 31, "over": "translation"}]  # fmt: skip
+
+    def cache(clip, name, tr, metrics):
+        d = tmp_path / clip / "cascade"
+        d.mkdir(parents=True, exist_ok=True)
+        settings = {"sets": {"default": {"name": "robust"}}, "track": tr, "target": "mujoco"}
+        (d / f"robust_closed_loop-{name}.json").write_text(json.dumps({"settings": settings, "metrics": metrics}))
+
+    cache("a", "1", track, {"robust": {"failures": rows}, "robust_closed_loop": {"failures": rows[:1] * 2}})
+    cache("a", "2", other, {"robust": {"failures": rows[1:] * 2}, "robust_closed_loop": {"failures": rows[1:] * 2}})
+    cache("b", "3", track, {"robust": {}, "robust_closed_loop": {}})
+    res = CliRunner().invoke(main, ["bench", "failures", str(tmp_path), "--replays"])
+    assert res.exit_code == 0, res.output
+    assert "| a | cascade | 1 pass, 1 drop (f 31) | 2 pass |" in res.output
+    assert "| b | cascade | not recorded | not recorded |" in res.output
+    assert "| open | 2 | 1 | 0 | 1 |" in res.output and "| closed | 2 | 2 | 0 | 0 |" in res.output
+    assert (tmp_path / "replay_failures.md").is_file()
+    res = CliRunner().invoke(main, ["bench", "failures", str(tmp_path), "--replays", "--ranges", "wide"])
+    assert res.exit_code == 2 and "expected closed-loop caches" in res.output

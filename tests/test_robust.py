@@ -14,6 +14,7 @@ import pytest
 
 from helpers import cube_example
 from quasisim.errors import InputError
+from quasisim.eval.failures import REPLAY_LABELS
 from quasisim.eval.robust import ROBUST_PATH, RobustConfig, perturbed_scene, robust_success
 
 
@@ -102,6 +103,10 @@ def test_evaluate_writes_robust_success_in_the_worlds_asked(clip, tmp_path) -> N
     assert (m["robust"]["n"], m["robust"]["seed"]) == (2, 7) and (m["robust_my_ranges"]["seed"]) == 7
     for key, ranges in (("robust", "default"), ("robust_my_ranges", str(mine))):
         want = robust_success(demo, scene, controls.q_targets, "mujoco", replays(2, ranges, {"seed": 7}))
+        why = want.pop("failures")  # per replay, in order: a label of each, a pass for every strict success
+        assert m[key].pop("failures") == why, key
+        assert [f["replay"] for f in why] == [0, 1] and {f["label"] for f in why} <= {"pass", *REPLAY_LABELS}
+        assert sum(f["label"] == "pass" for f in why) >= 2 * want["strict"]
         assert m[key] == pytest.approx(want), key
     assert "robust success" in res.stdout and "robust success strict" in (out / "report.html").read_text()
 

@@ -278,6 +278,28 @@ def test_copies_are_perturbed_away_from_the_judged_replays(real) -> None:
     assert masses.isdisjoint({round(j.obj.mass / scene.obj.mass, 12) for j in judged})
 
 
+def test_named_worlds_are_the_corner_of_the_ranges_and_a_thinner_grip(real) -> None:
+    """``robust_worlds``: the copies start with the named worlds (corner: mass high, friction low, gains low at the
+    ends of configs/robust.yaml's ranges, the object where it starts; thin: the hands' contact margin -robust_thin;
+    corner-thin: both), then the random copies; an unknown name is refused listing the names."""
+    from quasisim.errors import QuasisimError
+    from quasisim.eval.robust import RobustConfig
+
+    scene, r = real[2], RobustConfig.from_yaml()
+    opts = dataclasses.replace(OPTS, robust_worlds=("corner", "thin", "corner-thin"), robust_thin=0.002, robust_copies=1)
+    corner, thin, both, random = copy_scenes(scene, opts)
+    for w in (corner, both):
+        assert w.obj.mass == pytest.approx(scene.obj.mass * (1 + r.mass))
+        assert w.physics.friction == pytest.approx(scene.physics.friction * (1 - r.friction))
+        assert w.physics.gain_scale == pytest.approx(scene.physics.gain_scale * (1 - r.pd_gains))
+        np.testing.assert_array_equal(w.object_pos0, scene.object_pos0)
+    assert corner.physics.contact_margin == 0 and thin.physics.contact_margin == both.physics.contact_margin == -0.002
+    assert thin.obj.mass == scene.obj.mass and thin.physics.friction == scene.physics.friction
+    assert random.physics.contact_margin == 0 and random.obj.mass != scene.obj.mass
+    with pytest.raises(QuasisimError, match="valid options: corner, corner-thin, thin"):
+        dataclasses.replace(OPTS, robust_worlds=("cornr",))
+
+
 # ---- the control loop in MuJoCo ------------------------------------------------------------------------
 
 

@@ -508,7 +508,8 @@ def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() 
     from quasisim.bench import closed_loop as cl
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
-    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay", "grip", "grip_gap", "object_weight")
+    later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay", "grip", "grip_gap", "object_weight",
+             "worlds", "world_thin", "world_risk", "world_cvar")  # fmt: skip
     assert cl._track_dict(TrackOptions()) == {
         k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", *later)
     }
@@ -619,3 +620,32 @@ def test_object_weight_scales_only_the_object_terms_of_the_window_cost(clip, sam
         got = tr.weights
     assert (got.obj_pos, got.obj_rot) == (3 * w.obj_pos, 3 * w.obj_rot)
     assert (got.hand, got.smooth) == (w.hand, w.smooth)
+
+
+def test_a_tracker_weighing_worlds_chooses_by_the_worst_cost_over_its_models(clip, sampled, monkeypatch) -> None:
+    """worlds: a named world that is the nominal scene itself leaves every choice as without it (the worst of two
+    equal costs); the corner of the ranges rolls every re-plan's windows out once more and, in a world with less
+    friction and weaker gains, changes what the tracker applies; an unknown world is refused naming the field."""
+    import quasisim.method.track as tk
+    from quasisim.targets.perturb import scaled_scene
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    world_scene = scaled_scene(scene, friction=0.7, gains=0.9)
+
+    def run(opts):
+        with make_target("mujoco", world_scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+            roll = replay(world, q, tr)
+        return tr, np.array(tr._history), roll
+
+    plain, applied, _ = run(FAST)
+    with monkeypatch.context() as m:
+        m.setattr(tk, "named_world", lambda sc, name, thin: sc)
+        same, applied_same, _ = run(dataclasses.replace(FAST, worlds=("corner",)))
+    np.testing.assert_array_equal(applied_same, applied)
+    assert same.physics_steps > 1.9 * plain.physics_steps
+    corner, applied_corner, _ = run(dataclasses.replace(FAST, worlds=("corner",)))
+    assert corner.world_models[0].scene.physics.friction < scene.physics.friction
+    assert not np.array_equal(applied_corner, applied)
+    with pytest.raises(InputError, match="worlds"):
+        TrackOptions(worlds=("cornr",))

@@ -301,16 +301,52 @@ def bench_paper(
 @click.option("--data", "data_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Folder of the runs' demos (default: $QUASISIM_DATA).")  # fmt: skip
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None, help="Output folder (default: RUNS).")
+@click.option("--replays", is_flag=True,
+              help="The perturbed replays instead, open and closed loop, from the closed-loop caches of a bench "
+              "transfer folder (its --closed-loop pass): per replay the first frame over a limit and why (pushed off, "
+              "drop, lost contact, carried off, rotated in grasp, slip in grasp); writes replay_failures.md.")  # fmt: skip
+@click.option("--ranges", default="default", show_default=True, help="With --replays: the perturbation set.")
+@click.option("--tracker", default="track.yaml", show_default=True, help="With --replays: the tracker's settings file.")
+@click.option("--track-set", "track_sets", multiple=True, help="With --replays: a tracker setting, as with --closed-loop.")
 @_friendly
-def bench_failures(runs: Path, data_dir: Path | None, out: Path | None) -> None:
+def bench_failures(
+    runs: Path, data_dir: Path | None, out: Path | None, replays: bool, ranges: str, tracker: str,
+    track_sets: tuple[str, ...],
+) -> None:  # fmt: skip
     """Why each finished run under RUNS fails strict success: first frame over a limit, which limit, and a
-    label (symmetric, drop, never grasped, lost contact, slip); writes failures.md and failures.json."""
+    label (symmetric, drop, never grasped, lost contact, slip); writes failures.md and failures.json. With
+    --replays, why its perturbed replays fail (docs/metrics.md)."""
     import os
 
     from quasisim.eval.failures import analyse, write
 
+    if replays:
+        click.echo(_replay_failures(runs, out or runs, ranges, tracker, track_sets))
+        return
     data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
     click.echo(write(runs, analyse(runs, data), out or runs))
+
+
+def _replay_failures(runs: Path, out: Path, ranges: str, tracker: str, track_sets: tuple[str, ...]) -> str:
+    from quasisim.bench.closed_loop import _track_dict
+    from quasisim.cli._common import _track_overrides
+    from quasisim.eval.failures import replay_failures, replay_markdown
+    from quasisim.eval.tables import header
+    from quasisim.files import save_text_atomic
+    from quasisim.method.track import TrackOptions
+    from quasisim.targets.perturb import resolve_ranges
+
+    track = _track_dict(TrackOptions.from_yaml(None, _track_overrides(tracker, track_sets)))
+    rows = replay_failures(runs, resolve_ranges(ranges), track)
+    if not rows:
+        raise QuasisimError(
+            f"{runs}: expected closed-loop caches (robust_closed_loop-*.json) of set {ranges!r} and this tracker, got "
+            "none: run `quasisim bench transfer ... --closed-loop` with the same --ranges and tracker first"
+        )
+    md = header(f"Why the perturbed replays of the runs under {runs} fail ({ranges} worlds)") + "\n" + replay_markdown(rows)
+    out.mkdir(parents=True, exist_ok=True)
+    save_text_atomic(out / "replay_failures.md", md)
+    return md
 
 
 @bench.command("export")

@@ -320,3 +320,39 @@ def label_counts(failures: list[dict[str, Any]]) -> dict[str, int]:
     """``{label: count}`` over :class:`ReplayFailure` rows (as dicts), every label of :data:`REPLAY_LABELS` and
     "pass" present."""
     return {lab: sum(f["label"] == lab for f in failures) for lab in ("pass", *REPLAY_LABELS)}
+
+
+def replay_failures(root: Path, set_name: str, track: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per run under ``root`` (a ``bench transfer`` folder, ``<clip>/<run>/``), the replays' failures of its
+    closed-loop cache for the perturbation set ``set_name`` (``default``, ``wide``, ``sensing`` or a file's) and
+    the tracker ``track`` (:func:`quasisim.bench.closed_loop._track_dict`'s form): ``{clip, run, open, closed}``,
+    each a list of :class:`ReplayFailure` dicts or None where the cache was judged before they were recorded."""
+    rows, track = [], json.loads(json.dumps(track))  # as the cache holds it (lists, not tuples)
+    for cache in sorted(root.glob("*/*/robust_closed_loop-*.json")):
+        data = json.loads(cache.read_text())
+        st = data.get("settings", {})
+        if set_name not in st.get("sets", {}) or st.get("track") != track:
+            continue
+        key = st["sets"][set_name]["name"]
+        m = data["metrics"]
+        rows.append({"clip": cache.parent.parent.name, "run": cache.parent.name,
+                     "open": m.get(key, {}).get("failures"), "closed": m.get(key + "_closed_loop", {}).get("failures")})  # fmt: skip
+    return rows
+
+
+def replay_markdown(rows: list[dict[str, Any]]) -> str:
+    """Per clip and run, the labels of the open- and closed-loop replays (count x label, the first failing frames),
+    then the label counts over every replay."""
+    labels = ("pass", *REPLAY_LABELS)
+    cell = lambda fs: "not recorded" if fs is None else ", ".join(  # noqa: E731
+        f"{n} {lab}" + ("" if lab == "pass" else f" (f {','.join(str(f['frame']) for f in fs if f['label'] == lab)})")
+        for lab, n in label_counts(fs).items() if n
+    )  # fmt: skip
+    lines = ["| clip | run | open loop | closed loop |", "|---|---|---|---|"]
+    lines += [f"| {r['clip']} | {r['run']} | {cell(r['open'])} | {cell(r['closed'])} |" for r in rows]
+    lines += ["", "| loop | replays | " + " | ".join(labels) + " |", "|---" * (2 + len(labels)) + "|"]
+    for loop in ("open", "closed"):
+        fs = [f for r in rows if r[loop] is not None for f in r[loop]]
+        counts = label_counts(fs)
+        lines.append(f"| {loop} | {len(fs)} | " + " | ".join(str(counts[lab]) for lab in labels) + " |")
+    return "\n".join(lines) + "\n"

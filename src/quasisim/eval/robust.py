@@ -55,16 +55,20 @@ def robust_success(
     (an unstable replay passes nothing); ``{}`` when ``cfg.n`` is 0. With ``policy`` (a function making a
     fresh :class:`Policy` per replay, built from the nominal ``scene`` only: the perturbed world is never
     handed to it) the replays are closed loop, and the result also holds ``seconds_per_replay`` and the
-    policy's mean ``cost()`` per replay (``tracker``)."""
+    policy's mean ``cost()`` per replay (``tracker``). ``failures``: per replay, its first frame over a strict
+    limit, which limit and why (:class:`~quasisim.eval.failures.ReplayFailure` as a dict; ``quasisim bench
+    failures --robust``)."""
     from quasisim.eval.metrics import SUCCESS_KEYS, evaluate_rollout
 
     if cfg.n == 0:
         return {}
     passed, unstable, costs, wall = dict.fromkeys(SUCCESS_KEYS, 0), 0, [], 0.0
-    for rollout, cost, seconds in world_replays(scene, q_targets, target, cfg, policy):
+    why = _FailureLabeller(demo, scene, q_targets, target)
+    for i, (rollout, cost, seconds) in enumerate(world_replays(scene, q_targets, target, cfg, policy)):
         wall += seconds
         if cost is not None:
             costs.append(cost)
+        why.add(i, rollout)
         if rollout.instability:
             unstable += 1
             continue
@@ -72,6 +76,7 @@ def robust_success(
         for k in SUCCESS_KEYS:
             passed[k] += bool(ok[k])
     out = {"n": cfg.n, "seed": cfg.seed, **{k: passed[k] / cfg.n for k in SUCCESS_KEYS}, "unstable": unstable}
+    out["failures"] = why.rows
     if policy is not None:
         out["seconds_per_replay"] = wall / cfg.n
         out["tracker"] = {k: float(np.mean([c[k] for c in costs])) for k in costs[0]}
@@ -91,6 +96,32 @@ def judged_with(cfgs: list[RobustConfig]) -> list[dict[str, Any]]:
 
     sets = [{k: v for k, v in dataclasses.asdict(c).items() if k != "path"} for c in cfgs if c.n]
     return json.loads(json.dumps(sets))
+
+
+class _FailureLabeller:
+    """Each replay's strict outcome and why it failed (:func:`quasisim.eval.failures.replay_failure`: the first
+    frame over a limit, which limit, a label), against the plan's nominal open-loop replay; hand-object contacts
+    read in the nominal scene's MuJoCo model (geometry only, the same in every world; none in PyBullet)."""
+
+    def __init__(self, demo: Demo, scene: Scene, q_targets: np.ndarray, target: str) -> None:
+        from quasisim.targets import make_target
+
+        self.demo, self.rows = demo, []
+        with make_target(target, scene) as tgt:
+            self.nominal = tgt.rollout(np.asarray(q_targets, np.float64))
+            self.mm = getattr(tgt, "mm", None)  # MuJoCo's compiled scene (contacts), None in PyBullet
+
+    def add(self, i: int, rollout: Any) -> None:
+        from dataclasses import asdict
+
+        from quasisim.eval.failures import replay_failure
+
+        contacts = None
+        if self.mm is not None and np.isfinite(rollout.object_pos).all() and np.isfinite(rollout.qpos).all():
+            from quasisim.targets.mujoco_target import hand_object_contacts
+
+            contacts = hand_object_contacts(self.mm, rollout.qpos, rollout.object_pos, rollout.object_quat)
+        self.rows.append(asdict(replay_failure(self.demo, rollout, self.nominal, contacts, i)))
 
 
 def judged_in_row(metrics: dict[str, Any]) -> list[dict[str, Any]]:

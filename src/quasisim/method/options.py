@@ -91,6 +91,9 @@ class SamplingOptions:
         robust_copies, robust_top, robust_seed: scoring the cheapest ``robust_top`` candidates in
             ``robust_copies`` perturbed copies of the target seeded with ``robust_seed`` (step 7; 0: none; the
             method's own worlds, :class:`~quasisim.targets.perturb.TrainingWorlds`, never a judging world).
+        robust_worlds, robust_thin: named worlds scoring the candidates beside the random copies (step 7; each of
+            :data:`~quasisim.targets.perturb.NAMED_WORLDS`, :func:`~quasisim.targets.perturb.named_world`:
+            ``corner``, ``thin`` with contacts ``robust_thin`` m thinner, ``corner-thin``; empty: none).
         backtrack_copies: back up also when a copy on track leaves the strict limits (step 7).
         robust_risk: how step 7 aggregates a candidate's costs over the target and the copies: ``mean``,
             ``worst`` (the largest), ``cvar`` (the mean of the worst ``robust_cvar`` fraction, at least one).
@@ -147,6 +150,8 @@ class SamplingOptions:
     stop_when_lost: bool = False
     robust_risk: str = "mean"
     robust_cvar: float = 0.5
+    robust_worlds: tuple[str, ...] = ()
+    robust_thin: float = 0.001
 
     def __post_init__(self) -> None:
         self.validate()
@@ -195,6 +200,13 @@ class SamplingOptions:
             raise QuasisimError(f"sampling option 'prune_keep' must be a number in (0, 1], got {self.prune_keep!r}")
         if self.mode not in SAMPLING_MODES:
             raise choice_error("sampling mode", self.mode, SAMPLING_MODES)
+        from quasisim.targets.perturb import NAMED_WORLDS
+
+        for w in self.robust_worlds:
+            if w not in NAMED_WORLDS:
+                raise choice_error("sampling option 'robust_worlds'", w, NAMED_WORLDS)
+        if not (_is_number(self.robust_thin) and 0 < self.robust_thin <= 0.01):
+            raise QuasisimError(f"sampling option 'robust_thin' must be a depth in (0, 0.01] m, got {self.robust_thin!r}")
         if self.robust_risk not in RISK_MEASURES:
             raise choice_error("sampling option 'robust_risk'", self.robust_risk, RISK_MEASURES)
         if not (_is_number(self.robust_cvar) and 0 < self.robust_cvar <= 1):

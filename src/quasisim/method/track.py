@@ -24,6 +24,15 @@ and acts on it with PD targets, frame by frame:
    the demo, so in the nominal world the tracker reproduces the plan; ``strict_weight`` > 0 adds the hinge on
    the demo's strict limits (2 cm, 30 deg) from ``strict_margin`` of them.
 
+**Weighing several worlds** (``worlds``): the re-plan's windows are also rolled out, from the same observed
+state, in models of named worlds (:func:`quasisim.targets.perturb.named_world`: ``corner``, the hard corner of
+the robust ranges, mass high, friction low, gains low; ``thin``, contacts ``world_thin`` m thinner;
+``corner-thin``), each scored against the same plan's nominal rollout, and a window is chosen by its costs
+in the nominal model and those worlds aggregated by ``world_risk`` (``worst``, ``mean``, ``cvar`` of the worst
+``world_cvar`` fraction; the sampling stage's :func:`~quasisim.method.stages.sampling.robust_scores`), so a
+plan chosen to hold in the corner is not re-planned back to the nominal model's cheapest. Each world costs one
+more rollout of the windows per re-plan.
+
 An observation that carries a time stamp ``frame`` older than ``t`` (a late sensor,
 :class:`~quasisim.targets.perturb.Sensor`) is brought up to date in the model first: synced there, then advanced
 through the targets the tracker applied since (a Smith predictor); the re-plan starts from that prediction.
@@ -81,7 +90,7 @@ from quasisim.data.demo import Demo
 from quasisim.errors import InputError
 from quasisim.optim.objective import Weights, padded
 from quasisim.targets import Observation, Target, TargetRollout, make_target
-from quasisim.targets.perturb import finger_columns
+from quasisim.targets.perturb import finger_columns, named_world
 from quasisim.targets.scene import Scene
 
 TRACK_PATH = Path(__file__).resolve().parent.parent / "configs" / "track.yaml"
@@ -123,6 +132,10 @@ class TrackOptions:
         keep: a candidate replaces the current plan's window only where its cost is below ``1 - keep`` times the
             current window's (0: the cheapest always), so that differences the model cannot resolve do not move
             the plan.
+        worlds: named worlds whose models score every re-plan's windows too ("Weighing several worlds"; empty:
+            the nominal model alone).  world_thin: the ``thin`` worlds' contact depth (m).  world_risk: how a
+            window's costs over the models are aggregated (``worst``, ``mean``, ``cvar``).  world_cvar: the
+            fraction of the worst costs ``cvar`` averages.
     """
 
     every: int = 1
@@ -151,6 +164,10 @@ class TrackOptions:
     obs_adapt_decay: float = 0.9
     lead: int = 0
     keep: float = 0.0
+    worlds: tuple[str, ...] = ()
+    world_thin: float = 0.001
+    world_risk: str = "worst"
+    world_cvar: float = 0.5
     path: str = ""
 
     def __post_init__(self) -> None:
@@ -181,6 +198,18 @@ class TrackOptions:
             raise InputError(where, "obs_gain", "a gain in (0, 1]", repr(self.obs_gain))
         if isinstance(self.keep, bool) or not isinstance(self.keep, int | float) or not 0 <= self.keep < 1:
             raise InputError(where, "keep", "a fraction in [0, 1)", repr(self.keep))
+        from quasisim.method.options import RISK_MEASURES
+        from quasisim.targets.perturb import NAMED_WORLDS
+
+        for w in self.worlds:
+            if w not in NAMED_WORLDS:
+                raise InputError(where, "worlds", f"a list of {', '.join(NAMED_WORLDS)}", repr(w))
+        if self.world_risk not in RISK_MEASURES:
+            raise InputError(where, "world_risk", f"one of {', '.join(RISK_MEASURES)}", repr(self.world_risk))
+        for name, hi in (("world_thin", 0.01), ("world_cvar", 1.0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v <= hi:
+                raise InputError(where, name, f"a number in (0, {hi}]", repr(v))
         for name in ("adapt_decay", "obs_adapt_decay"):
             if not 0 <= getattr(self, name) < 1:
                 raise InputError(where, name, "a weight in [0, 1)", repr(getattr(self, name)))
@@ -195,7 +224,7 @@ class TrackOptions:
         """The settings in ``path`` (default ``configs/track.yaml``) with ``overrides`` (name -> value)."""
         path = Path(path or TRACK_PATH)
         data = apply_overrides(read_yaml(path), overrides)
-        for key in ("noise_scales", "follow", "grip"):
+        for key in ("noise_scales", "follow", "grip", "worlds"):
             if isinstance(data.get(key), list):
                 data[key] = tuple(data[key])
         return build(cls, {**data, "path": str(path)}, path)
@@ -313,6 +342,10 @@ class Tracker:
             for sc in (candidate_scenes(scene) if opts.adapt else [scene])
         ]
         self.model = self.models[0]  # the nominal scene's; with adapt, the one that predicts the world best
+        self.world_models: list[Target] = [
+            make_target(target, model_scene(named_world(scene, w, opts.world_thin), opts.model_dt), threads=opts.threads)
+            for w in opts.worlds
+        ]  # "Weighing several worlds"
         self.scores = np.zeros(len(self.models))
         self.nominal = nominal if nominal is not None else self.model.rollout(self.plan)
         self._sample = scene_sampler(opts.sampling(), scene)
@@ -347,7 +380,7 @@ class Tracker:
         self._est = obs  # the state estimate (obs_gain < 1, obs_adapt)
         self._innov: dict[str, Innovations] = {}  # obs_adapt: per channel
         self._gains: list[dict[str, float]] = []  # obs_adapt: each frame's mean gain per channel
-        for m in self.models:
+        for m in (*self.models, *self.world_models):
             m.reset(self.plan[0])
 
     def act(self, t: int, obs: Observation) -> np.ndarray:
@@ -464,6 +497,7 @@ class Tracker:
                 pred.obj_pos, pred.obj_quat, dp, dq, frame_w, o.strict_margin
             )
         costs = np.where(np.isfinite(costs), costs, np.inf)
+        costs = self._weighed(wins, obs, costs, ref_pos, ref_quat, ref_kp, frame_w)
         best = int(np.argmin(costs))
         if not costs[best] < (1 - o.keep) * costs[0]:  # row 0: the current plan's window
             best = 0
@@ -473,6 +507,25 @@ class Tracker:
             self._work[t + H + 1 :] = shift_bases(self.scene, self._work[t + H + 1 :], shifts[k])
         self.replans += 1
         self.physics_steps += pred.n_steps
+
+    def _weighed(
+        self, wins: np.ndarray, obs: Observation, costs: np.ndarray, ref_pos: np.ndarray, ref_quat: np.ndarray,
+        ref_kp: np.ndarray, frame_w: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """The windows' nominal ``costs`` aggregated with their costs in the named worlds' models (rolled out from
+        the same observed state; ``world_risk``), or ``costs`` itself without worlds."""
+        if not self.world_models:
+            return costs
+        from quasisim.method.stages.sampling import robust_scores, window_costs
+
+        others = []
+        for m in self.world_models:
+            m.sync(obs)
+            pred = m.rollout_windows(wins)
+            self.physics_steps += pred.n_steps
+            others.append(window_costs(wins, pred, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols))
+        everyone = np.arange(len(wins))
+        return robust_scores(costs, others, everyone, self.opts.world_risk, self.opts.world_cvar)
 
     def cost(self) -> dict[str, float]:
         """What tracking cost so far: seconds re-planning, re-plans, the share of the clip's steps that
@@ -490,7 +543,7 @@ class Tracker:
         }  # fmt: skip
 
     def close(self) -> None:
-        for m in self.models:
+        for m in (*self.models, *self.world_models):
             m.close()
 
     def __enter__(self) -> Tracker:

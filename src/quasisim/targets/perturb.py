@@ -154,6 +154,27 @@ def scaled_scene(scene: Scene, mass: float = 1.0, friction: float = 1.0, gains: 
     return dataclasses.replace(scene, obj=obj, physics=physics)
 
 
+NAMED_WORLDS = ("corner", "thin", "corner-thin")  # named_world's names
+
+
+def named_world(scene: Scene, name: str, thin: float = 0.001, cfg: RobustConfig | None = None) -> Scene:
+    """A world the method plans for by name (the sampling stage's ``robust_worlds``, the tracker's ``worlds``):
+    ``corner``, the hard corner of ``cfg``'s ranges (default ``configs/robust.yaml``) for the quantities that act
+    one way on a grasp: the object's mass and inertia times ``1 + mass``, friction times ``1 - friction``, PD gains
+    times ``1 - pd_gains``, the object where it starts; ``thin``, contacts that push only once a hand's shape is
+    ``thin`` m inside the object (``physics.contact_margin`` = ``-thin``: a grasp that squeezes less; MuJoCo);
+    ``corner-thin``, both. A one-line error listing the names otherwise."""
+    if name not in NAMED_WORLDS:
+        raise QuasisimError(f"unknown world {name!r}; valid options: {', '.join(NAMED_WORLDS)}")
+    r = cfg or RobustConfig.from_yaml()
+    out = scene
+    if name.startswith("corner"):
+        out = scaled_scene(scene, 1 + r.mass, 1 - r.friction, 1 - r.pd_gains)
+    if name.endswith("thin"):
+        out = dataclasses.replace(out, physics=dataclasses.replace(out.physics, contact_margin=-thin))
+    return out
+
+
 def push_of(cfg: RobustConfig, i: int, n_frames: int) -> tuple[int, np.ndarray] | None:
     """Replay ``i``'s push: the frame after which it acts and the velocity (3,) m/s added to the object's
     centre of mass (horizontal, direction drawn with the replay's generator); None without a push."""

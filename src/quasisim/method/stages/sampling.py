@@ -69,7 +69,10 @@ At every control frame ``t`` of a clip with ``T`` frames:
    fraction of them (e.g. 0.75: beyond 1.5 cm or 22.5 deg), with the same retries and budget, so the run keeps
    a margin that a slightly different target (robust success) does not eat; only a frame outside the limits
    themselves is lost;
-7. Robust scoring (``robust_copies`` > 0): beside the target run ``robust_copies`` perturbed copies of it
+7. Robust scoring (``robust_copies`` > 0 or ``robust_worlds``): beside the target run the named worlds
+   ``robust_worlds`` (:func:`quasisim.targets.perturb.named_world`: ``corner``, the hard corner of the robust
+   ranges, mass high, friction low, gains low; ``thin``, contacts ``robust_thin`` m thinner; ``corner-thin``)
+   and ``robust_copies`` perturbed copies of it
    (:func:`quasisim.targets.perturb.perturbed_scene`: the ranges of ``configs/robust.yaml``, drawn with
    ``robust_seed`` in the method's own stream, never a judging world), each started as the target is and
    advanced with the same applied frames, open loop, as a robust replay would run them. The ``robust_top``
@@ -111,6 +114,8 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       robust_copies: 0         # perturbed copies of the target that score the best candidates (0: none)
       robust_top: 8            # ... the candidates (cheapest in the target) scored in every copy
       robust_seed: 1           # ... seeds the copies' perturbations
+      robust_worlds: []        # named worlds that score them too: corner, thin, corner-thin
+      robust_thin: 0.001       # ... thin: contacts this much thinner (m)
       backtrack_copies: false  # ... back up also when a copy leaves the strict limits
       screen: 2                # kinematic pre-screen: draw screen x the windows, roll out the cheapest (1: none)
       replan: 1                # frames of the chosen window applied before planning again
@@ -153,7 +158,7 @@ from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
 from quasisim.sim.kinematics import fk_full, keypoints
 from quasisim.targets import Observation, Prediction, Prune, Target, TargetRollout, make_target
-from quasisim.targets.perturb import perturbed_scene, training_worlds
+from quasisim.targets.perturb import named_world, perturbed_scene, training_worlds
 from quasisim.targets.scene import Scene
 from quasisim.tracecache import cached_jit
 
@@ -494,11 +499,13 @@ def run_sampling(
 
 
 def copy_scenes(scene: Scene, opts: SamplingOptions) -> list[Scene]:
-    """The scenes of the perturbed copies that score candidates (step 7): ``opts.robust_copies`` draws of
+    """The scenes of the perturbed copies that score candidates (step 7): the named worlds ``opts.robust_worlds``
+    (:func:`quasisim.targets.perturb.named_world`), then ``opts.robust_copies`` draws of
     :func:`quasisim.targets.perturb.perturbed_scene` with the shipped ranges and ``opts.robust_seed``
     (:class:`~quasisim.targets.perturb.TrainingWorlds`)."""
     cfg = training_worlds(opts.robust_seed)  # the method's stream, never a judging world
-    return [perturbed_scene(scene, cfg, i) for i in range(opts.robust_copies)]
+    named = [named_world(scene, w, opts.robust_thin) for w in opts.robust_worlds]
+    return named + [perturbed_scene(scene, cfg, i) for i in range(opts.robust_copies)]
 
 
 def robust_scores(
