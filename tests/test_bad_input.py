@@ -652,6 +652,12 @@ def _earlier_outputs(names: tuple[str, ...], checkpoints: bool = False) -> Calla
     return make
 
 
+def _foreign_checkpoints(d: Path) -> None:
+    """OUT/checkpoints of another program: --overwrite must not remove it."""
+    (d / "out" / "checkpoints").mkdir(parents=True)
+    np.savez(d / "out" / "checkpoints" / "weights.npz", w=np.zeros(3))
+
+
 OVERWRITE_CASES = [
     Case(
         "example-overwrite",
@@ -668,6 +674,12 @@ OVERWRITE_CASES = [
     Case("evaluate-overwrite", _earlier_outputs(("report.html",)), EVAL, ("out", "--overwrite", "report.html")),
     Case("evaluate-overwrite-manifest", _earlier_outputs(("manifest.json",)), EVAL, ("--overwrite", "manifest.json")),
     Case("transfer-overwrite", _earlier_outputs(("metrics.json", "controls.npz")), TR, ("--overwrite", "controls.npz")),
+    Case(
+        "transfer-overwrite-foreign-checkpoints",
+        _foreign_checkpoints,
+        TR + "--overwrite",
+        ("out/checkpoints", "--out", "weights.npz", "not a checkpoint of quasisim"),
+    ),
 ]
 
 CASES = [*_demo_cases(), *CONTROLS_CASES, *HAND_CASES, *OPTION_CASES, *CONVERT_CASES, *OUT_CASES, *OVERWRITE_CASES]

@@ -322,6 +322,70 @@ def test_batch_refuses_results_of_other_settings(clips_dir: Path, tmp_path: Path
         run_batch([job], tmp_path, Settings(overrides={"sampling.samples": 8}))
 
 
+def test_a_batch_never_replaces_a_clip_folder_it_did_not_write(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """OUT/<clip> without clip.json (a `quasisim transfer` folder, a folder or file of the user's) would be
+    replaced by the clip's results: refused before any clip runs, naming it and --out, and left as it was (Ray a
+    stand-in)."""
+    import quasisim.batch
+    from quasisim.errors import InputError
+
+    fake = _FakeRay()
+    monkeypatch.setattr(quasisim.batch, "_ray_init", lambda s: fake)
+    out, s = tmp_path / "out", Settings(workers=1, threads=1, pin_cores=False, overrides=FAST)
+    (out / "cube_lift").mkdir(parents=True)
+    (out / "cube_lift" / "notes.txt").write_text("mine")
+    jobs = [j for j in _jobs(clips_dir) if j.clip == "cube_lift"]
+    with pytest.raises(InputError, match="--out") as e:
+        run_batch(jobs, out, s)
+    assert str(out / "cube_lift") in str(e.value) and "clip.json" in str(e.value) and fake.tasks == []
+    assert [p.name for p in (out / "cube_lift").iterdir()] == ["notes.txt"]
+    (out / "cube_lift" / "notes.txt").unlink()
+    (out / "cube_lift").rmdir()
+    (out / "cube_lift").write_text("mine")
+    with pytest.raises(InputError, match="--out"):
+        run_batch(jobs, out, s)
+    assert (out / "cube_lift").read_text() == "mine" and fake.tasks == []
+
+
+def test_bench_batch_never_removes_a_layout_folder_it_did_not_write(
+    clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """bench batch starts each layout from scratch, removing OUT/<layout> (w1t1, ...) of an earlier bench batch;
+    a folder of that name holding anything a batch does not write is refused before any layout runs (naming it
+    and --out) and left as it was (the layouts' batches a stand-in here)."""
+    import shutil
+
+    import quasisim.bench.batch as bb
+    from quasisim.errors import InputError
+
+    ran: list[Path] = []
+
+    def layout(jobs: list[Job], d: Path, lay: Any, overrides: dict[str, Any]) -> Any:
+        ran.append(d)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(bb, "_run_layout", layout)
+    out = tmp_path / "out"
+    earlier = out / "w1t1"  # an earlier bench batch's first layout: its scratch, cache and a stored clip
+    (earlier / ".work").mkdir(parents=True)
+    (earlier / ".cache").mkdir()
+    (earlier / "cube_lift").mkdir()
+    (earlier / "cube_lift" / "clip.json").write_text("{}")
+    (out / "w2t1").mkdir()
+    (out / "w2t1" / "notes.txt").write_text("mine")
+    lays = (bb.Layout(1, 1), bb.Layout(2, 1))
+    with pytest.raises(InputError, match="--out") as e:
+        bb.run_batch_bench(clips_dir, ("cube_lift",), "*.npz", SPEC, lays, out, {})
+    assert str(out / "w2t1") in str(e.value) and "notes.txt" in str(e.value) and ran == []
+    assert (out / "w2t1" / "notes.txt").read_text() == "mine" and (earlier / "cube_lift" / "clip.json").is_file()
+    shutil.rmtree(out / "w2t1")
+    with pytest.raises(RuntimeError, match="stop here"):
+        bb.run_batch_bench(clips_dir, ("cube_lift",), "*.npz", SPEC, lays, out, {})
+    assert ran == [earlier] and not (earlier / "cube_lift").exists()  # an earlier bench batch's: started afresh
+
+
 def test_runs_in_the_simulator_name_its_revision(
     clips_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

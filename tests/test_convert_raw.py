@@ -268,6 +268,23 @@ def test_grab_cli_and_bad_inputs(tmp_path: Path, mano_dir: Path) -> None:
     assert r.exit_code == 2 and "--start" in r.output
 
 
+def test_grab_with_a_bad_mesh_leaves_the_mesh_already_there(tmp_path: Path, mano_dir: Path) -> None:
+    """A conversion refused for its object mesh leaves meshes/<object>.obj beside OUT as it was (another
+    clip's of the same object, or the user's own): the mesh is checked before it replaces anything."""
+    seq = _grab_tree(tmp_path / "GRAB", mano_dir)
+    ply = tmp_path / "GRAB" / "tools" / "object_meshes" / "contact_meshes" / "cube.ply"
+    m = trimesh.load(ply, process=False, force="mesh")
+    m.update_faces(np.arange(len(m.faces)) < 6)  # three sides of the box: fill_holes cannot close it
+    m.export(ply)
+    mine = tmp_path / "o" / "meshes" / "cube.obj"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("# mine\n")
+    args = ["convert", "grab", str(seq), "--mano-dir", str(mano_dir), "--out", str(tmp_path / "o" / "c.npz")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and "cube.ply" in r.output and "watertight" in r.output, r.output
+    assert mine.read_text() == "# mine\n" and [p.name for p in mine.parent.iterdir()] == ["cube.obj"]
+
+
 # ---- ARCTIC -------------------------------------------------------------------------------------------
 
 N_ARCTIC, STAND, ANGLE = 31, 0.95, 0.2

@@ -150,12 +150,55 @@ def test_run_json_damage_and_legacy_checkpoints(tmp_path: Path, capsys) -> None:
 def test_orphans_do_not_block_a_fresh_run(tmp_path: Path) -> None:
     ck = tmp_path / "checkpoints"
     ck.mkdir()
-    (ck / ".kinematic.npz.k2j3h4.tmp.npz").write_bytes(b"half")
-    (tmp_path / ".metrics.json.x1.tmp.json").write_bytes(b"{")
-    (tmp_path / ".outputs.abc.tmp").mkdir()
+    (ck / ".kinematic.npz.k2j3h4ab.tmp.npz").write_bytes(b"half")  # as tempfile names them: 8 random characters
+    (tmp_path / ".metrics.json.x1yz_789.tmp.json").write_bytes(b"{")
+    (tmp_path / ".outputs.abc45678.tmp").mkdir()
     Checkpoints(ck, INFO, resume=False)  # no "holds checkpoints of an earlier run"
     assert not list(ck.glob(".*"))
     assert len(remove_orphans(tmp_path)) == 2 and not list(tmp_path.glob(".*"))
+
+
+def test_orphans_are_only_what_quasisim_names_so(tmp_path: Path) -> None:
+    """remove_orphans takes only the names quasisim's own atomic writes give (``.NAME.<8 random>.tmp[.ext]``
+    files, ``.outputs.<8 random>.tmp`` staging folders): another program's hidden ``*.tmp`` files and folders in
+    an output folder stay."""
+    mine = [".mydata.tmp", ".notes.tmp", ".build.tmp.d", ".a.b.tmp", ".cache.abcd1234.tmp"]
+    for n in mine[:3]:
+        (tmp_path / n).mkdir()
+        (tmp_path / n / "keep.txt").write_text("mine")
+    for n in mine[3:]:
+        (tmp_path / n).mkdir() if n.startswith(".cache") else (tmp_path / n).write_text("mine")
+    ours = [".metrics.json.abcd1234.tmp.json", ".outputs.ab_d1234.tmp", ".write-probe.zz99zz99.tmp"]
+    (tmp_path / ours[0]).write_text("{")
+    (tmp_path / ours[1]).mkdir()
+    (tmp_path / ours[2]).write_text("")
+    assert sorted(p.name for p in remove_orphans(tmp_path)) == sorted(ours)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(mine)
+    assert all((tmp_path / n / "keep.txt").read_text() == "mine" for n in mine[:3])
+
+
+def test_overwrite_never_removes_a_checkpoints_folder_quasisim_did_not_write(tmp_path: Path) -> None:
+    """--overwrite removes a checkpoints folder only where every file in it is quasisim's (run.json, pieces that
+    carry their run identity): another program's .npz files there are refused, naming the folder, the file and
+    --out, and left as they were."""
+    from quasisim.errors import InputError
+
+    ck = tmp_path / "checkpoints"
+    ck.mkdir()
+    np.savez(ck / "weights.npz", w=np.zeros(3))
+    (ck / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="--out") as e:
+        Checkpoints(ck, INFO, resume=False, overwrite=True)
+    assert str(ck) in str(e.value) and "notes.txt" in str(e.value)
+    assert sorted(p.name for p in ck.iterdir()) == ["notes.txt", "weights.npz"]
+    (ck / "notes.txt").unlink()
+    with pytest.raises(InputError, match=r"weights\.npz"):  # an .npz without quasisim's run identity
+        Checkpoints(ck, INFO, resume=False, overwrite=True)
+    assert (ck / "weights.npz").is_file()
+    (ck / "weights.npz").unlink()
+    _fresh(ck).save("piece", **_arrays())  # quasisim's own: removed
+    Checkpoints(ck, INFO, resume=False, overwrite=True)
+    assert sorted(p.name for p in ck.iterdir()) == ["run.json"]
 
 
 def test_overwrite_starts_afresh(tmp_path: Path) -> None:
@@ -193,6 +236,27 @@ def test_outputs_are_written_as_a_set(tmp_path: Path) -> None:
     _write_set(tmp_path, "a", extra="rollout.npz")
     _write_set(tmp_path, "b")  # a file of the earlier set that the new set lacks goes with it
     assert set(read_manifest(tmp_path)) == {"metrics.json", "report.html"} and not (tmp_path / "rollout.npz").exists()
+
+
+def test_an_earlier_set_removes_only_its_own_unchanged_files(tmp_path: Path) -> None:
+    """The files an earlier manifest lists go with it only where they still hold what it recorded (their
+    sha256): a file edited since, or listed by a manifest.json of another program, stays."""
+    from quasisim.files import file_sha256
+
+    _write_set(tmp_path, "a", extra="rollout.npz")
+    (tmp_path / "rollout.npz").write_text("edited by hand")
+    _write_set(tmp_path, "b")
+    assert (tmp_path / "rollout.npz").read_text() == "edited by hand"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "data.csv").write_text("mine")
+    (other / "notes.txt").write_text("mine")
+    (other / MANIFEST).write_text(json.dumps({"files": ["data.csv"]}))  # another program's list of its files
+    _write_set(other, "x")
+    (other / MANIFEST).write_text(json.dumps({"files": {"notes.txt": "sha256:" + file_sha256(other / "notes.txt")}}))
+    _write_set(other, "y")
+    assert (other / "data.csv").read_text() == "mine" and (other / "notes.txt").read_text() == "mine"
+    assert set(read_manifest(other)) == {"metrics.json", "report.html"}
 
 
 def test_sigkill_while_writing_leaves_the_earlier_set(tmp_path: Path) -> None:

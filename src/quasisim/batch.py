@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from quasisim.errors import QuasisimError
+from quasisim.errors import InputError, QuasisimError
 from quasisim.files import LOCK, save_json_atomic, save_text_atomic
 from quasisim.method.spec import TransferSpec
 
@@ -378,6 +378,17 @@ def finished_runs(out: Path, job: Job, s: Settings, any_revision: bool = False) 
     return {r.name: done[r.name]["row"] for r in job.runs if r.name in done}
 
 
+def _check_clip_folder(final: Path) -> None:
+    """:class:`InputError` where ``OUT/<clip>`` exists but is no clip folder of a batch (no ``clip.json``: another
+    command's run folder, the user's): :func:`_persist` would replace it with the clip's results."""
+    if (final.exists() or final.is_symlink()) and not (final / CLIP_FILE).is_file():
+        got = "a file" if final.is_file() else "a symbolic link" if final.is_symlink() else "a folder"
+        raise InputError(
+            final, "--out", f"no file or folder of that name, or a clip folder of quasisim batch (with {CLIP_FILE}); "
+            "move it away or choose another --out", f"{got} without {CLIP_FILE}",
+        )  # fmt: skip
+
+
 def _persist(out: Path, job: Job, s: Settings, result: dict[str, Any]) -> None:
     """Write a clip's folder as a whole, with the runs it held before: aside, then swapped into place."""
     final, tmp, old = out / job.clip, out / f".{job.clip}.incoming", out / f".{job.clip}.old"
@@ -424,6 +435,7 @@ def run_batch(
         rows += list(done.values())
         missing = tuple(r for r in j.runs if r.name not in done)
         if missing:
+            _check_clip_folder(out / j.clip)
             todo.append(dataclasses.replace(j, runs=missing))
     if rows:  # resumed: its first part filled the persistent caches a lead clip would fill, and a lead clip holds
         s = dataclasses.replace(s, lead_clip=False)  # every core for one clip's whole run (docs/batch.md)

@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -213,15 +214,28 @@ def refuse_overwrite(out: Path, names: tuple[str, ...], overwrite: bool) -> None
         )  # fmt: skip
 
 
+# tempfile's names: PREFIX + 8 characters of [a-z0-9_] + SUFFIX (atomic_path: ``.NAME.<8>.tmp<NAME's suffix>``)
+_ORPHAN_FILE = re.compile(r"\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp(?P<ext>\.[^.]+)?")
+_ORPHAN_STAGE = re.compile(r"\.outputs\.[a-z0-9_]{8}\.tmp")  # output_set's staging folder
+
+
+def is_orphan(p: Path) -> bool:
+    """Is ``p`` named as what an interrupted write of quasisim leaves: a file of :func:`atomic_path` or of
+    :func:`check_out_dir`'s probe, a staging folder of :func:`output_set` (never another program's ``*.tmp``)."""
+    if p.is_dir() and not p.is_symlink():
+        return _ORPHAN_STAGE.fullmatch(p.name) is not None
+    m = _ORPHAN_FILE.fullmatch(p.name)
+    return m is not None and (m["ext"] is None or m["name"].endswith(m["ext"]))
+
+
 def remove_orphans(folder: Path) -> list[Path]:
-    """Remove what an interrupted atomic write left in ``folder`` (``.NAME.<random>.tmp[.ext]`` files and
-    staging folders); returns what was removed."""
+    """Remove what an interrupted atomic write left in ``folder`` (:func:`is_orphan`); returns what was removed."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
     gone = []
     for p in folder.iterdir():
-        if p.name.startswith(".") and (p.name.endswith(TMP_MARK) or f"{TMP_MARK}." in p.name):
+        if is_orphan(p):
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)
             else:
@@ -250,7 +264,8 @@ def output_set(out: Path) -> Iterator[Path]:
     """Write a set of outputs that a reader never sees mixed with an earlier set.
 
     Yields a hidden staging folder inside ``out``; when the block ends without error the earlier
-    ``manifest.json`` is removed, every staged file is renamed into ``out`` and a new manifest (the files
+    ``manifest.json`` is removed, every staged file is renamed into ``out``, the earlier set's files that the
+    new one lacks are removed where they still hold what that manifest recorded, and a new manifest (the files
     and their sha256) is written last. A folder whose manifest is missing or disagrees with its files holds
     an unfinished set (see :func:`read_manifest`); on an error or a kill the earlier set stays untouched.
     """
@@ -262,25 +277,32 @@ def output_set(out: Path) -> Iterator[Path]:
         yield stage
         files = sorted(p.name for p in stage.iterdir() if p.is_file() and not p.name.startswith("."))
         digests = {n: file_sha256(stage / n) for n in files}
-        earlier = _manifest_names(out)
+        earlier = _manifest_files(out)
         (out / MANIFEST).unlink(missing_ok=True)
         for n in files:
             os.replace(stage / n, out / n)
-        for n in earlier - set(files):  # files of the earlier set that the new one does not have
-            if (out / n).is_file():
+        for n, digest in earlier.items():  # files of the earlier set that the new one does not have
+            if n not in digests and _holds(out / n, digest):
                 (out / n).unlink()
         save_json_atomic(out / MANIFEST, {"files": digests})
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 
 
-def _manifest_names(out: Path) -> set[str]:
-    """The plain file names an earlier manifest in ``out`` lists (none when it is missing or damaged)."""
+def _holds(path: Path, digest: str) -> bool:
+    """Is ``path`` a plain file (not a link) whose sha256 is ``digest``: still what a manifest recorded?"""
+    return path.is_file() and not path.is_symlink() and file_sha256(path) == digest
+
+
+def _manifest_files(out: Path) -> dict[str, str]:
+    """The plain file names an earlier manifest in ``out`` lists, with their sha256 (none when it is missing,
+    damaged or not of this module: another program's ``manifest.json`` names no file to remove)."""
     try:
         files = json.loads((out / MANIFEST).read_text())["files"]
-        return {n for n in files if isinstance(n, str) and n == Path(n).name and n not in (".", "..", MANIFEST)}
-    except (OSError, ValueError, KeyError, TypeError):
-        return set()
+        return {n: h for n, h in files.items() if isinstance(n, str) and isinstance(h, str)
+                and n == Path(n).name and n not in (".", "..", MANIFEST)}  # fmt: skip
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 def read_manifest(out: Path) -> dict[str, str] | None:

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from quasisim.batch import BatchResult, Job, Run, Settings, run_batch, throughput
+from quasisim.batch import CLIP_FILE, BatchResult, Job, Run, Settings, run_batch, throughput
+from quasisim.errors import InputError
 from quasisim.eval.tables import clips, header, publish
 from quasisim.files import CACHE_ENV
 from quasisim.method.spec import TransferSpec
@@ -61,6 +62,8 @@ def run_batch_bench(
     rows: list[dict[str, Any]] = []
     first = out / layouts[0].folder
     for lay in layouts:
+        _check_layout_folder(out / lay.folder)
+    for lay in layouts:
         d = out / lay.folder
         shutil.rmtree(d, ignore_errors=True)
         with _cache_at(d / ".cache"):
@@ -70,6 +73,34 @@ def run_batch_bench(
                      "pinned": lay.pinned, "failures": res.failures, **tp,
                      "same_controls": _same_controls(first, d, paths)})  # fmt: skip
     return publish(out, "batch", rows, _markdown(rows, spec, len(paths)))
+
+
+def _check_layout_folder(d: Path) -> None:
+    """:class:`InputError` unless ``d`` is missing or a layout folder of an earlier bench batch (what
+    :func:`run_batch` writes: ``.work/``, ``.cache/``, clip folders with ``clip.json``, a clip's folder written
+    aside), which the layout removes to start from scratch: nothing else there is removed."""
+    if not (d.exists() or d.is_symlink()):
+        return
+    if d.is_symlink() or not d.is_dir():
+        got = "a symbolic link" if d.is_symlink() else "a file"
+    else:
+        got = next((f"a folder holding {p.name}" for p in sorted(d.iterdir()) if not _batch_entry(p)), "")
+    if got:
+        raise InputError(
+            d, "--out", "no file or folder of that name, or a layout folder of an earlier bench batch (.work/, .cache/, "
+            f"clip folders with {CLIP_FILE}); move it away or choose another --out", got,
+        )  # fmt: skip
+
+
+def _batch_entry(p: Path) -> bool:
+    """Is ``p`` (in a layout folder) something :func:`run_batch` writes?"""
+    if p.is_symlink():
+        return False
+    if p.name in (".work", ".cache"):
+        return p.is_dir()
+    if p.name.startswith(".") and p.name.endswith((".incoming", ".old")):  # a clip's folder, aside (_persist)
+        return p.is_dir()
+    return p.is_dir() and (p / CLIP_FILE).is_file()
 
 
 def _run_layout(jobs: list[Job], d: Path, lay: Layout, overrides: dict[str, Any]) -> BatchResult:

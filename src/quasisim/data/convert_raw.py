@@ -154,17 +154,17 @@ def _load_mesh(path: Path, field: str, scale: float = 1.0) -> Any:
 
 def _write_mesh(m: Any, out: Path, stem: str, source: Path) -> Path:
     """``meshes/<stem>.obj`` beside ``out``, checked as the demo loader will check it (closed after repair,
-    plausible size); an :class:`InputError` names the ``source`` mesh."""
+    plausible size) before it replaces the file there (another clip's of the object, or the user's); an
+    :class:`InputError` names the ``source`` mesh and leaves that file as it was."""
     from quasisim.assets.object import load_object  # heavy (JAX): only when converting
 
     mesh_path = out.parent / "meshes" / f"{stem}.obj"
     with atomic_path(mesh_path) as tmp:
         m.export(tmp, file_type="obj")
-    try:
-        load_object(mesh_path)
-    except InputError as e:
-        mesh_path.unlink()
-        raise InputError(source, "mesh", e.expected, e.got) from None
+        try:
+            load_object(tmp)
+        except InputError as e:
+            raise InputError(source, "mesh", e.expected, e.got) from None
     return mesh_path
 
 

@@ -62,6 +62,7 @@ class Checkpoints:
                     f"{folder} holds checkpoints of an earlier run ({len(existing)} files); pass --resume to "
                     "continue it, --overwrite to start afresh, or choose another --out"
                 )
+            _check_ours(folder)
             shutil.rmtree(folder)
         old = _read_info(info_path) if resume else None
         for k, v in run_info.items():
@@ -112,6 +113,28 @@ class Checkpoints:
                 raise RuntimeError(f"checkpoint {name}: the computed arrays do not match their description: {problem}")
             self.save(name, **d)
         return d
+
+
+def _check_ours(folder: Path) -> None:
+    """:class:`InputError` naming the first entry of ``folder`` that quasisim did not write there (anything but
+    ``run.json`` and ``.npz`` pieces carrying their run identity): ``--overwrite`` removes only its own folder."""
+    for p in sorted(folder.iterdir()):
+        plain = p.is_file() and not p.is_symlink()
+        if plain and (p.name == "run.json" or (p.suffix == ".npz" and _carries_identity(p))):
+            continue
+        raise InputError(
+            folder, "--out", "a checkpoints folder that quasisim wrote, for --overwrite to remove (run.json and "
+            "pieces carrying their run identity; move the other files away or choose another --out)",
+            f"{p.name} (not a checkpoint of quasisim)",
+        )  # fmt: skip
+
+
+def _carries_identity(p: Path) -> bool:
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return IDENTITY_KEY in z.files
+    except Exception:  # unreadable: not one we can vouch for
+        return False
 
 
 def _read_info(path: Path) -> dict[str, Any] | None:

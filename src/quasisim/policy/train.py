@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from quasisim.errors import InputError, QuasisimError
-from quasisim.files import LOCK, TMP_MARK, atomic_path, save_json_atomic
+from quasisim.files import LOCK, atomic_path, is_orphan, save_json_atomic
 
 METHODS = {"dgrasp-tracking": False, "dgrasp-base": False, "dgrasp-tracking-curriculum": False,
            "ours+residual": True}  # method -> residual actions  # fmt: skip
@@ -96,18 +96,13 @@ def check_owned(out: Path, option: str = "--out") -> None:
     out = Path(out)
     if not out.is_dir():
         return
-    held = sorted(p.name for p in out.iterdir() if p.name != LOCK and not _orphan(p.name))
+    held = sorted(p.name for p in out.iterdir() if p.name != LOCK and not is_orphan(p))
     if held and not (out / SETUP).is_file():
         shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
         raise InputError(out, option, f"an empty folder or a training folder of quasisim policy train (with {SETUP})",
                          f"a folder holding {shown}")  # fmt: skip
     if held:
         TrainSetup.read(out)  # a damaged or foreign setup.json: refused too
-
-
-def _orphan(name: str) -> bool:
-    """What an interrupted atomic write left (:func:`quasisim.files.remove_orphans`)."""
-    return name.startswith(".") and (name.endswith(TMP_MARK) or f"{TMP_MARK}." in name)
 
 
 def check_resume(out: Path, setup: TrainSetup, given: dict[str, Any]) -> None:
