@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from quasisim.eval.failures import REPLAY_LABELS, label_counts, replay_failure
+from quasisim.eval.replay_failures import REPLAY_LABELS, label_counts, replay_failure
 
 T, LIFT = 20, 5
 KP = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, 0.03, 0.0], [0.0, 0.0, 0.04]])  # hand keypoints about its wrist

@@ -14,7 +14,7 @@ import pytest
 
 from helpers import cube_example
 from quasisim.errors import InputError
-from quasisim.eval.failures import REPLAY_LABELS
+from quasisim.eval.replay_failures import REPLAY_LABELS
 from quasisim.eval.robust import ROBUST_PATH, RobustConfig, perturbed_scene, robust_success
 
 

@@ -330,7 +330,7 @@ def bench_failures(
 def _replay_failures(runs: Path, out: Path, ranges: str, tracker: str, track_sets: tuple[str, ...]) -> str:
     from quasisim.bench.closed_loop import _track_dict
     from quasisim.cli._common import _track_overrides
-    from quasisim.eval.failures import replay_failures, replay_markdown
+    from quasisim.eval.replay_failures import replay_failures, replay_markdown
     from quasisim.eval.tables import header
     from quasisim.files import save_text_atomic
     from quasisim.method.track import TrackOptions

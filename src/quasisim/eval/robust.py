@@ -56,7 +56,7 @@ def robust_success(
     fresh :class:`Policy` per replay, built from the nominal ``scene`` only: the perturbed world is never
     handed to it) the replays are closed loop, and the result also holds ``seconds_per_replay`` and the
     policy's mean ``cost()`` per replay (``tracker``). ``failures``: per replay, its first frame over a strict
-    limit, which limit and why (:class:`~quasisim.eval.failures.ReplayFailure` as a dict; ``quasisim bench
+    limit, which limit and why (:class:`~quasisim.eval.replay_failures.ReplayFailure` as a dict; ``quasisim bench
     failures --robust``)."""
     from quasisim.eval.metrics import SUCCESS_KEYS, evaluate_rollout
 
@@ -99,7 +99,7 @@ def judged_with(cfgs: list[RobustConfig]) -> list[dict[str, Any]]:
 
 
 class _FailureLabeller:
-    """Each replay's strict outcome and why it failed (:func:`quasisim.eval.failures.replay_failure`: the first
+    """Each replay's strict outcome and why it failed (:func:`quasisim.eval.replay_failures.replay_failure`: the first
     frame over a limit, which limit, a label), against the plan's nominal open-loop replay; hand-object contacts
     read in the nominal scene's MuJoCo model (geometry only, the same in every world; none in PyBullet)."""
 
@@ -114,7 +114,7 @@ class _FailureLabeller:
     def add(self, i: int, rollout: Any) -> None:
         from dataclasses import asdict
 
-        from quasisim.eval.failures import replay_failure
+        from quasisim.eval.replay_failures import replay_failure
 
         contacts = None
         if self.mm is not None and np.isfinite(rollout.object_pos).all() and np.isfinite(rollout.qpos).all():
