@@ -65,14 +65,16 @@ def hand_contacts(scene_xml: Path, qpos: np.ndarray) -> np.ndarray:
 
     with captured_stderr():
         model = mujoco.MjModel.from_xml_path(str(scene_xml))
+    from quasisim.targets.mujoco_target import object_contacts
+
     data, obj = mujoco.MjData(model), mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")
+    hand = np.arange(model.nbody) > 0  # every body but the world's (table, floor) and the object
+    hand[obj] = False
     out = np.zeros(len(qpos), int)
     for t, q in enumerate(qpos):
         data.qpos[:] = q
         mujoco.mj_forward(model, data)
-        b1 = model.geom_bodyid[data.contact.geom1[: data.ncon]]
-        b2 = model.geom_bodyid[data.contact.geom2[: data.ncon]]
-        out[t] = int(np.sum(((b1 == obj) & (b2 > 0) & (b2 != obj)) | ((b2 == obj) & (b1 > 0) & (b1 != obj))))
+        out[t] = object_contacts(model, data, obj, hand)
     return out
 
 

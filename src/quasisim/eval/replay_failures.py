@@ -65,7 +65,7 @@ def _in_hand(rollout: Any) -> tuple[np.ndarray, np.ndarray]:
     """The object's position (T, 3) and rotation matrices (T, 3, 3) in the hand frame of :func:`_hand_frame`."""
     c, R = _hand_frame(np.asarray(rollout.robot_keypoints))
     pos = np.einsum("tji,tj->ti", R, np.asarray(rollout.object_pos) - c)
-    rot = np.einsum("tji,tjk->tik", R, np.stack([np_quat_to_mat(q) for q in rollout.object_quat]))
+    rot = np.einsum("tji,tjk->tik", R, np_quat_to_mat(rollout.object_quat))
     return pos, rot
 
 

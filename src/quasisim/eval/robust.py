@@ -57,7 +57,7 @@ def robust_success(
     handed to it) the replays are closed loop, and the result also holds ``seconds_per_replay`` and the
     policy's mean ``cost()`` per replay (``tracker``). ``failures``: per replay, its first frame over a strict
     limit, which limit and why (:class:`~quasisim.eval.replay_failures.ReplayFailure` as a dict; ``quasisim bench
-    failures --robust``)."""
+    failures --replays``)."""
     from quasisim.eval.metrics import SUCCESS_KEYS, evaluate_rollout
 
     if cfg.n == 0:

@@ -488,16 +488,19 @@ class Tracker:
         w = slice(t + 1, t + H + 1)
         ref_pos, ref_quat, ref_kp = (r[w] for r in self._ref)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
-        costs = window_costs(wins, pred, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols)
-        if o.strict_weight > 0:
-            from quasisim.method.stages.sampling import strict_hinge
+        dp, dq = (r[w] for r in self._demo_ref)
 
-            dp, dq = (r[w] for r in self._demo_ref)
-            costs = costs + o.strict_weight * strict_hinge(
-                pred.obj_pos, pred.obj_quat, dp, dq, frame_w, o.strict_margin
-            )
+        def score(p: Any) -> np.ndarray:  # the window cost of predictions ``p``, with the hinge where asked
+            c = window_costs(wins, p, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols)
+            if o.strict_weight > 0:
+                from quasisim.method.stages.sampling import strict_hinge
+
+                c = c + o.strict_weight * strict_hinge(p.obj_pos, p.obj_quat, dp, dq, frame_w, o.strict_margin)
+            return c
+
+        costs = score(pred)
         costs = np.where(np.isfinite(costs), costs, np.inf)
-        costs = self._weighed(wins, obs, costs, ref_pos, ref_quat, ref_kp, frame_w)
+        costs = self._weighed(wins, obs, costs, score)
         best = int(np.argmin(costs))
         if not costs[best] < (1 - o.keep) * costs[0]:  # row 0: the current plan's window
             best = 0
@@ -508,22 +511,20 @@ class Tracker:
         self.replans += 1
         self.physics_steps += pred.n_steps
 
-    def _weighed(
-        self, wins: np.ndarray, obs: Observation, costs: np.ndarray, ref_pos: np.ndarray, ref_quat: np.ndarray,
-        ref_kp: np.ndarray, frame_w: np.ndarray,
-    ) -> np.ndarray:  # fmt: skip
-        """The windows' nominal ``costs`` aggregated with their costs in the named worlds' models (rolled out from
-        the same observed state; ``world_risk``), or ``costs`` itself without worlds."""
+    def _weighed(self, wins: np.ndarray, obs: Observation, costs: np.ndarray, score: Any) -> np.ndarray:
+        """The windows' nominal ``costs`` aggregated with their costs (``score``: predictions -> costs, as the
+        nominal's) in the named worlds' models, rolled out from the same observed state (``world_risk``), or
+        ``costs`` itself without worlds."""
         if not self.world_models:
             return costs
-        from quasisim.method.stages.sampling import robust_scores, window_costs
+        from quasisim.method.stages.sampling import robust_scores
 
         others = []
         for m in self.world_models:
             m.sync(obs)
             pred = m.rollout_windows(wins)
             self.physics_steps += pred.n_steps
-            others.append(window_costs(wins, pred, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols))
+            others.append(score(pred))
         everyone = np.arange(len(wins))
         return robust_scores(costs, others, everyone, self.opts.world_risk, self.opts.world_cvar)
 

@@ -566,7 +566,13 @@ def hand_object_contacts(mm: MujocoModel, qpos: np.ndarray, obj_pos: np.ndarray,
     out = np.zeros(len(qpos), np.int64)
     for t in range(len(qpos)):
         mm.set_state(data, qpos[t], obj_pos[t], obj_quat[t])
-        b1 = mm.model.geom_bodyid[data.contact.geom1[: data.ncon]]
-        b2 = mm.model.geom_bodyid[data.contact.geom2[: data.ncon]]
-        out[t] = int(np.sum((hand[b1] & (b2 == mm.obj_body)) | (hand[b2] & (b1 == mm.obj_body))))
+        out[t] = object_contacts(mm.model, data, mm.obj_body, hand)
     return out
+
+
+def object_contacts(model: Any, data: Any, obj_body: int, hand: np.ndarray) -> int:
+    """The contacts of ``data`` (after collision detection) between body ``obj_body`` and the bodies marked in
+    ``hand`` ((nbody,) bool)."""
+    b1 = model.geom_bodyid[data.contact.geom1[: data.ncon]]
+    b2 = model.geom_bodyid[data.contact.geom2[: data.ncon]]
+    return int(np.sum((hand[b1] & (b2 == obj_body)) | (hand[b2] & (b1 == obj_body))))
