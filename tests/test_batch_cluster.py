@@ -335,6 +335,37 @@ def test_stopping_a_local_cluster_ends_its_processes_and_no_others(
         cluster.remove()
 
 
+SLOW_ADDRESS_RAY_START = """
+import os, sys, time
+from pathlib import Path
+
+print("Ray runtime started", flush=True)  # as Ray: the address file is written after this line
+time.sleep(1.5)
+ray = Path(os.environ["RAY_TMPDIR"]) / "ray"
+ray.mkdir(exist_ok=True)
+(ray / "ray_current_cluster").write_text("127.0.0.1:7")
+time.sleep(600)
+"""
+
+
+def test_the_head_address_is_awaited_after_ray_printed_it_started(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`ray start --head` prints "Ray runtime started" before it writes its address file; on a loaded machine
+    (CI, tests in parallel) the file came later and the cluster's start failed with FileNotFoundError."""
+    import quasisim.raycluster as rc
+
+    fake = tmp_path / "ray_start.py"
+    fake.write_text(SLOW_ADDRESS_RAY_START)
+    monkeypatch.setattr(rc, "_ray_cli", lambda *args: [sys.executable, str(fake), *args])
+    cluster = LocalCluster.start((1,))
+    try:
+        assert cluster.address == "127.0.0.1:7"
+    finally:
+        cluster.stop(grace=0.0)
+        cluster.remove()
+
+
 def test_ray_auto_finds_the_cluster_of_ray_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """--ray auto: RAY_ADDRESS, else the address file of `ray start` in Ray's temp folder; checked to answer."""
     import socket

@@ -286,7 +286,9 @@ def test_named_worlds_are_the_corner_of_the_ranges_and_a_thinner_grip(real) -> N
     from quasisim.eval.robust import RobustConfig
 
     scene, r = real[2], RobustConfig.from_yaml()
-    opts = dataclasses.replace(OPTS, robust_worlds=("corner", "thin", "corner-thin"), robust_thin=0.002, robust_copies=1)
+    opts = dataclasses.replace(
+        OPTS, robust_worlds=("corner", "thin", "corner-thin"), robust_thin=0.002, robust_copies=1
+    )
     corner, thin, both, random = copy_scenes(scene, opts)
     for w in (corner, both):
         assert w.obj.mass == pytest.approx(scene.obj.mass * (1 + r.mass))

@@ -33,7 +33,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -363,15 +363,25 @@ class LocalCluster:
                                                start_new_session=True))  # fmt: skip
         self._wait_started(i)
         if i == 0:
-            self.address = (self.temp / "ray" / ADDRESS_FILE).read_text().strip()
+            self.address = self._read_address()
 
     def log(self, i: int) -> Path:
         """The output of node ``i``'s ``ray start``."""
         return self.temp / f"node{i}.log"
 
     def _wait_started(self, i: int, timeout: float = 120.0) -> None:
+        self._wait(i, lambda: b"Ray runtime started" in self.log(i).read_bytes(), timeout)
+
+    def _read_address(self, timeout: float = 60.0) -> str:
+        """The head's address: `ray start --head` writes its address file only after it printed that the
+        runtime started (a loaded machine shows the gap), so it is awaited like the start."""
+        file = self.temp / "ray" / ADDRESS_FILE
+        self._wait(0, lambda: file.is_file() and bool(file.read_text().strip()), timeout)
+        return file.read_text().strip()
+
+    def _wait(self, i: int, done: Callable[[], bool], timeout: float) -> None:
         t0 = time.monotonic()
-        while b"Ray runtime started" not in self.log(i).read_bytes():
+        while not done():
             if self.procs[i].poll() is not None or time.monotonic() - t0 > timeout:
                 tail = self.log(i).read_text(errors="replace").strip().splitlines()[-3:]
                 raise QuasisimError(f"ray start of node {i} failed ({self.log(i)}): {' | '.join(tail)}")

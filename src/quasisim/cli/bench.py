@@ -307,7 +307,9 @@ def bench_paper(
               "drop, lost contact, carried off, rotated in grasp, slip in grasp); writes replay_failures.md.")  # fmt: skip
 @click.option("--ranges", default="default", show_default=True, help="With --replays: the perturbation set.")
 @click.option("--tracker", default="track.yaml", show_default=True, help="With --replays: the tracker's settings file.")
-@click.option("--track-set", "track_sets", multiple=True, help="With --replays: a tracker setting, as with --closed-loop.")
+@click.option(
+    "--track-set", "track_sets", multiple=True, help="With --replays: a tracker setting, as with --closed-loop."
+)
 @_friendly
 def bench_failures(
     runs: Path, data_dir: Path | None, out: Path | None, replays: bool, ranges: str, tracker: str,
@@ -343,7 +345,11 @@ def _replay_failures(runs: Path, out: Path, ranges: str, tracker: str, track_set
             f"{runs}: expected closed-loop caches (robust_closed_loop-*.json) of set {ranges!r} and this tracker, got "
             "none: run `quasisim bench transfer ... --closed-loop` with the same --ranges and tracker first"
         )
-    md = header(f"Why the perturbed replays of the runs under {runs} fail ({ranges} worlds)") + "\n" + replay_markdown(rows)
+    md = (
+        header(f"Why the perturbed replays of the runs under {runs} fail ({ranges} worlds)")
+        + "\n"
+        + replay_markdown(rows)
+    )
     out.mkdir(parents=True, exist_ok=True)
     save_text_atomic(out / "replay_failures.md", md)
     return md

@@ -206,7 +206,9 @@ class SamplingOptions:
             if w not in NAMED_WORLDS:
                 raise choice_error("sampling option 'robust_worlds'", w, NAMED_WORLDS)
         if not (_is_number(self.robust_thin) and 0 < self.robust_thin <= 0.01):
-            raise QuasisimError(f"sampling option 'robust_thin' must be a depth in (0, 0.01] m, got {self.robust_thin!r}")
+            raise QuasisimError(
+                f"sampling option 'robust_thin' must be a depth in (0, 0.01] m, got {self.robust_thin!r}"
+            )
         if self.robust_risk not in RISK_MEASURES:
             raise choice_error("sampling option 'robust_risk'", self.robust_risk, RISK_MEASURES)
         if not (_is_number(self.robust_cvar) and 0 < self.robust_cvar <= 1):

@@ -343,7 +343,9 @@ class Tracker:
         ]
         self.model = self.models[0]  # the nominal scene's; with adapt, the one that predicts the world best
         self.world_models: list[Target] = [
-            make_target(target, model_scene(named_world(scene, w, opts.world_thin), opts.model_dt), threads=opts.threads)
+            make_target(
+                target, model_scene(named_world(scene, w, opts.world_thin), opts.model_dt), threads=opts.threads
+            )
             for w in opts.worlds
         ]  # "Weighing several worlds"
         self.scores = np.zeros(len(self.models))
