@@ -111,6 +111,9 @@ def _replay(scene, q):
         ("prune_keep", 1.5, "prune_keep"),
         ("backtrack_limit", 0.0, "backtrack_limit"),
         ("backtrack_limit", 1.2, "backtrack_limit"),
+        ("grasp_weight", -0.1, "grasp_weight"),
+        ("grasp_margin", 1.0, "grasp_margin"),
+        ("grasp_slots", 0, "grasp_slots"),
     ],
 )
 def test_bad_options_raise(field: str, value: object, match: str) -> None:

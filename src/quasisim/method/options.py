@@ -109,6 +109,10 @@ class SamplingOptions:
             0 frames: no pruning).
         grip, grip_gap: the extra closure (rad or m) of finger joints held more than ``grip_gap`` from their
             targets at a step's start, added to every window's frames (step 3; 0: none).
+        grasp_weight, grasp_margin, grasp_slots: the grasp margin in the window cost (step 4; weight 0: none):
+            ``grasp_weight`` x the mean over the window's frames of the hand-object contacts' tangential load
+            beyond friction cones shrunk by ``grasp_margin`` (:func:`quasisim.targets.grasp.slack_excess`, in
+            object weights), from each hand's ``grasp_slots`` strongest contacts.
         stop_when_lost: end the run at the first frame that stays outside the strict limits (step 6: the clip
             can no longer pass strict success; the frames after it keep the plan's targets). The cascade's
             first step (stage ``quick``) sets it; false in ``configs/transfer.yaml``.
@@ -152,13 +156,17 @@ class SamplingOptions:
     robust_cvar: float = 0.5
     robust_worlds: tuple[str, ...] = ()
     robust_thin: float = 0.001
+    grasp_weight: float = 0.0
+    grasp_margin: float = 0.2
+    grasp_slots: int = 8
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
         """Raise :class:`QuasisimError` naming the first bad setting."""
-        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top", "screen", "replan"):
+        for name in ("samples", "horizon", "knots", "threads", "backtrack_samples", "robust_top", "screen", "replan",
+                     "grasp_slots"):  # fmt: skip
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
                 raise QuasisimError(f"sampling option '{name}' must be a positive integer, got {v!r}")
@@ -173,7 +181,7 @@ class SamplingOptions:
                 f"sampling option 'robust_seed' must be an integer in [0, 2**32), got {self.robust_seed!r}"
             )
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "grip",
-                     "grip_gap"):  # fmt: skip
+                     "grip_gap", "grasp_weight"):  # fmt: skip
             v = getattr(self, name)
             if not (_is_number(v) and v >= 0):
                 raise QuasisimError(f"sampling option '{name}' must be a finite number >= 0, got {v!r}")
@@ -208,6 +216,10 @@ class SamplingOptions:
         if not (_is_number(self.robust_thin) and 0 < self.robust_thin <= 0.01):
             raise QuasisimError(
                 f"sampling option 'robust_thin' must be a depth in (0, 0.01] m, got {self.robust_thin!r}"
+            )
+        if not (_is_number(self.grasp_margin) and 0 <= self.grasp_margin < 1):
+            raise QuasisimError(
+                f"sampling option 'grasp_margin' must be a fraction in [0, 1), got {self.grasp_margin!r}"
             )
         if self.robust_risk not in RISK_MEASURES:
             raise choice_error("sampling option 'robust_risk'", self.robust_risk, RISK_MEASURES)

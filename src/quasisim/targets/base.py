@@ -127,6 +127,9 @@ class Prediction:
         keypoints: (N, H, K_metric, 3) metric keypoints (m).  n_steps: physics steps simulated.
         qvel: (N, H, D) hands' velocities.  obj_vel, obj_angvel: (N, H, 3) the object's centre-of-mass linear
             and angular velocity, world axes (m/s, rad/s); as :meth:`Target.observe` gives them.
+        cones: (N, H, C, 2) with ``contacts=C`` only: the C strongest hand-object contacts of each hand (all
+            hands' slots concatenated), each as its friction-cone radius and tangential load in object weights
+            (:func:`quasisim.targets.grasp.cone_loads`, the world's own friction and mass; empty slots 0).
     """
 
     qpos: np.ndarray
@@ -137,6 +140,7 @@ class Prediction:
     qvel: np.ndarray | None = None
     obj_vel: np.ndarray | None = None
     obj_angvel: np.ndarray | None = None
+    cones: np.ndarray | None = None
 
 
 class Prune(NamedTuple):
@@ -273,6 +277,21 @@ class Target(abc.ABC):
         (another structure, or a backend without it; the caller builds a target for ``scene``): by default."""
         return False
 
+    def contact_forces(self, slots: int) -> np.ndarray:
+        """(n_hands, slots, 3) the hand-object contacts now, per hand its ``slots`` strongest
+        (:func:`quasisim.targets.grasp.strongest`): the force the hand exerts on the object in each contact's
+        frame (normal, pressing > 0; the two tangential components), N; empty slots 0."""
+        raise NotImplementedError(f"target {self.name}: contact forces are not reported (mujoco and pybullet do)")
+
+    def contact_cones(self, slots: int) -> np.ndarray:
+        """(n_hands * slots, 2) :meth:`contact_forces` as friction-cone radii and tangential loads in object
+        weights (:func:`quasisim.targets.grasp.cone_loads`) in this target's world."""
+        from quasisim.targets.grasp import cone_loads
+
+        phys = self.scene.physics
+        f = self.contact_forces(slots).reshape(-1, 3)
+        return cone_loads(f, phys.friction, self.scene.obj.mass * phys.gravity)
+
     def extras(self) -> dict[str, Any]:
         """:attr:`TargetRollout.extras` of the run so far (the simulator's warnings, where it counts them)."""
         return {}
@@ -322,17 +341,20 @@ class Target(abc.ABC):
         )
 
     def rollout_windows(
-        self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None
+        self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None, contacts: int = 0
     ) -> Prediction:
         """Roll candidate windows (N, H + 1, D) out from the current state, each for H frames, and leave the
         state as it was; ``qd0`` (N, D) replaces each candidate's initial hand velocity (its hands then start
         at the window's frame 0). With ``prune`` (:class:`Prune`), every candidate runs ``prune.frames``
-        frames, then only those ``prune.keep`` picks run on (the others' later frames are NaN). Here: one
-        candidate after the other from :meth:`save_state`."""
+        frames, then only those ``prune.keep`` picks run on (the others' later frames are NaN). With
+        ``contacts`` > 0 also :attr:`Prediction.cones` (:meth:`contact_cones`, that many slots per hand). Here:
+        one candidate after the other from :meth:`save_state`."""
         N, H, D = len(wins), wins.shape[1] - 1, wins.shape[2]
         metric = np.flatnonzero(self.scene.kp_metric)
         shapes = {"qpos": (D,), "obj_pos": (3,), "obj_quat": (4,), "keypoints": (len(metric), 3), "qvel": (D,),
                   "obj_vel": (3,), "obj_angvel": (3,)}  # fmt: skip
+        if contacts > 0:
+            shapes["cones"] = (len(self.scene.hands) * contacts, 2)
         out = {k: np.full((N, H, *s), np.nan) for k, s in shapes.items()}
         split = H if prune is None else min(max(prune.frames, 1), H)
 
@@ -340,6 +362,8 @@ class Target(abc.ABC):
             for f in frames:
                 self.advance(wins[i, f], wins[i, f + 1])
                 o = self.observe()
+                if contacts > 0:
+                    o = {**o, "cones": self.contact_cones(contacts)}
                 for k in shapes:
                     out[k][i, f] = o[k][metric] if k == "keypoints" else o[k]
 

@@ -33,6 +33,7 @@ from quasisim.assets.hand import HandModel
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
 from quasisim.targets.base import Observation, Prediction, Prune, Target, pd_gains, pd_schedule
+from quasisim.targets.grasp import cone_loads, strongest
 from quasisim.targets.scene import Scene
 
 if TYPE_CHECKING:
@@ -298,6 +299,14 @@ class MujocoModel:
         self.ff_act = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff/{n}") for n in names])
         self.kp_site = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, n) for n in sites])
         self.hand_body = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in bodies])
+        self.hand_of_body = np.full(m.nbody, -1)  # body -> the hand it belongs to (-1: none)
+        for i, (h, p) in enumerate(zip(scene.hands, scene.prefixes, strict=True)):
+            self.hand_of_body[[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, p + n) for n in h.body_names]] = i
+        # each hand's root: its one body whose parent is no body of that hand (the subtree of its contact sensor)
+        self.hand_root = [
+            next(b for b in np.flatnonzero(self.hand_of_body == i) if self.hand_of_body[m.body_parentid[b]] != i)
+            for i in range(len(scene.hands))
+        ]
         oj = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "object_free")
         self.obj_qpos = int(m.jnt_qposadr[oj])
         self.obj_dof = int(m.jnt_dofadr[oj])
@@ -347,11 +356,15 @@ def _state_offset(model: Any, spec: int, component: int) -> int:
     return off
 
 
+CONTACT_FORCE_DATA = 2  # mjtConDataField: the contact sensor's data "force" (bit 1)
+CONTACT_REDUCE_MAXFORCE = 2  # its reduce="maxforce": the contacts with the largest force, largest first
+
+
 class _WindowModel:
     """The scene with ``framepos`` sensors on the metric keypoint sites, and a ``mujoco.rollout`` pool: the
     batched candidate rollouts of :meth:`MujocoTarget.rollout_windows` (same layout as the target's model)."""
 
-    def __init__(self, scene: Scene, target_model: Any, threads: int) -> None:
+    def __init__(self, scene: Scene, target_model: Any, threads: int, roots: list[str], contacts: int = 0) -> None:
         from mujoco import rollout
 
         spec = build_spec(scene, visual=False)
@@ -361,7 +374,15 @@ class _WindowModel:
                     name=f"kp_metric/{prefix}{hand.kp_names[k]}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
                     objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{prefix}kp/{hand.kp_names[k]}",
                 )  # fmt: skip
+        self.contacts = contacts
+        for root in roots if contacts > 0 else []:  # per hand: its `contacts` strongest contacts with the object
+            spec.add_sensor(
+                name=f"contacts/{root}", type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_XBODY,
+                objname=root, reftype=mujoco.mjtObj.mjOBJ_BODY, refname="object",
+                intprm=[CONTACT_FORCE_DATA, CONTACT_REDUCE_MAXFORCE, contacts],
+            )  # fmt: skip
         self.model = spec.compile()
+        self.n_kp = int(np.sum(scene.kp_metric)) * 3  # the keypoint sensors' columns come first
         m0 = target_model
         if (self.model.nq, self.model.nv, self.model.nu) != (m0.nq, m0.nv, m0.nu):
             raise QuasisimError("mujoco target: the sensor model's layout differs from the target's")
@@ -478,7 +499,7 @@ class MujocoTarget(Target):
         mujoco.mj_forward(mm.model, d)
 
     def rollout_windows(
-        self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None
+        self, wins: np.ndarray, qd0: np.ndarray | None = None, prune: Prune | None = None, contacts: int = 0
     ) -> Prediction:
         """The candidate windows (N, H + 1, D) rolled out from the run's current state with ``mujoco.rollout``
         on the sensor model (``mj_getState(..., mjSTATE_FULLPHYSICS)`` and ``qacc_warmstart`` copied, the
@@ -486,9 +507,13 @@ class MujocoTarget(Target):
         frame 0 with velocity ``qd0``, as in :meth:`Target.rollout_windows`. With ``prune``, the candidates
         ``prune.keep`` picks go on from their states after ``prune.frames`` frames, with the solver's warm
         start of the step (``mujoco.rollout`` does not return it), so their later frames may differ from an
-        unbroken rollout's in the solver's last digits."""
-        if self._windows is None:
-            self._windows = _WindowModel(self.scene, self.mm.model, self.threads)
+        unbroken rollout's in the solver's last digits. With ``contacts`` > 0: :attr:`Prediction.cones` from a
+        MuJoCo contact sensor per hand (the hand's subtree against the object, ``reduce="maxforce"``, that many
+        slots)."""
+        if self._windows is None or self._windows.contacts != contacts:
+            self.close()
+            roots = [mujoco.mj_id2name(self.mm.model, mujoco.mjtObj.mjOBJ_BODY, b) for b in self.mm.hand_root]
+            self._windows = _WindowModel(self.scene, self.mm.model, self.threads, roots, contacts)
         wm, mm = self._windows, self.mm
         N, H = len(wins), wins.shape[1] - 1
         state = np.repeat(self.save_state()[0][None], N, axis=0)
@@ -523,15 +548,36 @@ class MujocoTarget(Target):
         qvel = states[:, ends - 1, wm.qvel_off : wm.qvel_off + wm.model.nv]
         o, od = mm.obj_qpos, mm.obj_dof
         obj_vel, obj_angvel = object_twist(qpos[..., o + 3 : o + 7], qvel[..., od : od + 6], self.scene.obj.com)
+        cones = None
+        if wm.contacts > 0:
+            phys = self.scene.physics
+            # the forces of each frame's last step (its sensors are computed in that step, before it integrates)
+            force = sens[:, ends - 1, wm.n_kp :].reshape(N, F, -1, 3)  # hands x slots, each (normal, t1, t2)
+            cones = cone_loads(force, phys.friction, self.scene.obj.mass * phys.gravity)
         pred = Prediction(
             qpos=qpos[..., mm.hand_qpos], obj_pos=qpos[..., o : o + 3], obj_quat=qpos[..., o + 3 : o + 7],
-            keypoints=sens[:, ends].reshape(N, F, -1, 3), n_steps=N * (F * n + 1), qvel=qvel[..., mm.hand_dof],
-            obj_vel=obj_vel, obj_angvel=obj_angvel,
+            keypoints=sens[:, ends, : wm.n_kp].reshape(N, F, -1, 3), n_steps=N * (F * n + 1),
+            qvel=qvel[..., mm.hand_dof], obj_vel=obj_vel, obj_angvel=obj_angvel, cones=cones,
         )  # fmt: skip
         return pred, states[:, ends[-1] - 1]
 
     def extras(self) -> dict[str, Any]:
         return {"sim_warnings": self.warnings()}
+
+    def contact_forces(self, slots: int) -> np.ndarray:
+        """(n_hands, slots, 3) per hand its ``slots`` strongest contacts with the object during the last physics
+        step (``mj_contactForce`` of the run's data after ``mj_step``: the contacts and constraint forces of
+        that step, under its controls), as the window rollouts' contact sensors report a frame (N)."""
+        mm, d = self.mm, self._run()
+        per_hand: list[list[np.ndarray]] = [[] for _ in self.scene.hands]
+        f6 = np.zeros(6)
+        for i in range(d.ncon):
+            b1, b2 = mm.model.geom_bodyid[d.contact.geom1[i]], mm.model.geom_bodyid[d.contact.geom2[i]]
+            hand = mm.hand_of_body[b1] if b2 == mm.obj_body else mm.hand_of_body[b2] if b1 == mm.obj_body else -1
+            if hand >= 0:
+                mujoco.mj_contactForce(mm.model, d, i, f6)
+                per_hand[hand].append(f6[:3].copy())
+        return np.stack([strongest(np.reshape(f, (-1, 3)), slots) for f in per_hand])
 
     def warnings(self) -> dict[str, int]:
         """How often MuJoCo raised each warning of :data:`UNSTABLE_WARNINGS` in this run."""

@@ -59,6 +59,7 @@ from quasisim.assets.hand import HINGE, Geom, HandModel
 from quasisim.errors import QuasisimError
 from quasisim.rotations import np_mat_to_quat, np_quat_to_mat
 from quasisim.targets.base import Observation, Target, feed_forward, pd_gains, pd_schedule
+from quasisim.targets.grasp import strongest
 from quasisim.targets.scene import Scene
 
 DUMMY_MASS = 1e-4  # kg
@@ -499,6 +500,17 @@ class PybulletTarget(Target):
             "qpos": qpos, "qvel": qvel, "obj_pos": opos, "obj_quat": oquat, "obj_vel": np.asarray(v, np.float64),
             "obj_angvel": np.asarray(w, np.float64), "keypoints": self.keypoints(),
         }  # fmt: skip
+
+    def contact_forces(self, slots: int) -> np.ndarray:
+        """As :meth:`Target.contact_forces`: per hand its ``slots`` strongest contact points with the object of
+        the last ``stepSimulation`` (``getContactPoints``: ``normalForce``, ``lateralFriction1``,
+        ``lateralFriction2``; N)."""
+        kw = self._kw()
+        out = []
+        for part in self.parts:
+            pts = self.pb.getContactPoints(bodyA=part.id, bodyB=self.obj_id, **kw)
+            out.append(strongest(np.array([(c[9], c[10], c[12]) for c in pts], np.float64), slots))
+        return np.stack(out)
 
     def save_state(self) -> int:
         """``saveState``: the id of an in-memory copy of the world (free it with :meth:`release_state`)."""

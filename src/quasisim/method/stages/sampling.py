@@ -46,6 +46,12 @@ At every control frame ``t`` of a clip with ``T`` frames:
    :mod:`quasisim.eval.metrics`): ``strict_weight`` x the mean over the window's frames of
    ``max(0, e_pos / 2 cm - strict_margin) + max(0, e_rot / 30 deg - strict_margin)``, so that among
    candidates of similar mean error the one that keeps every frame inside the limits wins;
+   With ``grasp_weight`` > 0 the cost also holds the grasp margin: every window is rolled out with each hand's
+   ``grasp_slots`` strongest contacts with the object (MuJoCo: a contact sensor per hand in the batched
+   rollouts; PyBullet: ``getContactPoints``), and ``grasp_weight`` x the mean over the window's frames of
+   ``sum_c max(0, |f_t,c| - (1 - grasp_margin) mu f_n,c) / (m g)`` is added (:func:`grasp_term`,
+   :mod:`quasisim.targets.grasp`): the load the contacts carry beyond friction cones shrunk by
+   ``grasp_margin``, in object weights, in the world of the rollout (a scoring copy's own friction and mass);
 5. ``predictive``: keep the cheapest window as the plan; ``mppi``: the plan becomes the
    ``softmax(-cost / temperature)``-weighted mean of the windows. Apply the plan's first ``replan`` frames
    (``t -> t+replan``; 1 on frames re-planned after a back-up, step 6) in the target, recording each frame
@@ -126,6 +132,9 @@ Suggested settings (all required; load with ``quasisim.config.build(SamplingOpti
       grip: 0.0                # extra closure of finger joints the object holds back (0: none)
       grip_gap: 0.02           # ... held back: more than this from their targets (rad)
       backtrack_limit: 1.0     # back up when a frame comes closer to the strict limits than this fraction
+      grasp_weight: 0.0        # the grasp margin in the window cost (0: none)
+      grasp_margin: 0.2        # ... the friction cones shrunk by this fraction
+      grasp_slots: 8           # ... each hand's strongest contacts counted
 """
 
 from __future__ import annotations
@@ -158,6 +167,7 @@ from quasisim.optim import objective
 from quasisim.optim.objective import Weights, padded, window_references
 from quasisim.sim.kinematics import fk_full, keypoints
 from quasisim.targets import Observation, Prediction, Prune, Target, TargetRollout, make_target
+from quasisim.targets.grasp import slack_excess
 from quasisim.targets.perturb import named_world, perturbed_scene, training_worlds
 from quasisim.targets.scene import Scene
 from quasisim.tracecache import cached_jit
@@ -346,10 +356,12 @@ def window_costs(
     weights: Weights,
     base_cols: np.ndarray | None = None,
     strict: tuple[float, float] = (0.0, 0.75),
+    grasp: tuple[float, float] = (0.0, 0.2),
 ) -> np.ndarray:
     """(N,) the MPC window objective of every candidate, measured in the target
     (:func:`quasisim.optim.objective.window_costs`, the objective of the gradient-based MPC), plus the hinge
-    on the strict limits (:func:`strict_hinge`) with ``strict`` = (weight, margin).
+    on the strict limits (:func:`strict_hinge`) with ``strict`` = (weight, margin), plus the grasp margin
+    (:func:`grasp_term`) with ``grasp`` = (weight, margin) where the rollouts carry their contacts.
 
     Args:
         wins: (N, H + 1, D) candidate windows.  pred: their rollouts at frames 1..H of the window.
@@ -369,7 +381,18 @@ def window_costs(
     costs = np.asarray(costs, np.float64)
     if strict[0] > 0:
         costs = costs + strict[0] * strict_hinge(pred.obj_pos, pred.obj_quat, ref_pos, ref_quat, frame_w, strict[1])
+    if grasp[0] > 0 and pred.cones is not None:
+        costs = costs + grasp[0] * grasp_term(pred.cones, frame_w, grasp[1])
     return costs
+
+
+def grasp_term(cones: np.ndarray, frame_w: np.ndarray, margin: float) -> np.ndarray:
+    """(N,) mean over a window's frames (``frame_w`` (H,)) of the load its hand-object contacts ``cones``
+    (N, H, C, 2; :attr:`~quasisim.targets.base.Prediction.cones`) carry beyond friction cones shrunk by
+    ``margin`` (:func:`quasisim.targets.grasp.slack_excess`, object weights): 0 for a grasp that holds with
+    that margin; a frame a pruned candidate did not run (NaN) counts 0, as :func:`cost_bounds` counts it."""
+    excess = np.nan_to_num(slack_excess(cones, margin), nan=0.0)
+    return np.sum(excess * frame_w, axis=-1) / max(float(np.sum(frame_w)), 1.0)
 
 
 def strict_fractions(
@@ -602,6 +625,7 @@ class _Loop:
         self.events: list[tuple[int, int]] = []  # (frame that left the limits, frame gone back to), per back-up
         self.lost = False  # a frame stayed outside the strict limits: the clip cannot pass strict any more
         self.behind = opts.backtrack * (2 + opts.backtrack_retries)  # frames of saved states kept behind t
+        self.contacts = opts.grasp_slots if opts.grasp_weight > 0 else 0  # contact slots per hand (step 4)
         self.rehinge = (
             opts.strict_weight if opts.backtrack_strict_weight is None else opts.backtrack_strict_weight,
             opts.strict_margin,
@@ -629,6 +653,7 @@ class _Loop:
             window_costs, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], frame_w=frame_w,
             weights=self.weights, base_cols=self.base_cols,
             strict=self.rehinge if self.widened[t] else (opts.strict_weight, opts.strict_margin),
+            grasp=(opts.grasp_weight, opts.grasp_margin),
         )  # fmt: skip
         pre = None  # step 2's pre-screen: the cost of windows with the hands at their targets
         if self.kp is not None:
@@ -644,12 +669,12 @@ class _Loop:
         run_wins = wins if bias is None else biased(wins, bias, self.applied[t])  # what the target is driven with
         bound = functools.partial(cost_bounds, ref_pos=ref_pos[w], ref_quat=ref_quat[w], ref_kp=ref_kp[w], cost=cost)
         prune = pruner(opts, wins, bound) if self.observer is None else None  # a recording keeps every frame
-        pred = self.target.rollout_windows(run_wins, qd0, prune)
+        pred = self.target.rollout_windows(run_wins, qd0, prune, self.contacts)
         costs = cost(wins, pred)
         if prune is not None:  # the candidates that stopped early are never chosen
             costs = np.where(np.isnan(pred.obj_pos[:, -1, 0]), np.inf, costs)
         live = [c for c in self.copies if _within_limits(c.observe(), ref_pos[t], ref_quat[t])]
-        score, n_copy_steps = _score_in_copies(live, run_wins, qd0, costs, cost, opts)
+        score, n_copy_steps = _score_in_copies(live, run_wins, qd0, costs, cost, opts, self.contacts)
         self.steps += n_copy_steps
         win, best = next_plan_window(wins, score, opts)
         if self.observer is not None:
@@ -758,7 +783,7 @@ def _draw(
 
 def _score_in_copies(
     live: Sequence[Target], wins: np.ndarray, qd0: np.ndarray | None, costs: np.ndarray,
-    cost: Callable[[np.ndarray, Prediction], np.ndarray], opts: SamplingOptions,
+    cost: Callable[[np.ndarray, Prediction], np.ndarray], opts: SamplingOptions, contacts: int = 0,
 ) -> tuple[np.ndarray, int]:  # fmt: skip
     """Step 7: the ``opts.robust_top`` cheapest candidates (``costs`` in the target) rolled out in the ``live``
     copies too and scored by :func:`robust_scores` with ``opts.robust_risk`` (``costs`` itself without live
@@ -766,7 +791,7 @@ def _score_in_copies(
     if not live:
         return costs, 0
     top = np.argsort(costs, kind="stable")[: opts.robust_top]
-    preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top]) for c in live]
+    preds = [c.rollout_windows(wins[top], None if qd0 is None else qd0[top], None, contacts) for c in live]
     scores = robust_scores(costs, [cost(wins[top], p) for p in preds], top, opts.robust_risk, opts.robust_cvar)
     return scores, sum(p.n_steps for p in preds)
 
