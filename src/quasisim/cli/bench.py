@@ -355,6 +355,41 @@ def _replay_failures(runs: Path, out: Path, ranges: str, tracker: str, track_set
     return md
 
 
+@bench.command("grasp")
+@click.argument("runs", type=click.Path(path_type=Path, exists=True, file_okay=False))
+@click.option("--data", "data_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder of the runs' demos (default: $QUASISIM_DATA).")  # fmt: skip
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None, help="Output folder (default: RUNS).")
+@click.option("--margin", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.2, show_default=True,
+              help="The friction cones shrunk by this fraction.")  # fmt: skip
+@click.option("--slots", type=click.IntRange(1, 64), default=8, show_default=True,
+              help="Each hand's strongest contacts counted.")  # fmt: skip
+@click.option("--ranges", default="default", show_default=True, help="The perturbation set of the robust column.")
+@_friendly
+def bench_grasp(runs: Path, data_dir: Path | None, out: Path | None, margin: float, slots: int, ranges: str) -> None:
+    """The grasp margin of every finished run under RUNS (a bench transfer folder): its controls replayed in the
+    nominal MuJoCo target, per frame the load the hand-object contacts carry beyond friction cones shrunk by
+    --margin (object weights), beside the run's open-loop robust strict success; writes grasp_margin.md and
+    grasp_margin.json."""
+    import json
+    import os
+
+    from quasisim.eval.grasp_margin import grasp_markdown, grasp_rows
+    from quasisim.eval.tables import header
+    from quasisim.files import save_text_atomic
+    from quasisim.targets.perturb import resolve_ranges
+
+    data = data_dir or Path(os.environ.get("QUASISIM_DATA", "../shared/data"))
+    set_name = resolve_ranges(ranges)
+    rows = grasp_rows(runs, data, margin, slots, set_name)
+    md = header(f"Grasp margin of the runs under {runs}") + "\n" + grasp_markdown(rows, margin, set_name)
+    dest = out or runs
+    dest.mkdir(parents=True, exist_ok=True)
+    save_text_atomic(dest / "grasp_margin.json", json.dumps({"margin": margin, "slots": slots, "rows": rows}, indent=1))
+    save_text_atomic(dest / "grasp_margin.md", md)
+    click.echo(md)
+
+
 @bench.command("export")
 @click.argument("runs", type=click.Path(path_type=Path, exists=True, file_okay=False))
 @click.option(
