@@ -509,7 +509,7 @@ def test_closed_loop_caches_made_before_a_tracker_setting_existed_still_match() 
 
     old = {"sets": {"default": {}}, "target": "mujoco"}
     later = ("lead", "keep", "shift_fade", "obs_adapt", "obs_adapt_decay", "grip", "grip_gap", "object_weight",
-             "worlds", "world_thin", "world_risk", "world_cvar")  # fmt: skip
+             "worlds", "world_thin", "world_risk", "world_cvar", "grasp_weight", "grasp_margin", "grasp_slots")  # fmt: skip
     assert cl._track_dict(TrackOptions()) == {
         k: v for k, v in dataclasses.asdict(TrackOptions()).items() if k not in ("path", *later)
     }
@@ -649,3 +649,34 @@ def test_a_tracker_weighing_worlds_chooses_by_the_worst_cost_over_its_models(cli
     assert not np.array_equal(applied_corner, applied)
     with pytest.raises(InputError, match="worlds"):
         TrackOptions(worlds=("cornr",))
+
+
+def test_a_tracker_with_the_grasp_margin_keeps_its_contacts_inside_shrunk_cones(clip, sampled) -> None:
+    """grasp_weight: the re-plans' windows are rolled out with their contacts and the cost adds the load beyond
+    cones shrunk by half; in a world with less friction and weaker gains the tracker applies targets whose
+    replay there carries less of it (read from the world's contacts frame by frame); a bad margin names the
+    field."""
+    from quasisim.targets.grasp import slack_excess
+    from quasisim.targets.perturb import scaled_scene
+
+    _, demo, _, scene = clip
+    q, weights = sampled, TransferConfig.from_yaml().weights
+    world_scene = scaled_scene(scene, friction=0.7, gains=0.9)
+
+    def excess(opts: TrackOptions) -> tuple[Tracker, float]:
+        with make_target("mujoco", world_scene) as world, Tracker(demo, scene, q, opts, weights) as tr:
+            replay(world, q, tr)
+            applied = np.array(tr._history)
+            world.reset(applied[0], (applied[1] - applied[0]) * scene.fps)
+            out = []
+            for t in range(len(applied) - 1):
+                world.advance(applied[t], applied[t + 1])
+                out.append(slack_excess(world.contact_cones(8), 0.5))
+        return tr, float(np.mean(out))
+
+    plain, ex_plain = excess(FAST)
+    firm, ex_firm = excess(dataclasses.replace(FAST, grasp_weight=1.0, grasp_margin=0.5))
+    assert firm.physics_steps == plain.physics_steps  # the contacts ride along the same rollouts
+    assert ex_plain > 0.1 and ex_firm < 0.8 * ex_plain
+    with pytest.raises(InputError, match="grasp_margin"):
+        TrackOptions(grasp_margin=1.0)

@@ -92,6 +92,7 @@ def judge_run(
 ADDED_LATER = {
     "lead": 0, "keep": 0.0, "shift_fade": 0.0, "obs_adapt": False, "obs_adapt_decay": 0.9, "grip": (), "grip_gap": 0.02,
     "object_weight": 1.0, "worlds": (), "world_thin": 0.001, "world_risk": "worst", "world_cvar": 0.5,
+    "grasp_weight": 0.0, "grasp_margin": 0.2, "grasp_slots": 8,
 }  # fmt: skip
 
 

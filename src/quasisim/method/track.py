@@ -33,6 +33,12 @@ in the nominal model and those worlds aggregated by ``world_risk`` (``worst``, `
 plan chosen to hold in the corner is not re-planned back to the nominal model's cheapest. Each world costs one
 more rollout of the windows per re-plan.
 
+**Grasp margin** (``grasp_weight`` > 0): the windows are rolled out with each hand's ``grasp_slots`` strongest
+contacts with the object, in the nominal model and every world's, and the cost adds ``grasp_weight`` x the
+window mean of the load they carry beyond friction cones shrunk by ``grasp_margin`` (the sampling stage's
+grasp term, :func:`quasisim.method.stages.sampling.grasp_term`), so the tracker keeps the margin a plan was
+made with instead of re-planning to the nominal model's cheapest grasp at the rim of its cones.
+
 An observation that carries a time stamp ``frame`` older than ``t`` (a late sensor,
 :class:`~quasisim.targets.perturb.Sensor`) is brought up to date in the model first: synced there, then advanced
 through the targets the tracker applied since (a Smith predictor); the re-plan starts from that prediction.
@@ -136,6 +142,8 @@ class TrackOptions:
             the nominal model alone).  world_thin: the ``thin`` worlds' contact depth (m).  world_risk: how a
             window's costs over the models are aggregated (``worst``, ``mean``, ``cvar``).  world_cvar: the
             fraction of the worst costs ``cvar`` averages.
+        grasp_weight, grasp_margin, grasp_slots: the grasp margin in the window cost ("Grasp margin"; weight 0:
+            none), as the sampling stage's options of those names.
     """
 
     every: int = 1
@@ -168,17 +176,20 @@ class TrackOptions:
     world_thin: float = 0.001
     world_risk: str = "worst"
     world_cvar: float = 0.5
+    grasp_weight: float = 0.0
+    grasp_margin: float = 0.2
+    grasp_slots: int = 8
     path: str = ""
 
     def __post_init__(self) -> None:
         where = self.path or None
         for name, lo in (("every", 0), ("samples", 2), ("horizon", 1), ("knots", 1), ("threads", 1), ("seed", 0),
-                         ("lead", 0)):  # fmt: skip
+                         ("lead", 0), ("grasp_slots", 1)):  # fmt: skip
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise InputError(where, name, f"an integer >= {lo}", repr(v))
         for name in ("noise_base_pos", "noise_base_rot", "noise_joints", "strict_weight", "strict_margin", "model_dt",
-                     "shift_fade", "grip_gap", "object_weight"):  # fmt: skip
+                     "shift_fade", "grip_gap", "object_weight", "grasp_weight"):  # fmt: skip
             v = getattr(self, name)
             if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v < float("inf"):
                 raise InputError(where, name, "a finite number >= 0", repr(v))
@@ -196,8 +207,10 @@ class TrackOptions:
                 raise InputError(where, name, "true or false", repr(getattr(self, name)))
         if isinstance(self.obs_gain, bool) or not isinstance(self.obs_gain, int | float) or not 0 < self.obs_gain <= 1:
             raise InputError(where, "obs_gain", "a gain in (0, 1]", repr(self.obs_gain))
-        if isinstance(self.keep, bool) or not isinstance(self.keep, int | float) or not 0 <= self.keep < 1:
-            raise InputError(where, "keep", "a fraction in [0, 1)", repr(self.keep))
+        for name in ("keep", "grasp_margin"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v < 1:
+                raise InputError(where, name, "a fraction in [0, 1)", repr(v))
         from quasisim.method.options import RISK_MEASURES
         from quasisim.targets.perturb import NAMED_WORLDS
 
@@ -354,6 +367,7 @@ class Tracker:
         base = np.concatenate([np.arange(s.start, s.start + 6) for s in scene.dof_slices])
         self._base_cols = base if len(scene.hands) > 1 else None  # window_costs' smoothness split (one hand: None)
         self._fingers = finger_columns(scene)  # grip: the hands' finger joints
+        self._contacts = opts.grasp_slots if opts.grasp_weight > 0 else 0  # "Grasp margin": contact slots per hand
         self.replans, self.physics_steps, self.seconds = 0, 0, 0.0
         self.step_seconds: list[float] = []  # wall time of every act() (s)
         self.replan_seconds: list[float] = []  # wall time of every re-plan (s)
@@ -486,14 +500,15 @@ class Tracker:
             bias = grip_bias(current[0], np.asarray(obs["qpos"]), self._fingers, g, o.grip_gap)
             wins[-2 - len(shifts) - k, 1:] = current[1:] + bias
         self.model.sync(obs)
-        pred = self.model.rollout_windows(wins)
+        pred = self.model.rollout_windows(wins, None, None, self._contacts)
         w = slice(t + 1, t + H + 1)
         ref_pos, ref_quat, ref_kp = (r[w] for r in self._ref)
         frame_w = (np.arange(t + 1, t + H + 1) < T).astype(np.float64)
         dp, dq = (r[w] for r in self._demo_ref)
 
         def score(p: Any) -> np.ndarray:  # the window cost of predictions ``p``, with the hinge where asked
-            c = window_costs(wins, p, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols)
+            c = window_costs(wins, p, ref_pos, ref_quat, ref_kp, frame_w, self.weights, self._base_cols,
+                             grasp=(o.grasp_weight, o.grasp_margin))  # fmt: skip
             if o.strict_weight > 0:
                 from quasisim.method.stages.sampling import strict_hinge
 
@@ -524,7 +539,7 @@ class Tracker:
         others = []
         for m in self.world_models:
             m.sync(obs)
-            pred = m.rollout_windows(wins)
+            pred = m.rollout_windows(wins, None, None, self._contacts)
             self.physics_steps += pred.n_steps
             others.append(score(pred))
         everyone = np.arange(len(wins))
