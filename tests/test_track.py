@@ -594,9 +594,9 @@ def test_grip_candidates_press_only_the_fingers_the_object_holds_back_harder(cli
             seen.append([obs["qpos"]])
             plan(t, obs)
 
-        def windows(wins: np.ndarray):
+        def windows(wins: np.ndarray, *args, **kwargs):
             seen[-1].append(wins.copy())
-            return rollout(wins)
+            return rollout(wins, *args, **kwargs)
 
         tr._replan, tr.model.rollout_windows = watched, windows
         replay(world, q, tr)
