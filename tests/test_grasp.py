@@ -132,3 +132,34 @@ def test_sampling_with_the_grasp_margin_applies_windows_that_hold_inside_the_shr
     firm = run_sampling(demo, scene, plan, grasp, W, progress=False)
     assert excess(plain.q_targets) > 0.5  # the fixture's grasp does not hold with that margin
     assert excess(firm.q_targets) < 0.7 * excess(plain.q_targets)
+
+
+def test_two_hands_report_their_own_contacts() -> None:
+    """An ARCTIC clip's kinematic retarget holds the box with both hands: each hand's sensor (its own subtree)
+    reports what ``mj_contactForce`` reads of that hand's bodies, the right hand's slots first."""
+    from conftest import ARCTIC_CLIP
+    from helpers import missing_data
+    from quasisim.assets.hand import load_hand
+    from quasisim.data.demo import load_demo
+    from quasisim.method.retarget import kinematic_controls
+    from quasisim.targets import Target, make_target
+    from quasisim.targets.build import scene_for
+    from quasisim.targets.scene import place_hands
+
+    if not ARCTIC_CLIP.is_file():
+        missing_data(f"ARCTIC clip not found at {ARCTIC_CLIP} (set QUASISIM_DATA to the folder that holds arctic/)")
+    demo = load_demo(ARCTIC_CLIP)
+    hands = (load_hand("shadow"), load_hand("shadow", side="left"))
+    c = kinematic_controls(hands, demo, "shadow")
+    q, scene = c.q_targets, scene_for(demo, place_hands(hands, c.base_rots))
+    with make_target("mujoco", scene, threads=2) as tgt:
+        tgt.reset(q[0], (q[1] - q[0]) * demo.fps)
+        for t in range(44):
+            tgt.advance(q[t], q[t + 1])
+        per_hand = tgt.contact_forces(4)
+        wins = q[None, 44:48]
+        fast = tgt.rollout_windows(wins, None, None, contacts=4)
+        loop = Target.rollout_windows(tgt, wins, None, None, contacts=4)
+    assert per_hand.shape == (2, 4, 3) and np.all(np.abs(per_hand[:, 0, 0]) > 0)  # both hands touch the box
+    np.testing.assert_allclose(fast.cones, loop.cones, rtol=0, atol=1e-9)
+    assert fast.cones.shape == (1, 3, 8, 2)
