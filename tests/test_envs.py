@@ -240,3 +240,220 @@ def test_bench_env_times_resets_and_steps(clip) -> None:
     row = r.stdout.strip().splitlines()[-1].strip("|").split("|")
     assert "resets/s" in r.stdout and int(row[2]) == 3 and int(row[5]) == 30
     assert all(float(x) > 0 for x in row)
+
+
+def _quat_close(a, b, tol: float) -> bool:
+    """Two unit quaternions (w x y z) of the same rotation within ``tol`` (either sign)."""
+    a, b = np.asarray(a), np.asarray(b)
+    return min(np.abs(a - b).max(), np.abs(a + b).max()) <= tol
+
+
+def test_a_random_start_lands_on_the_drawn_frame_in_the_reference_replays_state(clip, monkeypatch) -> None:
+    """``start: random``: the start frame is the env generator's draw after the world's, in [0, T - 2]; the world
+    (a perturbed one) is in the state of the reference's nominal MuJoCo replay at that frame; the episode goes on
+    from there and is never ``tracked``; a forced start works alike."""
+    from gymnasium.utils import seeding
+
+    import quasisim.limits
+
+    _, demo, controls, scene = clip
+    T = demo.n_frames
+    with make_target("mujoco", scene) as tgt:
+        ref = tgt.rollout(controls.q_targets)
+    env = _env(clip, residual=True, overrides={"start": "random", "terminate": "unstable"})
+    u = env.unwrapped
+    starts = []
+    for seed in range(6):
+        _, info = env.reset(seed=seed)
+        g, _ = seeding.np_random(seed)
+        g.integers(2**31)  # the world's draw first
+        assert info["start"] == int(g.integers(T - 1)) and info["world"] != -1
+        starts.append(info["start"])
+    assert len(set(starts)) > 2 and 0 <= min(starts) and max(starts) <= T - 2
+    monkeypatch.setattr(quasisim.limits, "strict_success", lambda *a: True)  # the poses would all pass
+    zeros = np.zeros(env.action_space.shape, np.float32)
+    k = max(starts)
+    for kw in ({"seed": starts.index(k)}, {"options": {"start": 7, "world": 4}}):
+        obs, info = env.reset(**kw)
+        k = info["start"]
+        assert k == kw.get("options", {}).get("start", max(starts)) and u._t == k
+        np.testing.assert_array_equal(u._prev, u.task.reference[k])
+        assert obs[0] == pytest.approx(k / (T - 1))  # the clip's phase
+        now = u._world.observe()
+        np.testing.assert_allclose(now["obj_pos"], ref.object_pos[k], atol=1e-6)
+        assert _quat_close(now["obj_quat"], ref.object_quat[k], 1e-6)
+        np.testing.assert_allclose(now["qpos"], ref.qpos[k], atol=1e-6)
+        seen, _, info = _episode(env, [zeros] * (T - 1), **kw)
+        assert len(seen) == T - k and info["frames"] == T - 1  # the episode ran from frame k to the end
+        assert info["tracked"] is False  # but not from frame 0
+    _, _, info = _episode(env, [zeros] * (T - 1), options={"start": 0})
+    assert info["tracked"] is True  # from frame 0: the (stubbed) strict success
+    with pytest.raises(ValueError, match=r"start.*\[0, 18\]"):
+        env.reset(options={"start": T - 1})
+    env.close()
+
+
+def test_a_forced_start_at_frame_0_is_the_reset_of_start_first(clip) -> None:
+    actions = 0.3 * np.random.default_rng(2).uniform(-1, 1, (19, clip[3].n_dof)).astype(np.float32)
+    old = _env(clip, residual=True)
+    new = _env(clip, residual=True, overrides={"start": "random"})
+    a = _episode(old, actions, seed=11)
+    b = _episode(new, actions, seed=11, options={"start": 0})
+    np.testing.assert_array_equal(np.array(a[0]), np.array(b[0]))
+    assert a[1] == b[1] and len(a[1]) > 1
+    info = new.reset(seed=11, options={"start": 0})[1]
+    assert info == old.reset(seed=11)[1] and info["start"] == 0
+    start = new.unwrapped.world_scene(info["world"]).object_pos0  # the drawn world's, not the nominal replay's
+    assert not np.allclose(start, clip[1].object_pos[0], atol=1e-4)
+    np.testing.assert_array_equal(new.unwrapped._world.observe()["obj_pos"], start)
+    old.close()
+    new.close()
+
+
+def _off_by(monkeypatch, env, cm: float) -> None:
+    """The env's MuJoCo world observes the object ``cm`` off the demo's position along x, at the demo's rotation."""
+    from quasisim.targets.mujoco_target import MujocoTarget
+
+    demo, world = env.unwrapped.task.demo, MujocoTarget.observe
+
+    def observe(self):
+        obs, t = world(self), env.unwrapped._t
+        obs["obj_pos"] = demo.object_pos[t] + [cm / 100, 0.0, 0.0]
+        obs["obj_quat"] = np.asarray(demo.object_quat[t], np.float64)
+        return obs
+
+    monkeypatch.setattr(MujocoTarget, "observe", observe)
+
+
+def test_the_limits_loosen_then_tighten_over_the_envs_steps(clip, monkeypatch) -> None:
+    """``limits_start: [6, 90]`` over ``limits_steps: 100``: the limits in force shrink linearly to the strict
+    ones; an object 3 cm off ends the episode at the schedule's end but not at its start; the env counts its own
+    steps and ``set_steps_taken`` continues the schedule from a count."""
+    cfg = TrackEnvConfig.from_yaml(None, {"limits_start": [6, 90], "limits_steps": 100})
+    assert [cfg.limits(n) for n in (0, 25, 50, 100, 10**6)] == [(6, 90), (5, 75), (4, 60), (2, 30), (2, 30)]
+    assert TrackEnvConfig.from_yaml().limits(0) == (2.0, 30.0)  # the default: strict throughout
+    env = _env(clip, residual=True, overrides={"randomize": False, "limits_start": [6, 90], "limits_steps": 100})
+    _off_by(monkeypatch, env, 3.0)
+    zeros = np.zeros(env.action_space.shape, np.float32)
+    env.reset()
+    for n in range(4):
+        _, _, term, _, info = env.step(zeros)
+        assert info["object_pos"] == pytest.approx(3.0) and not term  # within the loose limits
+        assert info["limits"] == pytest.approx([6 - 4 * n / 100, 90 - 60 * n / 100])
+    assert env.unwrapped.steps_taken == 4
+    env.unwrapped.set_steps_taken(50)  # a resumed training: the schedule goes on from there
+    env.reset()
+    _, _, term, _, info = env.step(zeros)
+    assert info["limits"] == pytest.approx([4.0, 60.0]) and not term
+    _, _, term, _, info = env.step(zeros)
+    assert info["limits"] == pytest.approx([3.96, 59.4]) and env.unwrapped.steps_taken == 52
+    env.unwrapped.set_steps_taken(100)  # the schedule's end: the strict limits
+    env.reset()
+    _, _, term, _, info = env.step(zeros)
+    assert info["limits"] == [2.0, 30.0] and term and info["tracked"] is False and info["frames"] == 1
+    with pytest.raises(ValueError, match="set_steps_taken"):
+        env.unwrapped.set_steps_taken(-1)
+    env.close()
+
+
+def test_new_settings_are_validated(clip) -> None:
+    bad = {"start": "middle"}, {"limits_start": [1.5, 90]}, {"limits_start": [6, 20]}, {"limits_steps": -1}
+    for override in bad:
+        with pytest.raises(InputError, match=rf"track_env\.yaml.*'{next(iter(override))}'"):
+            TrackEnvConfig.from_yaml(None, override)
+    with pytest.raises(ValueError, match="start: random"):
+        _env(clip, overrides={"start": "random"}, physics={"substeps": 1})
+
+
+def test_a_validation_tie_keeps_the_later_model(clip, tmp_path, monkeypatch) -> None:
+    """:class:`quasisim.policy.train.Selector`: a score equal to the best one so far replaces it (the later, more
+    trained model); a lower one does not; a higher one does."""
+    import json
+    import shutil
+
+    import quasisim.policy.controller as controller
+    from quasisim.files import save_json_atomic
+    from quasisim.policy.controller import Score
+    from quasisim.policy.train import BEST, REFERENCE, SETUP, VALIDATION, Selector, TrainSetup
+
+    path = clip[0]
+    shutil.copyfile(path.parent / "kinematic.npz", tmp_path / REFERENCE)
+    setup = TrainSetup(str(path), "ours+residual", "mujoco", "kinematic.npz")
+    save_json_atomic(tmp_path / SETUP, dataclasses.asdict(setup))
+    scores = {0: Score(False, 0.5, 0.5), 64: Score(False, 0.5, 0.5), 128: Score(False, 0.0, 0.9),
+              192: Score(True, 0.0, 0.0)}  # fmt: skip
+
+    class Model:
+        def __init__(self, steps: int) -> None:
+            self.num_timesteps = steps
+
+        def save(self, p) -> None:
+            p.write_text(str(self.num_timesteps))
+
+    monkeypatch.setattr(controller, "validate", lambda task, model, *a: scores[model.num_timesteps])
+    select = Selector(tmp_path, setup, 0)
+    for steps, best in ((0, 0), (64, 64), (128, 64), (192, 192)):
+        assert select(Model(steps)) == scores[steps]
+        assert json.loads((tmp_path / VALIDATION).read_text())["best"]["steps"] == best
+        assert (tmp_path / BEST).read_text() == str(best)
+
+
+def test_the_hand_frame_in_the_observation(clip) -> None:
+    """``observe_hand_frame``: 6 more numbers per hand, after the others: the object's position in the hand's frame
+    (wrist keypoint; x to the middle of the index and ring finger bases, z their plane's normal) in 2 cm and its
+    rotation relative to the frame in 30 deg, for a known pose."""
+    from quasisim.keypoints import KEYPOINT_NAMES
+
+    _, demo, controls, scene = clip
+    cfg = TrackEnvConfig.from_yaml(None, {"observe_hand_frame": True})
+    task = TrackTask(demo, scene, controls.q_targets, cfg, residual=True)
+    plain = TrackTask(demo, scene, controls.q_targets, TrackEnvConfig.from_yaml(), residual=True)
+    assert len(scene.hands) == 1 and task.observation_size == plain.observation_size + 6
+    env = _env(clip, residual=True, overrides={"observe_hand_frame": True})
+    assert env.observation_space.shape == (task.observation_size,) == env.reset()[0].shape
+    env.close()
+    D, K = scene.n_dof, len(scene.kp_human)
+    wrist = np.array([0.1, 0.2, 0.3])
+    kp = np.zeros((K, 3))
+    for name, at in (("wrist", [0, 0, 0]), ("index_mcp", [0, 0.01, 0.01]), ("ring_mcp", [0, 0.01, -0.01])):
+        kp[scene.kp_human == KEYPOINT_NAMES.index(name)] = wrist + at
+    # the frame: x = (0, 1, 0), z = (-1, 0, 0), y = (0, 0, -1); a rotation of 120 deg about (-1, -1, 1)/sqrt 3
+    obs = {"qpos": controls.q_targets[5], "qvel": np.zeros(D), "obj_pos": wrist + np.array([0.04, 0.02, 0.01]),
+           "obj_quat": np.array([1.0, 0, 0, 0]), "obj_vel": np.zeros(3), "obj_angvel": np.zeros(3),
+           "keypoints": kp}  # fmt: skip
+    o = task.observation(5, obs)
+    np.testing.assert_array_equal(o[:-6], plain.observation(5, obs))
+    np.testing.assert_allclose(o[-6:-3], [1.0, -0.5, -2.0], atol=1e-6)  # (2, -1, -4) cm
+    np.testing.assert_allclose(o[-3:], 4 / np.sqrt(3) * np.array([1, 1, -1]), atol=1e-5)  # 120 deg the other way
+
+
+def test_the_learning_settings_pass_the_env_checker_and_skip_worlds_replays_the_starts(clip) -> None:
+    """Random starts and the hand frame pass Gymnasium's checker (a limits schedule would not: it checks that a
+    seed repeats the step's info, whose limits the env's step count sets); skipping ``n`` draws replays the
+    worlds and the start frames of ``n`` resets."""
+    overrides = {"start": "random", "observe_hand_frame": True}
+    env = _env(clip, residual=True, overrides=overrides)
+    check_env(env.unwrapped, skip_render_check=True)
+    drawn = [env.reset(seed=5)[1]] + [env.reset()[1] for _ in range(3)]
+    assert len({d["start"] for d in drawn}) > 1
+    _, info = env.reset(seed=5, options={"skip_worlds": 2})  # a resumed training: worlds and starts go on
+    assert [info, env.reset()[1]] == drawn[2:] and env.unwrapped.worlds_drawn == 4
+    env.close()
+
+
+def test_a_resumed_training_continues_the_limits_schedule(clip, tmp_path, monkeypatch) -> None:
+    """``policy train --resume`` sets each environment's step count to the steps it had taken: the limits go on
+    shrinking where they were (one environment in this process, 64 steps, then resumed to 128)."""
+    pytest.importorskip("stable_baselines3", reason="the optional extra rl is not installed")
+    from quasisim.envs.track import TrackEnv
+    from quasisim.policy.train import prepare, train
+
+    path, counts = clip[0], []
+    step = TrackEnv.step
+    monkeypatch.setattr(TrackEnv, "step", lambda self, a: counts.append(self.steps_taken) or step(self, a))
+    out = tmp_path / "run"
+    ppo = {"n_envs": 1, "n_steps": 64, "batch_size": 64, "checkpoint_every": 64, "validate_worlds": 0}
+    prepare(path, out, path.parent / "kinematic.npz", "shadow", "mujoco", 3, {"limits_steps": 1000}, ppo)
+    train(out, 64, progress=False)
+    train(out, 128, resume=True, progress=False)
+    assert counts == list(range(128))  # without set_steps_taken: 0..63 twice

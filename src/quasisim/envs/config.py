@@ -8,9 +8,11 @@ from typing import Any
 
 from quasisim.config import load
 from quasisim.errors import InputError
+from quasisim.limits import STRICT_CM, STRICT_DEG
 
 TRACK_ENV_PATH = Path(__file__).resolve().parent.parent / "configs" / "track_env.yaml"
 TERMINATIONS = ("strict", "unstable")
+STARTS = ("first", "random")  # reference state initialisation: the clip's first frame, or a random one
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,10 @@ class TrackEnvConfig:
     randomize: bool = True
     ranges: str = "default"
     world_seed: int = 1000
+    start: str = "first"
+    limits_start: tuple[float, float] = (2.0, 30.0)
+    limits_steps: int = 0
+    observe_hand_frame: bool = False
     path: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -77,6 +83,23 @@ class TrackEnvConfig:
                 raise InputError(where, kind, "positive scales", repr(s))
         if self.contact_radius <= 0:
             raise InputError(where, "contact_radius", "a distance > 0 m", repr(self.contact_radius))
+        if self.start not in STARTS:
+            raise InputError(where, "start", f"one of {', '.join(STARTS)}", repr(self.start))
+        cm, deg = self.limits_start
+        if not (cm >= STRICT_CM and deg >= STRICT_DEG):  # also refuses NaN
+            raise InputError(where, "limits_start", f"[cm, deg] at least the strict limits [{STRICT_CM:g}, "
+                             f"{STRICT_DEG:g}]", f"[{cm:g}, {deg:g}]")  # fmt: skip
+        if self.limits_steps < 0:
+            raise InputError(where, "limits_steps", "a count of env steps >= 0", repr(self.limits_steps))
+
+    def limits(self, steps: int) -> tuple[float, float]:
+        """The termination limits (cm, deg) in force after ``steps`` env steps: ``limits_start`` shrinking
+        linearly to the strict limits (:data:`quasisim.limits.STRICT_CM`, ``STRICT_DEG``) over the first
+        ``limits_steps`` steps, the strict limits from then on (and throughout with ``limits_steps: 0``)."""
+        if steps >= self.limits_steps:
+            return STRICT_CM, STRICT_DEG
+        f, (cm, deg) = steps / self.limits_steps, self.limits_start
+        return cm + f * (STRICT_CM - cm), deg + f * (STRICT_DEG - deg)
 
     @classmethod
     def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> TrackEnvConfig:

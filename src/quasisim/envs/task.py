@@ -12,7 +12,12 @@ action chooses the PD targets of frame ``t + 1``; the reward and termination jud
   ``e_rot`` its rotation error (deg) against the demo, ``e_kp`` the mean distance of the robot's keypoints to
   the demo's (cm), ``e_contact`` the mean distance (cm) of the fingertips that touch the object in the demo to
   the demo's fingertips, both in the object's frame.
-* **Termination**: the first frame outside the strict limits (2 cm, 30 deg; ``terminate: strict``), a blow-up
+* **Hand frame** (``observe_hand_frame``; :func:`hand_frames`): per hand, the frame at its wrist keypoint with
+  ``x`` towards the middle of the index and ring finger bases (``index_mcp``, ``ring_mcp``; every robot hand
+  has them, the Allegro no little finger), ``z = (index - wrist) x (ring - wrist)`` normalised (the palm's
+  normal, either side by the hand's side), ``y = z x x``.
+* **Termination**: the first frame outside the strict limits (2 cm, 30 deg; ``terminate: strict``; the env may
+  loosen them early in training, ``limits_start``/``limits_steps``), a blow-up
   (object faster than :data:`~quasisim.targets.base.MAX_OBJECT_SPEED`, a state not finite, or a warning of the
   simulator, which for MuJoCo means it has reset the state), the clip's last frame.
 """
@@ -26,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from quasisim.data.demo import Demo
 from quasisim.envs.config import DofScale, TrackEnvConfig
-from quasisim.keypoints import FINGERTIPS, N_KEYPOINTS
+from quasisim.keypoints import FINGERTIPS, KEYPOINT_NAMES, N_KEYPOINTS
 from quasisim.limits import STRICT_CM, STRICT_DEG
 from quasisim.targets.base import MAX_OBJECT_SPEED, Observation
 from quasisim.targets.scene import Scene
@@ -36,6 +41,39 @@ def dof_scale(scene: Scene, s: DofScale) -> np.ndarray:
     """(D,) the action scale of every dof of ``scene``'s hands: 3 base slides, 3 base hinges, the joints."""
     return np.concatenate([np.r_[[s.base_pos] * 3, [s.base_rot] * 3, [s.joints] * (sl.stop - sl.start - 6)]
                            for sl in scene.dof_slices])  # fmt: skip
+
+
+HAND_FRAME_KEYPOINTS = tuple(KEYPOINT_NAMES.index(n) for n in ("wrist", "index_mcp", "ring_mcp"))
+"""The human keypoints whose robot keypoints span each hand's frame (:func:`hand_frames`): wrist, two finger bases."""
+
+
+def hand_frame_keypoints(scene: Scene) -> np.ndarray:
+    """(H, 3) for each hand of ``scene``, the robot keypoints (indices into an observation's ``keypoints``) of its
+    wrist, index finger base and ring finger base (:data:`HAND_FRAME_KEYPOINTS`); ValueError naming the hand
+    where one is missing."""
+    kp, rows = scene.kp_human, []
+    for i, hand in enumerate(scene.hands):
+        row = [np.flatnonzero(kp == N_KEYPOINTS * i + k) for k in HAND_FRAME_KEYPOINTS]
+        missing = [KEYPOINT_NAMES[k] for k, r in zip(HAND_FRAME_KEYPOINTS, row, strict=True) if not len(r)]
+        if missing:
+            raise ValueError(f"observe_hand_frame: hand {hand.name} has no robot keypoint for {', '.join(missing)}")
+        rows.append([int(r[0]) for r in row])
+    return np.array(rows, dtype=np.int64)
+
+
+def hand_frames(keypoints: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each hand's frame from the robot ``keypoints`` (K, 3) m and :func:`hand_frame_keypoints` ``idx`` (H, 3):
+    origins (H, 3) m, the wrist keypoints, and rotations (H, 3, 3) whose columns are the frame's axes in world
+    coordinates: ``x`` from the wrist towards the middle of the two finger bases, ``z`` the normal of the plane
+    of the three points (``(index - wrist) x (ring - wrist)``), ``y = z x x``."""
+    p = np.asarray(keypoints, np.float64)[idx]  # (H, 3 points, 3)
+    a, b = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    x = a + b
+    x /= np.linalg.norm(x, axis=-1, keepdims=True)
+    z = np.cross(a, b)
+    z -= np.sum(z * x, axis=-1, keepdims=True) * x  # orthogonal to x (it is already, but for rounding)
+    z /= np.linalg.norm(z, axis=-1, keepdims=True)
+    return p[:, 0], np.stack([x, np.cross(z, x), z], axis=-1)
 
 
 def _rot(quat: np.ndarray) -> Rotation:
@@ -81,6 +119,7 @@ class TrackTask:
     touch: np.ndarray = field(init=False, repr=False)
     tips_local: np.ndarray = field(init=False, repr=False)
     demo_rot: Rotation = field(init=False, repr=False)
+    frame_kp: np.ndarray | None = field(init=False, repr=False)  # (H, 3) hand_frame_keypoints, observe_hand_frame
 
     def __post_init__(self) -> None:
         ref = np.asarray(self.reference, np.float64)
@@ -97,6 +136,7 @@ class TrackTask:
         set_(self, "touch", touch)
         set_(self, "tips_local", local)
         set_(self, "demo_rot", _rot(self.demo.object_quat))
+        set_(self, "frame_kp", hand_frame_keypoints(self.scene) if self.cfg.observe_hand_frame else None)
 
     @property
     def n_frames(self) -> int:
@@ -105,14 +145,18 @@ class TrackTask:
     @property
     def observation_size(self) -> int:
         D, H, Km = self.scene.n_dof, self.cfg.horizon, len(self.metric)
-        return 1 + 2 * D + 12 + 3 * Km + H * (D + 3)
+        frames = 0 if self.frame_kp is None else 6 * len(self.frame_kp)
+        return 1 + 2 * D + 12 + 3 * Km + H * (D + 3) + frames
 
     def observation(self, t: int, obs: Observation) -> np.ndarray:
         """(observation_size,) float32: the clip's phase; the hands' pose against the reference and their
         velocity (in action units per frame); the object's position (cm) and rotation (deg) errors against
         the demo, its linear and angular velocity per frame, all in units of the strict limits; the robot
         keypoints against the demo's (in 2 cm); then for each of the next ``horizon`` frames the reference's
-        change (action units) and the demo object's path from the object now (in 2 cm)."""
+        change (action units) and the demo object's path from the object now (in 2 cm); with
+        ``observe_hand_frame``, for each hand in turn the object's position in the hand's frame
+        (:func:`hand_frames`, in 2 cm) and its rotation relative to that frame (``R_hand^T R_object`` as a
+        rotation vector, in 30 deg)."""
         T, ref, s, fps = self.n_frames, self.reference, self.scale, self.scene.fps
         future = np.minimum(np.arange(t + 1, t + 1 + self.cfg.horizon), T - 1)
         pos, quat = np.asarray(obs["obj_pos"]), np.asarray(obs["obj_quat"])
@@ -130,6 +174,11 @@ class TrackTask:
             ((ref[future] - ref[t]) / s).ravel(),
             (100 * (self.demo.object_pos[future] - pos) / STRICT_CM).ravel(),
         ]
+        if self.frame_kp is not None:
+            origin, R = hand_frames(np.asarray(obs["keypoints"]), self.frame_kp)
+            local = np.einsum("hji,hj->hi", R, pos - origin)  # R^T (pos - origin)
+            rel = (Rotation.from_matrix(R).inv() * _rot(quat)).as_rotvec()  # (H, 3)
+            parts.append(np.concatenate([100 * local / STRICT_CM, np.degrees(rel) / STRICT_DEG], axis=1).ravel())
         return np.clip(np.concatenate([np.ravel(p) for p in parts]), -100.0, 100.0).astype(np.float32)
 
     def targets(self, t: int, action: np.ndarray, obs: Observation) -> np.ndarray:
@@ -173,4 +222,8 @@ class TrackTask:
         return not finite or float(np.linalg.norm(v)) > MAX_OBJECT_SPEED
 
     def within_strict(self, errors: dict[str, float]) -> bool:
-        return errors["object_pos"] <= STRICT_CM and errors["object_rot"] <= STRICT_DEG
+        return self.within(errors, (STRICT_CM, STRICT_DEG))
+
+    def within(self, errors: dict[str, float], limits: tuple[float, float]) -> bool:
+        """The object is within ``limits`` (cm, deg) of the demo's pose (:meth:`errors`)."""
+        return errors["object_pos"] <= limits[0] and errors["object_rot"] <= limits[1]

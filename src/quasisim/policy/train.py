@@ -282,8 +282,8 @@ def training_task(out: Path, setup: TrainSetup) -> tuple[Any, Any]:
 class Selector:
     """Validates the model at every checkpoint (:func:`~quasisim.policy.controller.validate`: the nominal world and
     ``validate_worlds`` training worlds) and keeps the best one seen in ``best.zip``, the fresh model included
-    (a residual policy's is our result, nearly untouched); ``validation.json`` holds every score and the seconds
-    spent, across resumes."""
+    (a residual policy's is our result, nearly untouched; among equal scores the later one); ``validation.json``
+    holds every score and the seconds spent, across resumes."""
 
     def __init__(self, out: Path, setup: TrainSetup, worlds: int) -> None:
         from quasisim.envs.track import world_config
@@ -303,7 +303,7 @@ class Selector:
         t0 = time.perf_counter()
         score = validate(self.task, model, self.target, self.worlds, self.ranges.seed, self.ranges)
         best = self.state["best"]
-        if best is None or score > Score(*best["score"]):
+        if best is None or score >= Score(*best["score"]):  # a tie: the later, more trained model
             with atomic_path(self.out / BEST) as tmp:
                 model.save(tmp)
             self.state["best"] = {"steps": steps, "score": list(score)}
@@ -375,6 +375,13 @@ def _continue_worlds(venv: Any, meta: dict[str, Any]) -> None:
     venv.set_options([{"skip_worlds": int(n)} for n in drawn])
 
 
+def _continue_schedule(venv: Any, model: Any) -> None:
+    """Set each environment's step count (:meth:`~quasisim.envs.track.TrackEnv.set_steps_taken`: the schedule of
+    its termination limits, ``limits_steps``) to the training's steps per environment so far, so that a resumed
+    training's (and the next span's new) environments go on with the schedule where it was."""
+    venv.env_method("set_steps_taken", int(model.num_timesteps) // venv.num_envs)
+
+
 def _vec_env(out: Path, setup: TrainSetup, n: int, physics: dict[str, float] | None = None) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
@@ -411,6 +418,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
                 venv.seed(setup.seed + todo[0])  # span k's worlds: seed + k (as when it started)
             if meta.get("span", 0) == todo[0]:  # else the checkpoint closed the span before: its worlds start
                 _continue_worlds(venv, meta)
+            _continue_schedule(venv, model)
         else:
             model = PPO("MlpPolicy", venv, seed=setup.seed, device="cpu", verbose=0, **cfg.ppo_kwargs(setup.residual))
         logs = out / LOGS
@@ -426,6 +434,7 @@ def train(out: Path, steps: int, resume: bool = False, progress: bool = True) ->
                 venv = _vec_env(out, setup, cfg.n_envs, spans[k][0])
                 model.set_env(venv)
                 venv.seed(setup.seed + k)
+                _continue_schedule(venv, model)
             model.learn(spans[k][1] - model.num_timesteps,
                         callback=_callbacks(out, cfg.checkpoint_every, wall0, select, k),
                         reset_num_timesteps=False, progress_bar=progress)  # fmt: skip
