@@ -18,7 +18,7 @@ from gymnasium.utils.env_checker import check_env
 import quasisim.envs
 from helpers import cube_example
 from quasisim.envs.config import TrackEnvConfig
-from quasisim.envs.task import TrackTask
+from quasisim.envs.task import Contacts, TrackTask
 from quasisim.errors import InputError
 from quasisim.targets import make_target
 
@@ -457,3 +457,203 @@ def test_a_resumed_training_continues_the_limits_schedule(clip, tmp_path, monkey
     train(out, 64, progress=False)
     train(out, 128, resume=True, progress=False)
     assert counts == list(range(128))  # without set_steps_taken: 0..63 twice
+
+
+# ---- reward_form: dgrasp (DGrasp's reward terms) ------------------------------------------------------------
+
+
+def _dgrasp(clip, **overrides) -> TrackTask:
+    _, demo, controls, scene = clip
+    cfg = TrackEnvConfig.from_yaml(None, {"reward_form": "dgrasp", **overrides})
+    return TrackTask(demo, scene, controls.q_targets, cfg, residual=True)
+
+
+def _on_reference(task: TrackTask, t: int) -> dict:
+    """Frame ``t`` exactly as the task's reference has it: the demo's object and keypoints, the reference's pose,
+    nothing moving."""
+    demo, D = task.demo, task.scene.n_dof
+    return {"qpos": task.reference[t].copy(), "qvel": np.zeros(D), "obj_pos": demo.object_pos[t].copy(),
+            "obj_quat": demo.object_quat[t].copy(), "obj_vel": np.zeros(3), "obj_angvel": np.zeros(3),
+            "keypoints": demo.human_joints[t, task.scene.kp_human].copy()}  # fmt: skip
+
+
+def _no_contact(task: TrackTask, weight: float = 1.0) -> Contacts:
+    return Contacts(np.zeros(sum(h.n_bodies for h in task.scene.hands)), 0.05, weight)
+
+
+def test_dgrasp_pos_term_weighs_fingertips_4x_in_the_objects_frame(clip) -> None:
+    """``pos = -|w (x - x*)|^2``: on the reference 0; a fingertip 1 cm off costs (7/3 cm)^2 (Shadow: 5 tips of 21
+    keypoints, weights 4 and 1 over their mean 36/21), the wrist 1 cm off (7/12 cm)^2, 16x less; moving hand and
+    object together (a rotation and a shift) leaves it as it was, moving the object alone does not; at least -10."""
+    from scipy.spatial.transform import Rotation
+
+    from quasisim.keypoints import KEYPOINT_NAMES
+
+    task, t = _dgrasp(clip), 12
+    obs, none = _on_reference(task, t), _no_contact(task)
+    assert task.dgrasp_terms(t, obs, none)["pos"] == pytest.approx(0.0, abs=1e-20)
+    tip, wrist = (
+        int(np.flatnonzero(task.scene.kp_human == KEYPOINT_NAMES.index(n))[0]) for n in ("index_tip", "wrist")
+    )
+    kp_tip, kp_wrist = obs["keypoints"].copy(), obs["keypoints"].copy()
+    kp_tip[tip] += [0.0, 0.01, 0.0]
+    kp_wrist[wrist] += [0.0, 0.0, -0.01]
+    pos_tip = task.dgrasp_terms(t, {**obs, "keypoints": kp_tip}, none)["pos"]
+    assert pos_tip == pytest.approx(-((0.01 * 7 / 3) ** 2))
+    assert task.dgrasp_terms(t, {**obs, "keypoints": kp_wrist}, none)["pos"] == pytest.approx(-((0.01 * 7 / 12) ** 2))
+    turn, shift = Rotation.from_rotvec([0.3, -0.5, 0.9]), np.array([0.2, -0.1, 0.05])
+    q = obs["obj_quat"]
+    quat = (turn * Rotation.from_quat([*q[1:], q[0]])).as_quat()
+    moved = {**obs, "keypoints": turn.apply(kp_tip) + shift, "obj_pos": turn.apply(obs["obj_pos"]) + shift,
+             "obj_quat": np.r_[quat[3], quat[:3]]}  # fmt: skip
+    assert task.dgrasp_terms(t, moved, none)["pos"] == pytest.approx(pos_tip, rel=1e-9)
+    assert task.dgrasp_terms(t, {**obs, "obj_pos": obs["obj_pos"] + shift}, none)["pos"] < -0.01
+    assert task.dgrasp_terms(t, {**obs, "keypoints": obs["keypoints"] + 5.0}, none)["pos"] == -10.0
+
+
+def test_dgrasp_pose_term_is_the_finger_joints_distance_to_the_reference(clip) -> None:
+    """``pose = -|q - q*|`` over the finger joints (rad): two joints 0.3 and 0.4 rad off give -0.5; the base's six
+    dofs do not count; at least -10."""
+    task, t = _dgrasp(clip), 12
+    obs, none = _on_reference(task, t), _no_contact(task)
+    q = obs["qpos"].copy()
+    q[[7, 12]] += [0.3, -0.4]
+    q[:6] += 0.2  # the base
+    assert task.dgrasp_terms(t, {**obs, "qpos": q}, none)["pose"] == pytest.approx(-0.5)
+    assert task.dgrasp_terms(t, {**obs, "qpos": obs["qpos"] + 100.0}, none)["pose"] == -10.0
+
+
+def test_dgrasp_contact_and_impulse_terms_count_the_demos_touching_fingertips(clip) -> None:
+    """The demo touches the cube with three fingertips from frame 10 (none before): the target bodies are their
+    distal phalanges. ``contact`` is the share of them pressing now; ``impulse`` their normal forces times the
+    frame's duration, capped at 5 object weights; a body the demo does not touch with counts for neither."""
+    task, t = _dgrasp(clip), 12
+    names = [n for h in task.scene.hands for n in h.body_names]
+    targets = task.contact_bodies(t)
+    assert sorted(names[b] for b in targets) == ["robot0:ffdistal", "robot0:mfdistal", "robot0:thdistal"]
+    assert len(task.contact_bodies(5)) == 0
+    obs = _on_reference(task, t)
+
+    def terms(pressing: dict[str, float], weight: float = 1.0, frame_t: int = t) -> dict[str, float]:
+        f = np.zeros(len(names))
+        for name, force in pressing.items():
+            f[names.index(name)] = force
+        return task.dgrasp_terms(frame_t, obs, Contacts(f, 0.05, weight))
+
+    one = terms({"robot0:thdistal": 2.0, "robot0:palm": 7.0, "robot0:rfdistal": 3.0})
+    assert one["contact"] == pytest.approx(1 / 3) and one["impulse"] == pytest.approx(2.0 * 0.05)
+    two = terms({"robot0:thdistal": 2.0, "robot0:ffdistal": 4.0})
+    assert two["contact"] == pytest.approx(2 / 3) and two["impulse"] == pytest.approx(6.0 * 0.05)
+    every = {n: 1.0 for n in ("robot0:thdistal", "robot0:ffdistal", "robot0:mfdistal")}
+    assert terms(every)["contact"] == pytest.approx(1.0)
+    assert terms(every, frame_t=5)["contact"] == 0.0 and terms(every, frame_t=5)["impulse"] == 0.0  # no targets
+    assert terms({"robot0:thdistal": 1000.0}, weight=0.3)["impulse"] == pytest.approx(5 * 0.3)  # 50 N s, capped
+    assert terms({"robot0:thdistal": 20.0}, weight=0.3)["impulse"] == pytest.approx(1.0)  # under the cap
+
+
+def test_dgrasp_velocity_penalties(clip) -> None:
+    """``obj_vel = |v_object|^2``, ``body_vel`` and ``body_qvel`` the base's slide and hinge velocities squared;
+    the finger joints' velocities and the object's spin do not count."""
+    task, t = _dgrasp(clip), 12
+    obs = _on_reference(task, t)
+    qvel = np.zeros(task.scene.n_dof)
+    qvel[:6] = [0.1, -0.2, 0.2, 1.0, 0.0, -2.0]
+    qvel[6:] = 5.0
+    moving = {**obs, "qvel": qvel, "obj_vel": np.array([1.0, 2.0, -2.0]), "obj_angvel": np.array([9.0, 9, 9])}
+    terms = task.dgrasp_terms(t, moving, _no_contact(task))
+    assert terms["obj_vel"] == pytest.approx(9.0)
+    assert terms["body_vel"] == pytest.approx(0.09) and terms["body_qvel"] == pytest.approx(5.0)
+
+
+def test_dgrasp_reward_sums_the_weighted_terms_clipped_at_minus_2(clip) -> None:
+    """The reward is ``sum_k c_k term_k`` with DGrasp's coefficients, each weighted term in the info as ``r_k``
+    beside the errors; a sum below ``clip`` (-2) is -2."""
+    task, t = _dgrasp(clip), 12
+    obs, a = _on_reference(task, t), np.zeros(task.scene.n_dof)
+    f = np.zeros(sum(h.n_bodies for h in task.scene.hands))
+    f[task.contact_bodies(t)[:2]] = [3.0, 1.0]
+    contacts = Contacts(f, 0.05, 1.0)
+    qvel = np.zeros(task.scene.n_dof)
+    qvel[:6] = [0.2, 0, 0, 0, 0.4, 0]
+    moving = {**obs, "qvel": qvel, "obj_vel": np.array([0.3, 0, 0])}
+    r, info = task.reward(t, moving, a, contacts)
+    expected = {"r_pos": 0.0, "r_pose": 0.0, "r_contact": 1.0 * 2 / 3, "r_impulse": 2.0 * 4.0 * 0.05,
+                "r_obj_vel": -1.0 * 0.09, "r_body_vel": -0.5 * 0.04, "r_body_qvel": -0.5 * 0.16}  # fmt: skip
+    assert {k: v for k, v in info.items() if k.startswith("r_")} == pytest.approx(expected, abs=1e-12)
+    assert r == pytest.approx(sum(expected.values())) and info["object_pos"] == pytest.approx(0.0, abs=1e-9)
+    fast = {**moving, "obj_vel": np.array([2.0, 0, 0])}  # -4 from the object's speed alone
+    r, info = task.reward(t, fast, a, contacts)
+    assert r == -2.0 and sum(v for k, v in info.items() if k.startswith("r_")) < -3.0
+    assert _dgrasp(clip, **{"dgrasp_reward.clip": -10.0}).reward(t, fast, a, contacts)[0] < -3.0
+    with pytest.raises(ValueError, match="contacts"):
+        task.reward(t, obs, a)
+
+
+def test_reward_form_tracking_is_todays_reward(clip) -> None:
+    """The default form is ``tracking``: an episode's rewards are the tracking reward's closed form of each step's
+    errors, ``sum_k w_k exp(-e_k / s_k) - c |a|^2 / D``, the same with ``reward_form: tracking`` set, and no DGrasp
+    term in the info."""
+    cfg = TrackEnvConfig.from_yaml()
+    assert cfg.reward_form == "tracking"
+    actions = np.random.default_rng(3).uniform(-1, 1, (5, clip[3].n_dof)).astype(np.float32)
+    seen = []
+    for overrides in ({}, {"reward_form": "tracking"}):
+        env = _env(clip, residual=True, overrides={"terminate": "unstable", **overrides})
+        env.reset(seed=1)
+        rewards = []
+        for a in actions:
+            _, r, _, _, info = env.step(a)
+            assert not any(k.startswith("r_") for k in info)
+            closed = sum(w.weight * np.exp(-info[k] / w.scale) for k, w in cfg.reward.terms().items())
+            assert r == closed - cfg.reward.action_cost * float(np.mean(np.square(a)))  # the same sums, bit for bit
+            rewards.append(r)
+        seen.append(rewards)
+        env.close()
+    assert seen[0] == seen[1]
+
+
+@pytest.mark.parametrize("target", ["mujoco", "pybullet"])
+def test_an_episode_with_the_dgrasp_reward(clip, target) -> None:
+    """The env's zero-residual episode with ``reward_form: dgrasp`` in a training world (the object heavier or
+    lighter than the scene's): every step's reward is the clipped sum of its ``r_*`` terms, and the contact and
+    impulse terms read the world's own contacts (each hand body's force, the physics step x substeps, this world's
+    object weight: with a cap of 0.001 object weights, the impulse of a frame with contacts is that cap). In
+    PyBullet the fingertips reach the cube while the demo touches it (all three of them at once at some frame)."""
+    overrides = {"reward_form": "dgrasp", "terminate": "unstable", "dgrasp_reward.impulse_cap": 0.001}
+    env = _env(clip, residual=True, target=target, overrides=overrides)
+    task = env.unwrapped.task
+    env.reset(options={"world": 2})
+    world = env.unwrapped._world
+    weight = world.scene.obj.mass * world.scene.physics.gravity
+    assert world.scene.obj.mass != task.scene.obj.mass
+    shares = []
+    for _ in range(task.n_frames - 1):
+        _, r, done, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
+        terms = {k: v for k, v in info.items() if k.startswith("r_")}
+        assert len(terms) == 7 and r == max(-2.0, sum(terms.values()))
+        f = env.unwrapped._world.body_contact_forces()[task.contact_bodies(info["frame"])]
+        impulse = min(f.sum() * world.dt * world.substeps, 0.001 * weight)
+        assert info["r_impulse"] == pytest.approx(2.0 * impulse, rel=1e-12, abs=1e-15)
+        assert info["r_contact"] == pytest.approx(np.mean(f > 0) if len(f) else 0.0)
+        if info["r_contact"] > 0:
+            assert info["r_impulse"] == pytest.approx(2.0 * 0.001 * weight, rel=1e-12)
+        shares.append(info["r_contact"])
+        if done:
+            break
+    if target == "pybullet":
+        assert max(shares) == pytest.approx(1.0)
+    env.close()
+
+
+def test_the_dgrasp_settings_are_validated(clip) -> None:
+    bad = (
+        ({"reward_form": "dgrasp2"}, "reward_form"),
+        ({"dgrasp_reward.impulse_cap": 0.0}, "dgrasp_reward.impulse_cap"),
+        ({"dgrasp_reward.pos": "high"}, "dgrasp_reward.pos"),
+        ({"dgrasp_reward.speed": 1.0}, "dgrasp_reward.speed"),
+    )
+    for override, name in bad:
+        with pytest.raises(InputError, match=rf"track_env\.yaml.*'{name}'"):
+            TrackEnvConfig.from_yaml(None, override)
+    with pytest.raises(ValueError, match="reward_form: dgrasp"):
+        _env(clip, overrides={"reward_form": "dgrasp"}, physics={"substeps": 1})

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,6 +15,7 @@ from quasisim.limits import STRICT_CM, STRICT_DEG
 TRACK_ENV_PATH = Path(__file__).resolve().parent.parent / "configs" / "track_env.yaml"
 TERMINATIONS = ("strict", "unstable")
 STARTS = ("first", "random")  # reference state initialisation: the clip's first frame, or a random one
+REWARD_FORMS = ("tracking", "dgrasp")  # the tracking reward (Reward), or DGrasp's terms (DgraspReward)
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,32 @@ class Reward:
 
 
 @dataclass(frozen=True)
+class DgraspReward:
+    """DGrasp's reward (``reward_form: dgrasp``): the coefficient of each term and the per-step lower bound, as in
+    DGrasp's published configuration (github christsa/dgrasp, ``raisimGymTorch/.../envs/dgrasp/cfgs/cfg.yaml``:
+    ``pos_reward`` 2.0, ``pose_reward`` 0.1, ``contact_reward`` 1.0, ``impulse_reward`` 2.0, ``rel_obj_reward_``
+    -1.0, ``body_vel_reward_`` -0.5, ``body_qvel_reward_`` -0.5, ``reward_clip`` -2.0). The terms are
+    :meth:`quasisim.envs.task.TrackTask.dgrasp_terms`; ``impulse_cap`` bounds the impulse term, in object
+    weights ``m g``. ``clip`` is the lower bound DGrasp's configuration names; its published ``runner.py`` computes
+    ``reward.clip(min=reward_clip)`` without keeping the result (its training ran unclipped: set it far below)."""
+
+    pos: float = 2.0
+    pose: float = 0.1
+    contact: float = 1.0
+    impulse: float = 2.0
+    obj_vel: float = -1.0
+    body_vel: float = -0.5
+    body_qvel: float = -0.5
+    clip: float = -2.0
+    impulse_cap: float = 5.0
+
+    def coefficients(self) -> dict[str, float]:
+        """Each term's coefficient by the term's name (``r_<name>`` in a step's info)."""
+        return {"pos": self.pos, "pose": self.pose, "contact": self.contact, "impulse": self.impulse,
+                "obj_vel": self.obj_vel, "body_vel": self.body_vel, "body_qvel": self.body_qvel}  # fmt: skip
+
+
+@dataclass(frozen=True)
 class TrackEnvConfig:
     """The environment's settings; see ``configs/track_env.yaml`` for each key."""
 
@@ -64,6 +93,8 @@ class TrackEnvConfig:
     limits_start: tuple[float, float] = (2.0, 30.0)
     limits_steps: int = 0
     observe_hand_frame: bool = False
+    reward_form: str = "tracking"
+    dgrasp_reward: DgraspReward = field(default_factory=DgraspReward)
     path: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -91,6 +122,14 @@ class TrackEnvConfig:
                              f"{STRICT_DEG:g}]", f"[{cm:g}, {deg:g}]")  # fmt: skip
         if self.limits_steps < 0:
             raise InputError(where, "limits_steps", "a count of env steps >= 0", repr(self.limits_steps))
+        if self.reward_form not in REWARD_FORMS:
+            raise InputError(where, "reward_form", f"one of {', '.join(REWARD_FORMS)}", repr(self.reward_form))
+        for name, value in dataclasses.asdict(self.dgrasp_reward).items():
+            if not math.isfinite(value):  # the YAML loader refuses these; a config built in code may not
+                raise InputError(where, f"dgrasp_reward.{name}", "a finite number", repr(value))
+        if not self.dgrasp_reward.impulse_cap > 0:
+            raise InputError(where, "dgrasp_reward.impulse_cap", "object weights > 0",
+                             repr(self.dgrasp_reward.impulse_cap))  # fmt: skip
 
     def limits(self, steps: int) -> tuple[float, float]:
         """The termination limits (cm, deg) in force after ``steps`` env steps: ``limits_start`` shrinking

@@ -12,6 +12,10 @@ action chooses the PD targets of frame ``t + 1``; the reward and termination jud
   ``e_rot`` its rotation error (deg) against the demo, ``e_kp`` the mean distance of the robot's keypoints to
   the demo's (cm), ``e_contact`` the mean distance (cm) of the fingertips that touch the object in the demo to
   the demo's fingertips, both in the object's frame.
+* **DGrasp's reward** (``reward_form: dgrasp``; :meth:`TrackTask.dgrasp_terms`): DGrasp's own terms (github
+  christsa/dgrasp, ``envs/dgrasp/Environment.hpp``), each against this task's reference at the frame reached,
+  ``r = max(clip, sum_k c_k term_k)`` with the coefficients of ``dgrasp_reward``; needs of the world what an
+  observation lacks, :class:`Contacts`.
 * **Hand frame** (``observe_hand_frame``; :func:`hand_frames`): per hand, the frame at its wrist keypoint with
   ``x`` towards the middle of the index and ring finger bases (``index_mcp``, ``ring_mcp``; every robot hand
   has them, the Allegro no little finger), ``z = (index - wrist) x (ring - wrist)`` normalised (the palm's
@@ -25,6 +29,7 @@ action chooses the PD targets of frame ``t + 1``; the reward and termination jud
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -98,6 +103,33 @@ def demo_contacts(demo: Demo, scene: Scene, radius: float) -> tuple[np.ndarray, 
     return tips, touch, local
 
 
+FINGERTIP_WEIGHT = 4.0  # DGrasp's weight of a fingertip keypoint in its position term, against 1 for the others
+
+
+def keypoint_weights(kp_human: np.ndarray) -> np.ndarray:
+    """(K,) DGrasp's weights of the robot keypoints standing for the human keypoints ``kp_human`` (K,; indices
+    into the human keypoints of all hands): :data:`FINGERTIP_WEIGHT` for a fingertip, 1 for the others, then
+    divided by their mean (DGrasp: 4x on its five fingertip parts, normalised to a mean of 1)."""
+    w = np.where(np.isin(np.asarray(kp_human) % N_KEYPOINTS, FINGERTIPS), FINGERTIP_WEIGHT, 1.0)
+    return w / w.mean()
+
+
+class Contacts(NamedTuple):
+    """What DGrasp's reward needs of the world beyond an observation; the env reads it from its target.
+
+    Attributes:
+        forces: (B,) per hand body (:meth:`~quasisim.targets.base.Target.body_contact_forces`: the scene's hands'
+            ``body_names`` in order, concatenated) the summed normal force of its contacts with the object during
+            the last physics step, N.
+        frame_dt: the control frame's duration in the simulator (physics step x substeps), s.
+        weight: the object's weight ``m g`` in this world, N.
+    """
+
+    forces: np.ndarray
+    frame_dt: float
+    weight: float
+
+
 @dataclass(frozen=True, eq=False)
 class TrackTask:
     """One clip's tracking task: the demo, its nominal scene, the reference PD targets (T, D), the settings.
@@ -120,6 +152,14 @@ class TrackTask:
     tips_local: np.ndarray = field(init=False, repr=False)
     demo_rot: Rotation = field(init=False, repr=False)
     frame_kp: np.ndarray | None = field(init=False, repr=False)  # (H, 3) hand_frame_keypoints, observe_hand_frame
+    # DGrasp's reward: every robot keypoint's demo position in the demo object's frame (T, K, 3), its weight (K,)
+    # and its hand body (K,; index into Contacts.forces); the finger joints' columns (Dj,) and each hand's base
+    # columns (H, 6: three slides, three hinges) of the pose vector
+    kp_local: np.ndarray = field(init=False, repr=False)
+    kp_weight: np.ndarray = field(init=False, repr=False)
+    kp_body: np.ndarray = field(init=False, repr=False)
+    joint_cols: np.ndarray = field(init=False, repr=False)
+    base_cols: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         ref = np.asarray(self.reference, np.float64)
@@ -137,6 +177,15 @@ class TrackTask:
         set_(self, "tips_local", local)
         set_(self, "demo_rot", _rot(self.demo.object_quat))
         set_(self, "frame_kp", hand_frame_keypoints(self.scene) if self.cfg.observe_hand_frame else None)
+        kp, R = self.scene.kp_human, self.demo_rot.as_matrix()
+        kp_local = np.einsum("tji,tkj->tki", R, self.demo.human_joints[:, kp] - self.demo.object_pos[:, None])
+        set_(self, "kp_local", kp_local)
+        set_(self, "kp_weight", keypoint_weights(kp))
+        first = np.cumsum([0] + [h.n_bodies for h in self.scene.hands])[:-1]  # each hand's first body
+        set_(self, "kp_body", np.concatenate([h.kp_body + b for h, b in zip(self.scene.hands, first, strict=True)]))
+        cols = [np.arange(sl.start, sl.stop) for sl in self.scene.dof_slices]
+        set_(self, "joint_cols", np.concatenate([c[6:] for c in cols]))
+        set_(self, "base_cols", np.stack([c[:6] for c in cols]))
 
     @property
     def n_frames(self) -> int:
@@ -207,13 +256,75 @@ class TrackTask:
             "contact": contact,
         }
 
-    def reward(self, t: int, obs: Observation, action: np.ndarray) -> tuple[float, dict[str, float]]:
-        """The reward of reaching frame ``t`` (observed ``obs``) with ``action``, and the errors it came from."""
+    def reward(
+        self, t: int, obs: Observation, action: np.ndarray, contacts: Contacts | None = None
+    ) -> tuple[float, dict[str, float]]:
+        """The reward of reaching frame ``t`` (observed ``obs``) with ``action``, and the errors it came from
+        (:meth:`errors`, which the termination judges). With ``reward_form: dgrasp``: DGrasp's reward,
+        ``max(clip, sum_k c_k term_k)`` over :meth:`dgrasp_terms` (which needs the world's ``contacts``), and
+        beside the errors each weighted term ``c_k term_k`` as ``r_<k>`` (``r_pos``, ``r_pose``, ``r_contact``,
+        ``r_impulse``, ``r_obj_vel``, ``r_body_vel``, ``r_body_qvel``; ``action`` unused)."""
         e = self.errors(t, obs)
+        if self.cfg.reward_form == "dgrasp":
+            if contacts is None:
+                raise ValueError("reward_form: dgrasp: the reward needs the world's contacts (Contacts)")
+            dg = self.cfg.dgrasp_reward
+            coeff = dg.coefficients()
+            weighted = {f"r_{k}": coeff[k] * v for k, v in self.dgrasp_terms(t, obs, contacts).items()}
+            return float(max(dg.clip, sum(weighted.values()))), {**e, **weighted}
         rw = self.cfg.reward
         r = sum(term.weight * np.exp(-e[k] / term.scale) for k, term in rw.terms().items())
         r -= rw.action_cost * float(np.mean(np.square(action)))
         return float(r), e
+
+    def contact_bodies(self, t: int) -> np.ndarray:
+        """(n,) DGrasp's target contact parts at frame ``t``: the hand bodies (indices into :attr:`Contacts.forces`)
+        that carry a robot fingertip keypoint whose human fingertip touches the object in the demo at ``t``
+        (:func:`demo_contacts`, within ``contact_radius`` of its surface). Only fingertips: the demo's contacts
+        are judged for them alone, so DGrasp's other contact parts (palm, proximal and middle phalanges) are never
+        targets here."""
+        return np.unique(self.kp_body[self.tips[self.touch[t]]])
+
+    def dgrasp_terms(self, t: int, obs: Observation, contacts: Contacts) -> dict[str, float]:
+        """DGrasp's reward terms at frame ``t`` (observed ``obs``), as its published code records them (github
+        christsa/dgrasp, ``envs/dgrasp/Environment.hpp``), each against this task's reference, before the
+        coefficients:
+
+        * ``pos``: ``max(-10, -sum_k |w_k d_k|^2)`` (m^2) over every robot keypoint ``k``, ``d_k`` its position
+          against the demo's keypoint at ``t``, both in the object's frame (the demo's through the demo object's
+          pose, the robot's through the observed object's); ``w`` :func:`keypoint_weights` (fingertips 4x, mean 1).
+          DGrasp's 21 hand parts are here the robot's keypoints, one per human keypoint the hand has.
+        * ``pose``: ``max(-10, -|q - q*|)`` (rad) over the finger joints, ``q*`` the reference's PD targets at
+          ``t`` (DGrasp's pose vector also holds the wrist's rotation in the object's frame; the base is left out
+          here).
+        * ``contact``: the share of :meth:`contact_bodies` whose contacts with the object press now (``forces`` >
+          0); 0 where the demo touches with none.
+        * ``impulse``: ``min(sum_b f_b dt, impulse_cap m g)`` over :meth:`contact_bodies` ``b``: each body's normal
+          force in the frame's last physics step times the frame's duration ``dt`` (``frame_dt``; N s), capped at
+          ``impulse_cap`` object weights (DGrasp: raisim's impulse of the body's contact in the last physics step,
+          capped at 5 x the object's mass in kg).
+        * ``obj_vel``: ``|v|^2`` of the object's centre of mass (m^2/s^2; DGrasp's velocity relative to the hand is
+          the world velocity in the wrist's axes: the same norm).
+        * ``body_vel``, ``body_qvel``: the hand bases' three slide and three hinge velocities squared, summed over
+          the hands (m^2/s^2, rad^2/s^2; DGrasp's ``gv_`` of its base dofs, the same kind).
+        """
+        kp = np.asarray(obs["keypoints"], np.float64)
+        local = _rot(obs["obj_quat"]).inv().apply(kp - np.asarray(obs["obj_pos"], np.float64))
+        d = self.kp_weight[:, None] * (self.kp_local[t] - local)
+        q = np.asarray(obs["qpos"], np.float64)[self.joint_cols]
+        qvel = np.asarray(obs["qvel"], np.float64)[self.base_cols]  # (H, 6)
+        bodies = self.contact_bodies(t)
+        forces = np.asarray(contacts.forces, np.float64)[bodies]
+        impulse = float(forces.sum()) * contacts.frame_dt
+        return {
+            "pos": max(-10.0, -float(np.sum(d * d))),
+            "pose": max(-10.0, -float(np.linalg.norm(q - self.reference[t, self.joint_cols]))),
+            "contact": float(np.mean(forces > 0)) if len(bodies) else 0.0,
+            "impulse": min(impulse, self.cfg.dgrasp_reward.impulse_cap * contacts.weight),
+            "obj_vel": float(np.sum(np.square(obs["obj_vel"]))),
+            "body_vel": float(np.sum(np.square(qvel[:, :3]))),
+            "body_qvel": float(np.sum(np.square(qvel[:, 3:]))),
+        }
 
     def unstable(self, obs: Observation) -> bool:
         """The simulation blew up: a state that is not finite or an object faster than MAX_OBJECT_SPEED."""

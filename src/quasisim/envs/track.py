@@ -17,7 +17,9 @@ For learning (``configs/track_env.yaml``; each off by default): ``start: random`
 reaches there (reference state initialisation); ``limits_start``/``limits_steps`` end episodes outside limits
 that shrink from loose ones to the strict limits over the env's first steps (:attr:`TrackEnv.steps_taken`,
 :meth:`TrackEnv.set_steps_taken` for a resumed training); ``observe_hand_frame`` adds the object's pose in each
-hand's frame to the observation (:class:`~quasisim.envs.task.TrackTask`).
+hand's frame to the observation (:class:`~quasisim.envs.task.TrackTask`). ``reward_form: dgrasp`` rewards each
+step with DGrasp's terms (:meth:`~quasisim.envs.task.TrackTask.dgrasp_terms`, each in the step's info as ``r_*``),
+reading the world's contacts (:meth:`TrackEnv._contacts`).
 
     import gymnasium as gym, quasisim.envs
     env = gym.make("quasisim/Track-v0", clip="grab_s1_cup_lift.npz", reference="out/cup/controls.npz",
@@ -36,7 +38,7 @@ import numpy as np
 from quasisim.data.controls import Controls, load_controls
 from quasisim.data.demo import Demo, load_demo
 from quasisim.envs.config import TrackEnvConfig
-from quasisim.envs.task import TrackTask
+from quasisim.envs.task import Contacts, TrackTask
 from quasisim.errors import InputError
 from quasisim.targets import TARGETS, Target, make_target
 from quasisim.targets.base import Observation
@@ -104,8 +106,9 @@ class TrackEnv(gym.Env):
     one per reset that draws a world or a start frame (each draw takes both a world and, with ``start: random``,
     a start frame, used or not, so that skipping ``n`` draws replays ``n`` resets whatever their options). The
     info of ``reset`` holds ``world`` (-1: the nominal scene) and ``start`` (the frame). Each step's ``info``
-    holds the frame, the errors against the demo (:meth:`TrackTask.errors`), ``limits`` (the termination limits
-    in force, [cm, deg]) and, at the episode's end, ``tracked`` (strict success,
+    holds the frame, the errors against the demo (:meth:`TrackTask.errors`; with ``reward_form: dgrasp`` also
+    DGrasp's weighted terms ``r_*``, :meth:`TrackTask.reward`), ``limits`` (the termination limits in force,
+    [cm, deg]) and, at the episode's end, ``tracked`` (strict success,
     :func:`quasisim.limits.strict_success`, as the evaluation judges it: the clip's end reached within the strict
     limits at every frame and the object moved as in the demo; judged on the episode's object poses, so an
     episode that started after frame 0 is never ``tracked``) and ``frames`` (frames reached).
@@ -138,6 +141,11 @@ class TrackEnv(gym.Env):
             raise ValueError(
                 "quasisim/Track-v0: start: random puts the world into the reference replay's state "
                 "(Target.sync), which the curriculum's simulator (physics) cannot; use start: first"
+            )
+        if cfg.reward_form == "dgrasp" and physics is not None:
+            raise ValueError(
+                "quasisim/Track-v0: reward_form: dgrasp reads each hand body's contact forces "
+                "(Target.body_contact_forces), which the curriculum's simulator (physics) does not report"
             )
         D = self.task.scene.n_dof
         self.action_space = gym.spaces.Box(-1.0, 1.0, (D,), np.float32)
@@ -239,13 +247,23 @@ class TrackEnv(gym.Env):
         if warned or task.unstable(obs):
             info = {"frame": t + 1, "unstable": True, "tracked": False, "frames": t + 1, "limits": list(limits)}
             return np.zeros(self.observation_space.shape, np.float32), 0.0, True, False, info
-        r, errors = task.reward(t + 1, obs, np.clip(action, -1, 1))
+        contacts = self._contacts() if task.cfg.reward_form == "dgrasp" else None
+        r, errors = task.reward(t + 1, obs, np.clip(action, -1, 1), contacts)
         end = t + 1 == task.n_frames - 1
         done = end or (not task.within(errors, limits) and task.cfg.terminate == "strict")
         info: dict[str, Any] = {"frame": t + 1, **errors, "limits": list(limits)}
         if done:
             info |= {"tracked": end and self._strict_success(), "frames": t + 1}
         return task.observation(t + 1, obs), r, done, False, info
+
+    def _contacts(self) -> Contacts:
+        """What DGrasp's reward reads of the world now (:class:`~quasisim.envs.task.Contacts`): each hand body's
+        normal force on the object in the last physics step, the control frame's duration (physics step x
+        substeps) and the object's weight in this world (its perturbed mass)."""
+        world = self._world
+        assert world is not None
+        phys = world.scene.physics
+        return Contacts(world.body_contact_forces(), world.dt * world.substeps, world.scene.obj.mass * phys.gravity)
 
     def _strict_success(self) -> bool:
         """Strict success of the episode's object poses (every frame of the clip) against the demo's; an episode

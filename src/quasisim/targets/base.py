@@ -283,6 +283,13 @@ class Target(abc.ABC):
         frame (normal, pressing > 0; the two tangential components), N; empty slots 0."""
         raise NotImplementedError(f"target {self.name}: contact forces are not reported (mujoco and pybullet do)")
 
+    def body_contact_forces(self) -> np.ndarray:
+        """(n_hand_bodies,) per hand body (each hand's ``body_names`` in order, the hands concatenated) the summed
+        normal force of its contacts with the object during the last physics step (N; pressing > 0; 0: none)."""
+        raise NotImplementedError(
+            f"target {self.name}: per-body contact forces are not reported (mujoco and pybullet do)"
+        )
+
     def contact_cones(self, slots: int) -> np.ndarray:
         """(n_hands * slots, 2) :meth:`contact_forces` as friction-cone radii and tangential loads in object
         weights (:func:`quasisim.targets.grasp.cone_loads`) in this target's world."""

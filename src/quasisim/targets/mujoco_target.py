@@ -579,6 +579,23 @@ class MujocoTarget(Target):
                 per_hand[hand].append(f6[:3].copy())
         return np.stack([strongest(np.reshape(f, (-1, 3)), slots) for f in per_hand])
 
+    def body_contact_forces(self) -> np.ndarray:
+        """As :meth:`Target.body_contact_forces`: the normal component of ``mj_contactForce`` of every contact
+        between a hand body and the object during the last physics step (the contacts of
+        :meth:`contact_forces`), summed per body in the order of :attr:`MujocoModel.hand_body`."""
+        mm, d = self.mm, self._run()
+        m = mm.model
+        index = np.full(m.nbody, -1)
+        index[mm.hand_body] = np.arange(len(mm.hand_body))
+        out, f6 = np.zeros(len(mm.hand_body)), np.zeros(6)
+        for i in range(d.ncon):
+            b1, b2 = m.geom_bodyid[d.contact.geom1[i]], m.geom_bodyid[d.contact.geom2[i]]
+            body = index[b1] if b2 == mm.obj_body else index[b2] if b1 == mm.obj_body else -1
+            if body >= 0:
+                mujoco.mj_contactForce(m, d, i, f6)
+                out[body] += f6[0]
+        return out
+
     def warnings(self) -> dict[str, int]:
         """How often MuJoCo raised each warning of :data:`UNSTABLE_WARNINGS` in this run."""
         w = self._run().warning

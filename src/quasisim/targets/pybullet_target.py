@@ -512,6 +512,19 @@ class PybulletTarget(Target):
             out.append(strongest(np.array([(c[9], c[10], c[12]) for c in pts], np.float64), slots))
         return np.stack(out)
 
+    def body_contact_forces(self) -> np.ndarray:
+        """As :meth:`Target.body_contact_forces`: the ``normalForce`` of every contact point of a hand with the
+        object in the last ``stepSimulation`` (``getContactPoints``), summed per body: a point's ``linkIndexA`` is
+        the link that carries its body's shapes (:attr:`_HandBody.body_link`)."""
+        out = []
+        for part in self.parts:
+            body_of_link = {int(link): b for b, link in enumerate(part.body_link)}
+            f = np.zeros(part.hand.n_bodies)
+            for c in self.pb.getContactPoints(bodyA=part.id, bodyB=self.obj_id, **self._kw()):
+                f[body_of_link[c[3]]] += c[9]
+            out.append(f)
+        return np.concatenate(out)
+
     def save_state(self) -> int:
         """``saveState``: the id of an in-memory copy of the world (free it with :meth:`release_state`)."""
         return int(self.pb.saveState(**self._kw()))
