@@ -657,3 +657,5 @@ def test_the_dgrasp_settings_are_validated(clip) -> None:
             TrackEnvConfig.from_yaml(None, override)
     with pytest.raises(ValueError, match="reward_form: dgrasp"):
         _env(clip, overrides={"reward_form": "dgrasp"}, physics={"substeps": 1})
+    with pytest.raises(ValueError, match="action_form: dgrasp"):
+        _env(clip, overrides={"action_form": "dgrasp"}, physics={"substeps": 1})

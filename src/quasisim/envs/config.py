@@ -16,6 +16,7 @@ TRACK_ENV_PATH = Path(__file__).resolve().parent.parent / "configs" / "track_env
 TERMINATIONS = ("strict", "unstable")
 STARTS = ("first", "random")  # reference state initialisation: the clip's first frame, or a random one
 REWARD_FORMS = ("tracking", "dgrasp")  # the tracking reward (Reward), or DGrasp's terms (DgraspReward)
+ACTION_FORMS = ("default", "dgrasp")  # today's residual/delta targets, or DGrasp's (DgraspAction; not residual)
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,24 @@ class DgraspReward:
 
 
 @dataclass(frozen=True)
+class DgraspAction:
+    """DGrasp's action scale (``action_form: dgrasp``): the step per unit action of the finger joints
+    (``fingers``, rad), the base hinges (``rot``, rad) and the base slides around the goal wrist position
+    (``root``, m), as in DGrasp's published code with its wrist guidance on (github christsa/dgrasp,
+    ``raisimGymTorch/.../envs/dgrasp/Environment.hpp``, ``cfgs/cfg.yaml``: ``finger_action_std`` 0.015,
+    ``rot_action_std`` 0.01, the root's 0.001 of ``root_guided``). DGrasp's actions are unbounded Gaussians
+    scaled by these; ours are clipped to [-1, 1], so each is the largest step a frame's action can take."""
+
+    fingers: float = 0.015
+    rot: float = 0.01
+    root: float = 0.001
+
+    def scale(self) -> DofScale:
+        """As a :class:`DofScale` (base slides, base hinges, finger joints)."""
+        return DofScale(base_pos=self.root, base_rot=self.rot, joints=self.fingers)
+
+
+@dataclass(frozen=True)
 class TrackEnvConfig:
     """The environment's settings; see ``configs/track_env.yaml`` for each key."""
 
@@ -95,6 +114,8 @@ class TrackEnvConfig:
     observe_hand_frame: bool = False
     reward_form: str = "tracking"
     dgrasp_reward: DgraspReward = field(default_factory=DgraspReward)
+    action_form: str = "default"
+    dgrasp_action: DgraspAction = field(default_factory=DgraspAction)
     path: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -130,6 +151,11 @@ class TrackEnvConfig:
         if not self.dgrasp_reward.impulse_cap > 0:
             raise InputError(where, "dgrasp_reward.impulse_cap", "object weights > 0",
                              repr(self.dgrasp_reward.impulse_cap))  # fmt: skip
+        if self.action_form not in ACTION_FORMS:
+            raise InputError(where, "action_form", f"one of {', '.join(ACTION_FORMS)}", repr(self.action_form))
+        for name, value in dataclasses.asdict(self.dgrasp_action).items():
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(where, f"dgrasp_action.{name}", "a finite scale > 0", repr(value))
 
     def limits(self, steps: int) -> tuple[float, float]:
         """The termination limits (cm, deg) in force after ``steps`` env steps: ``limits_start`` shrinking

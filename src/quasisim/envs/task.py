@@ -7,7 +7,11 @@ Frames: the world is at frame ``t`` (observation ``obs``, :data:`quasisim.target
 action chooses the PD targets of frame ``t + 1``; the reward and termination judge frame ``t + 1``.
 
 * **Action** ``a`` (D,) in [-1, 1]: residual, ``q*_{t+1} = q^ref_{t+1} + s_res * a``; otherwise (DGrasp's
-  form) ``q*_{t+1} = q_t + s_delta * a`` from the measured pose ``q_t``; clipped to the joint limits.
+  form) ``q*_{t+1} = q_t + s_delta * a`` from the measured pose ``q_t``; clipped to the joint limits. With
+  ``action_form: dgrasp`` (not residual; :meth:`TrackTask.dgrasp_targets`) DGrasp's own form: the fingers and
+  base hinges step from the measured pose, the base slides from the goal wrist position (the reference's base
+  carried rigidly with the object, :meth:`TrackTask.goal_base`), by DGrasp's small scales, and the frame holds
+  its targets with no velocity fed forward (:meth:`TrackTask.schedule_from`).
 * **Reward** ``r = sum_k w_k exp(-e_k / s_k) - c |a|^2 / D`` with ``e_pos`` the object's position error (cm),
   ``e_rot`` its rotation error (deg) against the demo, ``e_kp`` the mean distance of the robot's keypoints to
   the demo's (cm), ``e_contact`` the mean distance (cm) of the fingertips that touch the object in the demo to
@@ -160,11 +164,18 @@ class TrackTask:
     kp_body: np.ndarray = field(init=False, repr=False)
     joint_cols: np.ndarray = field(init=False, repr=False)
     base_cols: np.ndarray = field(init=False, repr=False)
+    # action_form: dgrasp: DGrasp's action scale (D,) (dgrasp_action; the observation keeps ``scale``'s units)
+    dgrasp_scale: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         ref = np.asarray(self.reference, np.float64)
         if ref.shape != (self.demo.n_frames, self.scene.n_dof):
             raise ValueError(f"reference: expected ({self.demo.n_frames}, {self.scene.n_dof}), got {ref.shape}")
+        if self.residual and self.cfg.action_form == "dgrasp":
+            raise ValueError(
+                "action_form: dgrasp sets the PD targets around the measured pose and the goal wrist position, "
+                "not on the reference: it needs residual=False (or action_form: default)"
+            )
         set_ = object.__setattr__
         set_(self, "reference", ref)
         set_(self, "scale", dof_scale(self.scene, self.cfg.residual_scale if self.residual else self.cfg.delta_scale))
@@ -186,6 +197,7 @@ class TrackTask:
         cols = [np.arange(sl.start, sl.stop) for sl in self.scene.dof_slices]
         set_(self, "joint_cols", np.concatenate([c[6:] for c in cols]))
         set_(self, "base_cols", np.stack([c[:6] for c in cols]))
+        set_(self, "dgrasp_scale", dof_scale(self.scene, self.cfg.dgrasp_action.scale()))
 
     @property
     def n_frames(self) -> int:
@@ -233,11 +245,51 @@ class TrackTask:
     def targets(self, t: int, action: np.ndarray, obs: Observation) -> np.ndarray:
         """(D,) the PD targets of frame ``t + 1`` for ``action`` (D,) in [-1, 1] (clipped): the action moves
         them no further out of the joint limits than the pose it starts from (the reference or the measured
-        pose, which may lie a hair outside), so a zero residual is the reference exactly."""
+        pose, which may lie a hair outside), so a zero residual is the reference exactly. With
+        ``action_form: dgrasp``: :meth:`dgrasp_targets`."""
+        if self.cfg.action_form == "dgrasp":
+            return self.dgrasp_targets(t, action, obs)
         a = np.clip(np.asarray(action, np.float64), -1.0, 1.0)
         base = self.reference[t + 1] if self.residual else np.asarray(obs["qpos"], np.float64)
         lo, hi = self.bounds
         return np.clip(base + self.scale * a, np.minimum(lo, base), np.maximum(hi, base))
+
+    def goal_base(self, t: int, obs: Observation) -> np.ndarray:
+        """(H, 3) m, DGrasp's goal wrist position of each hand for frame ``t + 1`` (its wrist guidance): the
+        reference's base slides at ``t + 1`` (the hand root's world position, :mod:`quasisim.sim.kinematics`)
+        moved rigidly with the object from the demo's pose at ``t + 1`` to the observed pose now,
+
+        ``g_h = x_obj + R_obj R_demo(t+1)^T (p^ref_h(t+1) - x_demo(t+1))``,
+
+        so the wrist is drawn to where the reference grasp would hold the object as it is now."""
+        p = self.reference[t + 1, self.base_cols[:, :3]]  # (H, 3)
+        local = self.demo_rot[t + 1].inv().apply(p - self.demo.object_pos[t + 1])
+        return _rot(obs["obj_quat"]).apply(local) + np.asarray(obs["obj_pos"], np.float64)
+
+    def dgrasp_targets(self, t: int, action: np.ndarray, obs: Observation) -> np.ndarray:
+        """(D,) the PD targets of frame ``t + 1`` in DGrasp's form of action (``action_form: dgrasp``; github
+        christsa/dgrasp, ``envs/dgrasp/Environment.hpp``: targets ``action * action_std + action_mean``, the
+        mean the measured pose, the wrist's translation guided to the goal):
+
+        ``q* = clip(m + s * clip(a, -1, 1), min(lo, m), max(hi, m))``
+
+        with the mean ``m`` the measured pose ``q_t`` (``obs["qpos"]``) on the finger joints and base hinges and
+        :meth:`goal_base` on each hand's base slides, ``s`` :attr:`dgrasp_scale` (``dgrasp_action``: fingers
+        0.015 rad, hinges 0.01 rad, slides 0.001 m), ``lo``/``hi`` the joint limits (an action moves a target no
+        further out of them than its mean, as :meth:`targets`). A zero action holds the measured fingers and
+        wrist rotation and puts the wrist at the goal."""
+        a = np.clip(np.asarray(action, np.float64), -1.0, 1.0)
+        mean = np.array(obs["qpos"], np.float64)
+        mean[self.base_cols[:, :3]] = self.goal_base(t, obs)
+        lo, hi = self.bounds
+        return np.clip(mean + self.dgrasp_scale * a, np.minimum(lo, mean), np.maximum(hi, mean))
+
+    def schedule_from(self, prev: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """The PD targets a frame's schedule starts from on its way to ``q`` (:meth:`Target.advance(start, q)
+        <quasisim.targets.base.Target.advance>`): the previous frame's ``prev``, with the velocity
+        ``(q - prev) fps`` fed forward; with ``action_form: dgrasp`` ``q`` itself, DGrasp's zero velocity
+        targets (the target held over the frame, nothing fed forward)."""
+        return q if self.cfg.action_form == "dgrasp" else prev
 
     def errors(self, t: int, obs: Observation) -> dict[str, float]:
         """Frame ``t``'s errors against the demo: ``object_pos`` (cm), ``object_rot`` (deg), ``keypoints``

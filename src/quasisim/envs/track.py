@@ -19,7 +19,9 @@ that shrink from loose ones to the strict limits over the env's first steps (:at
 :meth:`TrackEnv.set_steps_taken` for a resumed training); ``observe_hand_frame`` adds the object's pose in each
 hand's frame to the observation (:class:`~quasisim.envs.task.TrackTask`). ``reward_form: dgrasp`` rewards each
 step with DGrasp's terms (:meth:`~quasisim.envs.task.TrackTask.dgrasp_terms`, each in the step's info as ``r_*``),
-reading the world's contacts (:meth:`TrackEnv._contacts`).
+reading the world's contacts (:meth:`TrackEnv._contacts`). ``action_form: dgrasp`` (not residual) acts in DGrasp's
+form (:meth:`~quasisim.envs.task.TrackTask.dgrasp_targets`) and advances each frame with its targets held, no
+velocity fed forward (:meth:`~quasisim.envs.task.TrackTask.schedule_from`).
 
     import gymnasium as gym, quasisim.envs
     env = gym.make("quasisim/Track-v0", clip="grab_s1_cup_lift.npz", reference="out/cup/controls.npz",
@@ -91,7 +93,8 @@ class TrackEnv(gym.Env):
         reference: our result to track (run folder or ``controls.npz``); its hands and base frames are the
             robot's. Required: ``quasisim policy train`` writes the kinematic retarget as the reference when
             it is given no result.
-        residual: actions add to the reference's PD targets (else they move the measured pose, DGrasp's form).
+        residual: actions add to the reference's PD targets (else they move the measured pose, DGrasp's form;
+            ``action_form: dgrasp`` needs ``residual=False``).
         target: the simulator (``mujoco`` or ``pybullet``).
         config: a :class:`TrackEnvConfig` (default ``configs/track_env.yaml`` with ``overrides``).
         physics: a simulator of the physics curriculum to step instead of ``target`` (its contact settings,
@@ -146,6 +149,12 @@ class TrackEnv(gym.Env):
             raise ValueError(
                 "quasisim/Track-v0: reward_form: dgrasp reads each hand body's contact forces "
                 "(Target.body_contact_forces), which the curriculum's simulator (physics) does not report"
+            )
+        if cfg.action_form == "dgrasp" and physics is not None:
+            raise ValueError(
+                "quasisim/Track-v0: action_form: dgrasp holds each frame's targets, and the curriculum's "
+                "simulator (physics) reports the hands' velocity as the targets' change (0 when held); use "
+                "action_form: default"
             )
         D = self.task.scene.n_dof
         self.action_space = gym.spaces.Box(-1.0, 1.0, (D,), np.float32)
@@ -239,7 +248,7 @@ class TrackEnv(gym.Env):
         task, t, limits = self.task, self._t, self.limits
         self.steps_taken += 1
         q = task.targets(t, action, self._obs)
-        self._world.advance(self._prev, q)
+        self._world.advance(task.schedule_from(self._prev, q), q)
         self._t, self._prev = t + 1, q
         self._obs = obs = self._world.observe()
         self._poses.append((obs["obj_pos"], obs["obj_quat"]))

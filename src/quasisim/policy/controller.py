@@ -37,6 +37,10 @@ class LearnedPolicy:
         self.applied.append(q)
         return q
 
+    def schedule_from(self, prev: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Where each frame's PD schedule starts, as in training (:meth:`TrackTask.schedule_from`)."""
+        return self.task.schedule_from(prev, q)
+
     def cost(self) -> dict[str, float]:
         return {"policy_seconds": self.seconds, "steps": float(len(self.applied) - 1)}
 

@@ -234,7 +234,10 @@ def rotated(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 class Policy(Protocol):
     """A closed-loop controller (:class:`quasisim.method.track.Tracker`): ``start`` on the world's first
     observation, ``act(t, obs)`` -> the PD targets (D,) for frame ``t + 1``; ``cost()`` what it spent
-    (numbers, averaged over replays); ``close()``."""
+    (numbers, averaged over replays); ``close()``. Optional: ``schedule_from(prev, q)`` -> the targets the
+    frame's PD schedule starts from (:meth:`~quasisim.targets.base.Target.advance`; without it ``prev``, the
+    previous frame's, with their velocity fed forward; a policy trained with DGrasp's held targets returns
+    ``q``, :meth:`quasisim.envs.task.TrackTask.schedule_from`)."""
 
     def start(self, obs: dict[str, np.ndarray]) -> None: ...
     def act(self, t: int, obs: dict[str, np.ndarray]) -> np.ndarray: ...
@@ -260,12 +263,13 @@ def replay(world: Any, q_targets: np.ndarray, policy: Policy | None = None,
     seen = obs if sensor is None else sensor.see(obs)
     if policy is not None:
         policy.start(seen)
+    start_of = getattr(policy, "schedule_from", None)  # as the policy was trained to drive the world
     for t in range(T):
         frames.append(obs)
         if t == T - 1:
             break
         nxt = q[t + 1] if policy is None else np.asarray(policy.act(t, seen), np.float64)
-        world.advance(prev, nxt)
+        world.advance(prev if start_of is None else start_of(prev, nxt), nxt)
         prev = nxt
         obs = world.observe()
         if push is not None and t + 1 == push[0]:
