@@ -76,13 +76,15 @@ def test_help_names_the_examples_and_commands() -> None:
     assert all(n in _run(["example", "--help"]) for n in EXAMPLES)
     top = _run(["--help"])
     assert all(c in top for c in ("view", "convert", "transfer", "evaluate"))
-    # `bench`: the commands behind the tables of BENCHMARKS.md and the failure analysis, nothing else
+    # `bench`: the commands behind the tables of BENCHMARKS.md and of docs/studies, and the failure and grasp
+    # analyses, nothing else
     assert sorted(main.commands["bench"].commands) == [
         "batch",
         "compare",
         "env",
         "export",
         "failures",
+        "grasp",
         "paper",
         "policy",
         "transfer",
