@@ -300,8 +300,9 @@ class MujocoModel:
         self.kp_site = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, n) for n in sites])
         self.hand_body = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in bodies])
         self.hand_of_body = np.full(m.nbody, -1)  # body -> the hand it belongs to (-1: none)
-        for i, (h, p) in enumerate(zip(scene.hands, scene.prefixes, strict=True)):
-            self.hand_of_body[[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, p + n) for n in h.body_names]] = i
+        self.hand_of_body[self.hand_body] = np.repeat(
+            np.arange(len(scene.hands)), [len(h.body_names) for h in scene.hands]
+        )
         # each hand's root: its one body whose parent is no body of that hand (the subtree of its contact sensor)
         self.hand_root = [
             next(b for b in np.flatnonzero(self.hand_of_body == i) if self.hand_of_body[m.body_parentid[b]] != i)
@@ -564,36 +565,37 @@ class MujocoTarget(Target):
     def extras(self) -> dict[str, Any]:
         return {"sim_warnings": self.warnings()}
 
-    def contact_forces(self, slots: int) -> np.ndarray:
-        """(n_hands, slots, 3) per hand its ``slots`` strongest contacts with the object during the last physics
-        step (``mj_contactForce`` of the run's data after ``mj_step``: the contacts and constraint forces of
-        that step, under its controls), as the window rollouts' contact sensors report a frame (N)."""
+    def _object_contacts(self) -> list[tuple[int, np.ndarray]]:
+        """(body, force) of every contact between a hand body and the object during the last physics step
+        (``mj_contactForce`` of the run's data after ``mj_step``: the contacts and constraint forces of that step,
+        under its controls): the hand body's id and the force (3,) in the contact frame (normal, t1, t2; N)."""
         mm, d = self.mm, self._run()
-        per_hand: list[list[np.ndarray]] = [[] for _ in self.scene.hands]
-        f6 = np.zeros(6)
+        out, f6 = [], np.zeros(6)
         for i in range(d.ncon):
             b1, b2 = mm.model.geom_bodyid[d.contact.geom1[i]], mm.model.geom_bodyid[d.contact.geom2[i]]
-            hand = mm.hand_of_body[b1] if b2 == mm.obj_body else mm.hand_of_body[b2] if b1 == mm.obj_body else -1
-            if hand >= 0:
+            body = b1 if b2 == mm.obj_body else b2 if b1 == mm.obj_body else -1
+            if body >= 0 and mm.hand_of_body[body] >= 0:
                 mujoco.mj_contactForce(mm.model, d, i, f6)
-                per_hand[hand].append(f6[:3].copy())
+                out.append((int(body), f6[:3].copy()))
+        return out
+
+    def contact_forces(self, slots: int) -> np.ndarray:
+        """(n_hands, slots, 3) per hand its ``slots`` strongest contacts with the object during the last physics
+        step (:meth:`_object_contacts`), as the window rollouts' contact sensors report a frame (N)."""
+        per_hand: list[list[np.ndarray]] = [[] for _ in self.scene.hands]
+        for body, f in self._object_contacts():
+            per_hand[self.mm.hand_of_body[body]].append(f)
         return np.stack([strongest(np.reshape(f, (-1, 3)), slots) for f in per_hand])
 
     def body_contact_forces(self) -> np.ndarray:
-        """As :meth:`Target.body_contact_forces`: the normal component of ``mj_contactForce`` of every contact
-        between a hand body and the object during the last physics step (the contacts of
-        :meth:`contact_forces`), summed per body in the order of :attr:`MujocoModel.hand_body`."""
-        mm, d = self.mm, self._run()
-        m = mm.model
-        index = np.full(m.nbody, -1)
+        """As :meth:`Target.body_contact_forces`: the normal forces of :meth:`_object_contacts` summed per body,
+        in the order of :attr:`MujocoModel.hand_body`."""
+        mm = self.mm
+        index = np.full(mm.model.nbody, -1)
         index[mm.hand_body] = np.arange(len(mm.hand_body))
-        out, f6 = np.zeros(len(mm.hand_body)), np.zeros(6)
-        for i in range(d.ncon):
-            b1, b2 = m.geom_bodyid[d.contact.geom1[i]], m.geom_bodyid[d.contact.geom2[i]]
-            body = index[b1] if b2 == mm.obj_body else index[b2] if b1 == mm.obj_body else -1
-            if body >= 0:
-                mujoco.mj_contactForce(m, d, i, f6)
-                out[body] += f6[0]
+        out = np.zeros(len(mm.hand_body))
+        for body, f in self._object_contacts():
+            out[index[body]] += f[0]
         return out
 
     def warnings(self) -> dict[str, int]:
