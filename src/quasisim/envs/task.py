@@ -384,9 +384,6 @@ class TrackTask:
         finite = all(np.isfinite(np.asarray(obs[k])).all() for k in ("qpos", "obj_pos", "obj_quat"))
         return not finite or float(np.linalg.norm(v)) > MAX_OBJECT_SPEED
 
-    def within_strict(self, errors: dict[str, float]) -> bool:
-        return self.within(errors, (STRICT_CM, STRICT_DEG))
-
     def within(self, errors: dict[str, float], limits: tuple[float, float]) -> bool:
         """The object is within ``limits`` (cm, deg) of the demo's pose (:meth:`errors`)."""
         return errors["object_pos"] <= limits[0] and errors["object_rot"] <= limits[1]
